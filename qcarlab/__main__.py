@@ -1,0 +1,5 @@
+"""``python -m qcarlab`` is the ``qcarlab`` command."""
+
+from qcarlab.cli import main
+
+main()

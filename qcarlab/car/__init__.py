@@ -1,0 +1,73 @@
+"""Cars: the :class:`Car` interface and ``open_car``, which picks the backend from a URI.
+
+- ``"sim"``: the built-in simulator in this process (seeded, stepped time by default);
+- ``"tcp://HOST:PORT"``: a car served by ``qcarlab serve`` (simulated or physical).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from qcarlab.car.base import Car, Command, Identity, Pose, Readout, Truth
+from qcarlab.constants import DEFAULT_PARAMS, QCarParams, load_params
+from qcarlab.errors import InputError, NotBuiltError
+
+__all__ = ["Car", "Command", "Identity", "Pose", "Readout", "Truth", "open_car", "parse_car_uri"]
+
+
+def parse_car_uri(uri: str) -> tuple[str, str | None, int | None]:
+    """Split ``sim`` / ``tcp://HOST:PORT`` into (scheme, host, port); bad URIs raise InputError."""
+    text = (uri or "").strip()
+    if text in ("sim", "sim://", "sim:"):
+        return "sim", None, None
+    if text.startswith("tcp://"):
+        rest = text[len("tcp://") :].rstrip("/")
+        host, sep, port_text = rest.rpartition(":")
+        if not sep or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
+            raise InputError(f"--car {uri!r}: expected tcp://HOST:PORT with a port in 1-65535")
+        return "tcp", host.strip("[]"), int(port_text)
+    raise InputError(f"--car {uri!r}: expected 'sim' or 'tcp://HOST:PORT'")
+
+
+def open_car(
+    uri: str = "sim",
+    *,
+    world: Any = None,
+    seed: int = 0,
+    on_stand: bool = False,
+    realtime: bool = False,
+    params: QCarParams | str | Path | None = None,
+    throttle_limit: float | None = None,
+    start: tuple[float, float, float] | None = None,
+    **options: Any,
+) -> Car:
+    """Open a car. Use it in a ``with`` block so it is stopped and released however the block ends.
+
+    ``world`` is a world name, a world/ROS-map file or a loaded World (simulated cars only);
+    ``params`` a :class:`QCarParams` or a YAML file overriding the simulator's car parameters.
+    """
+    scheme, host, port = parse_car_uri(uri)
+    if not isinstance(params, QCarParams):
+        params = load_params(params) if params is not None else DEFAULT_PARAMS
+    if scheme == "sim":
+        from qcarlab.car.sim import SimCar
+
+        if isinstance(world, (str, Path)):
+            from qcarlab.sim.world import load_world
+
+            world = load_world(world, params)
+        return SimCar(
+            params,
+            seed=seed,
+            on_stand=on_stand,
+            world=world,
+            start=start,
+            realtime=realtime,
+            throttle_limit=throttle_limit,
+        )
+    try:
+        from qcarlab.car.tcp import TcpCar
+    except ImportError:
+        raise NotBuiltError("--car tcp://...: the TCP car is not built yet (issue 5)") from None
+    return TcpCar(host, port, params=params, throttle_limit=throttle_limit, **options)

@@ -1,0 +1,94 @@
+"""The typer app, the error style and the entry point.
+
+One error style everywhere: a bad argument or file prints one line ``qcarlab CMD: error: ...`` on
+stderr and exits 2; a runtime failure (car unreachable) exits 1; Ctrl-C exits 130 with the car
+stopped. No traceback unless ``--debug`` (or QCARLAB_DEBUG=1).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+
+import typer
+from rich.console import Console
+
+from qcarlab.errors import QcarlabError
+
+app = typer.Typer(
+    name="qcarlab",
+    help=(
+        "The QCar self-driving lab, section by section, on a built-in simulator (--car sim, the "
+        "default) or a real car (--car tcp://HOST:PORT).\n\n"
+        "Start with: qcarlab io-test --on-floor --throttle 0.1 --duration 2"
+    ),
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+stderr = Console(stderr=True, highlight=False, soft_wrap=True)
+
+
+class _OneLineHandler(logging.Handler):
+    """Warnings from the library (e.g. a clamped command) as one plain line on stderr."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        stderr.print(f"{record.levelname.lower()}: {record.getMessage()}", markup=False)
+
+
+def _setup_logging() -> None:
+    logger = logging.getLogger("qcarlab")
+    if not any(isinstance(h, _OneLineHandler) for h in logger.handlers):
+        logger.addHandler(_OneLineHandler())
+    logger.setLevel(logging.INFO)
+    logger.propagate = False
+
+
+def _command_name(argv: list[str]) -> str:
+    for arg in argv:
+        if not arg.startswith("-"):
+            return f"qcarlab {arg}"
+    return "qcarlab"
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry point: run the app with the house error style."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv or os.environ.get("QCARLAB_DEBUG", "") not in ("", "0")
+    _setup_logging()
+    name = _command_name(argv)
+    if not argv:
+        argv = ["--help"]
+    try:
+        code = app(args=argv, prog_name="qcarlab", standalone_mode=False)
+    except (KeyboardInterrupt, typer.Abort):
+        stderr.print(f"{name}: interrupted; the car was stopped", markup=False)
+        sys.exit(130)
+    except QcarlabError as exc:
+        if debug:
+            raise
+        stderr.print(f"{name}: error: {exc}", markup=False)
+        sys.exit(exc.exit_code)
+    except Exception as exc:
+        # typer's parser errors (click's, vendored or not), recognised by their class names
+        kinds = {cls.__name__ for cls in type(exc).__mro__}
+        if "Exit" in kinds:
+            sys.exit(getattr(exc, "exit_code", 0))
+        if "Abort" in kinds:
+            stderr.print(f"{name}: interrupted; the car was stopped", markup=False)
+            sys.exit(130)
+        if debug:
+            raise
+        if "ClickException" in kinds:
+            stderr.print(f"{name}: error: {exc.format_message()}", markup=False)
+            sys.exit(2 if "UsageError" in kinds else getattr(exc, "exit_code", 1))
+        stderr.print(
+            f"{name}: internal error: {type(exc).__name__}: {exc} (run again with --debug for the traceback)",
+            markup=False,
+        )
+        sys.exit(1)
+    sys.exit(code if isinstance(code, int) else 0)

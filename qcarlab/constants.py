@@ -1,0 +1,149 @@
+"""The QCar's facts, in one place, in SI units.
+
+Every number the simulator, the controllers and the driver use comes from :class:`QCarParams`.
+The defaults are the Quanser QCar 1's (lab sheet section 2 and DESIGN.md section 3); a YAML file
+can override any field::
+
+    # my_car.yaml
+    battery_soc0: 0.5        # start half charged
+    rolling_resistance: 0.03
+
+and ``load_params("my_car.yaml")`` returns the merged parameters (unknown keys and non-numeric
+values are refused with the file and field named).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+from qcarlab.errors import InputError
+
+
+@dataclass(frozen=True, slots=True)
+class QCarParams:
+    """Physical parameters of the car and its sensors (SI units)."""
+
+    # geometry
+    wheelbase: float = 0.256  # L, m; axles at +-L/2 from the centre
+    track: float = 0.170  # m
+    length: float = 0.425  # m
+    width: float = 0.192  # m
+    height: float = 0.182  # m
+    mass: float = 2.7  # kg
+    wheel_radius: float = 0.033  # m
+    # steering servo
+    max_steering: float = 0.5236  # rad at the wheels (30 deg)
+    steering_tau: float = 0.16  # s, first-order servo lag
+    # drive train
+    encoder_cpr: float = 2880.0  # counts per motor revolution (720 lines, 4x quadrature)
+    gear_ratio: float = (13 * 19) / (70 * 37)  # motor rev -> wheel rev, 0.09537
+    motor_resistance: float = 0.47  # ohm
+    motor_kt: float = 0.0027  # N m / A
+    motor_kb: float = 0.0027  # V s / rad
+    drivetrain_inertia: float = 4.0e-6  # kg m^2 at the motor shaft (rotor, gears, wheels)
+    motor_friction: float = 2.0e-4  # N m Coulomb friction at the motor shaft (on the stand too)
+    motor_damping: float = 2.0e-7  # N m s / rad viscous friction at the motor shaft
+    rolling_resistance: float = 0.016  # C_rr on the floor (force = C_rr m g)
+    # throttle
+    throttle_limit: float = 0.3  # PWM duty-cycle fraction
+    # battery: 3S LiPo, 3300 mAh
+    battery_cells: int = 3
+    battery_capacity_ah: float = 3.3
+    battery_resistance: float = 0.06  # ohm, internal
+    battery_soc0: float = 0.9  # state of charge at power-on, 0..1
+    idle_current: float = 1.5  # A drawn by the computer and sensors (2 h 11 min stationary)
+    battery_low_v: float = 10.5
+    battery_shutdown_v: float = 10.0
+    # IMU noise (standard deviations) and gyro bias
+    gyro_noise: float = 0.002  # rad/s
+    gyro_bias_sd: float = 0.001  # rad/s, drawn once per run
+    accel_noise: float = 0.02  # m/s^2
+    current_noise: float = 0.01  # A
+    voltage_noise: float = 0.005  # V
+    # sensor mounts (body frame: x forward, y left, z up, from the car's centre on the floor)
+    lidar_x: float = 0.0  # m, RPLidar A2 on the roof, over the centre
+    lidar_z: float = 0.20  # m
+    lidar_beams: int = 800  # samples per turn at 10 Hz
+    lidar_rate: float = 10.0  # Hz
+    lidar_min_range: float = 0.15  # m
+    lidar_max_range: float = 12.0  # m
+    lidar_noise: float = 0.005  # m, range noise standard deviation
+    rgbd_x: float = 0.19  # m, Intel D435 at the front bumper
+    rgbd_z: float = 0.14  # m
+    rgbd_pitch: float = 0.0  # rad, + = looking down
+    rgbd_width: int = 640
+    rgbd_height: int = 480
+    rgbd_hfov: float = math.radians(69.4)  # colour horizontal field of view
+    rgbd_vfov: float = math.radians(42.5)
+    rgbd_rate: float = 30.0  # Hz
+    rgbd_max_depth: float = 10.0  # m; beyond reads 0 (no data)
+    csi_x: float = 0.10  # m, the four 160 deg cameras around the roof, offset from the centre
+    csi_z: float = 0.16  # m
+    csi_width: int = 820
+    csi_height: int = 410
+    csi_fov: float = math.radians(160.0)
+    csi_rate: float = 30.0  # Hz
+    # simulation
+    physics_dt: float = 0.002  # s, the simulator's internal step (QUARC's 500 Hz)
+    gravity: float = 9.81
+
+    @property
+    def speed_per_count(self) -> float:
+        """Metres of travel per encoder count: 1/cpr * gear * 2 pi r (6.866e-6 m)."""
+        return self.gear_ratio * 2.0 * math.pi * self.wheel_radius / self.encoder_cpr
+
+    @property
+    def min_turning_radius(self) -> float:
+        """Tightest turn of the rear axle, L / tan(delta_max) (0.443 m)."""
+        return self.wheelbase / math.tan(self.max_steering)
+
+
+DEFAULT_PARAMS = QCarParams()
+
+_INT_FIELDS = {f.name for f in fields(QCarParams) if f.type in ("int", int)}
+_SIGNED_FIELDS = {"rgbd_pitch", "battery_soc0"}
+_FIELD_NAMES = [f.name for f in fields(QCarParams)]
+
+
+def params_from_mapping(data: Any, source: str = "parameters") -> QCarParams:
+    """Merge a mapping of field -> number over the defaults, refusing unknown or bad fields."""
+    if data is None:
+        return DEFAULT_PARAMS
+    if not isinstance(data, dict):
+        raise InputError(f"{source}: expected a mapping of parameter: value, got {type(data).__name__}")
+    changes: dict[str, float | int] = {}
+    for key, value in data.items():
+        if key not in _FIELD_NAMES:
+            raise InputError(f"{source}: unknown parameter '{key}' (known: {', '.join(_FIELD_NAMES)})")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise InputError(f"{source}: parameter '{key}' must be a finite number, got {value!r}")
+        if value <= 0 and key not in _SIGNED_FIELDS:
+            raise InputError(f"{source}: parameter '{key}' must be positive, got {value!r}")
+        changes[key] = int(value) if key in _INT_FIELDS else float(value)
+    if "battery_soc0" in changes and not 0.0 <= changes["battery_soc0"] <= 1.0:
+        raise InputError(f"{source}: parameter 'battery_soc0' must be in [0, 1]")
+    return replace(DEFAULT_PARAMS, **changes)
+
+
+def load_params(path: str | Path | None) -> QCarParams:
+    """Read a YAML parameter file (see the module docstring); ``None`` gives the defaults."""
+    if path is None:
+        return DEFAULT_PARAMS
+    import yaml
+
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read parameter file ({exc.strerror or exc})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or "malformed YAML"
+        raise InputError(f"{p}{where}: {problem}") from None
+    return params_from_mapping(data, str(p))

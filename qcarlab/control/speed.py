@@ -1,0 +1,74 @@
+"""Speed blocks of the lab: speed estimation from the encoder, the feed-forward PI speed controller,
+and the speed reduction in turns. Names follow the lab sheets (lane example blocks 6 and 9, path
+following Figure 43).
+"""
+
+from __future__ import annotations
+
+import math
+
+from qcarlab.constants import DEFAULT_PARAMS, QCarParams
+
+
+def basic_speed_estimation(counts_per_s, params: QCarParams = DEFAULT_PARAMS):
+    """Car speed (m/s) from the motor encoder's rate (counts/s): the four scaling terms of block 9.
+
+        rotations/s = counts/s / 2880           (720 lines x 4 quadrature per motor revolution)
+        wheel rev/s = rotations/s * 0.09537     (gear train (13*19)/(70*37))
+        wheel rad/s = wheel rev/s * 2 pi
+        v           = wheel rad/s * 0.033       (tyre radius)
+
+    i.e. v = counts/s * 6.866e-6 m/s. Works on floats and numpy arrays alike.
+    """
+    motor_rps = counts_per_s / params.encoder_cpr
+    wheel_rps = motor_rps * params.gear_ratio
+    wheel_rad_s = wheel_rps * (2.0 * math.pi)
+    return wheel_rad_s * params.wheel_radius
+
+
+def turn_speed_handling(desired_speed: float, steering: float, enable: bool = True) -> float:
+    """Slow down in turns (block 6): v_ref * clip(cos(delta)^8, 0.5, 1) when enabled, else v_ref."""
+    if not enable:
+        return desired_speed
+    return desired_speed * min(1.0, max(0.5, math.cos(steering) ** 8))
+
+
+class SpeedController:
+    """``speed_controller``: feed-forward PI from desired speed to throttle (sheet Figure 43).
+
+        e = v_ref - v
+        throttle = clip(K_ff v_ref + K_p e + K_i integral(e dt), +-throttle_limit)
+
+    The integral term K_i integral(e dt) is clamped to +-``integral_limit`` (anti-windup) and held at zero while the
+    controller is not armed. Defaults are Quanser's: K_ff = 0.1, K_p = 0.3, K_i = 1.
+    """
+
+    def __init__(
+        self,
+        kp: float = 0.3,
+        ki: float = 1.0,
+        kff: float = 0.1,
+        throttle_limit: float = DEFAULT_PARAMS.throttle_limit,
+        integral_limit: float = 0.4,
+    ):
+        for name, value in (("kp", kp), ("ki", ki), ("kff", kff)):
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a non-negative number, got {value}")
+        self.kp, self.ki, self.kff = kp, ki, kff
+        self.throttle_limit = throttle_limit
+        self.integral_limit = integral_limit
+        self.integral = 0.0
+
+    def reset(self) -> None:
+        self.integral = 0.0
+
+    def __call__(self, desired_speed: float, measured_speed: float, dt: float, armed: bool = True) -> float:
+        if not armed:
+            self.integral = 0.0
+            return 0.0
+        e = desired_speed - measured_speed
+        lim = self.integral_limit
+        self.integral = min(lim, max(-lim, self.integral + self.ki * e * dt))
+        u = self.kff * desired_speed + self.kp * e + self.integral
+        lim = self.throttle_limit
+        return lim if u > lim else (-lim if u < -lim else u)
