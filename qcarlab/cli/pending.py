@@ -38,7 +38,9 @@ def _register(name: str, summary: str, when: str) -> None:
     )(pending)
 
 
-def register_pending(built: set[str]) -> None:
+def register_pending() -> None:
+    """Register a 'not built yet' command for every toolkit command no module has registered."""
+    built = {info.name for info in app.registered_commands}
     for name, (summary, when) in PENDING.items():
         if name not in built:
             _register(name, summary, when)
