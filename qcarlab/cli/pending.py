@@ -30,7 +30,7 @@ def _register(name: str, summary: str, when: str) -> None:
     def pending(ctx: typer.Context) -> None:
         raise NotBuiltError(f"'{name}' is not built yet; it arrives with {when}")
 
-    pending.__doc__ = f"{summary} [not built yet]"
+    pending.__doc__ = f"(not built yet) {summary}"
     app.command(
         name,
         context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []},
