@@ -122,6 +122,7 @@ class Car(ABC):
         self.throttle_limit = limit
         self.steering_limit = params.max_steering
         self._clamped: set[str] = set()
+        self._last_leds: tuple = (ALL_OFF, ALL_OFF)
         self.closed = False
 
     # --- commands -----------------------------------------------------------------------------
@@ -142,7 +143,14 @@ class Car(ABC):
             raise InputError(f"steering must be a finite number, got {steering!r}")
         thr = self._clamp("throttle", thr, self.throttle_limit, "")
         ste = self._clamp("steering", ste, self.steering_limit, " rad")
-        return Command(thr, ste, parse_lamps(leds) if leds is not None else ALL_OFF)
+        if leds is None:
+            lamps = ALL_OFF
+        elif isinstance(leds, (tuple, str)) and leds == self._last_leds[0]:  # the same lamps as last tick: already checked
+            lamps = self._last_leds[1]
+        else:
+            lamps = parse_lamps(leds)
+            self._last_leds = (leds, lamps)
+        return Command(thr, ste, lamps)
 
     def _clamp(self, name: str, value: float, limit: float, unit: str) -> float:
         if -limit <= value <= limit:

@@ -97,7 +97,7 @@ class Vehicle:
         self.on_stand = bool(on_stand)
         p = params
         self.state = VehicleState(x=pose[0], y=pose[1], yaw=pose[2], soc=p.battery_soc0)
-        self.state.battery_voltage = p.battery_cells * cell_voltage(p.battery_soc0)
+        self.state.battery_voltage = self._ocv = p.battery_cells * cell_voltage(p.battery_soc0)
         self.duty = 0.0
         self.delta_cmd = 0.0
         self.shutdown = False
@@ -126,6 +126,8 @@ class Vehicle:
         n = max(1, math.ceil(dt / self.p.physics_dt - 1e-9))
         h = dt / n
         t_end = round(self.state.t + dt, 9)  # keep simulated time free of rounding drift
+        # the open-circuit voltage moves by microvolts within a control step: evaluate it once
+        self._ocv = self.p.battery_cells * cell_voltage(self.state.soc)
         for _ in range(n):
             self._substep(h)
         self.state.t = t_end
@@ -138,7 +140,7 @@ class Vehicle:
         # steering servo (exact first-order lag)
         s.delta += (self.delta_cmd - s.delta) * self._servo_a
         # battery terminal voltage from the last step's current
-        vbat = p.battery_cells * cell_voltage(s.soc) - p.battery_resistance * (
+        vbat = self._ocv - p.battery_resistance * (
             p.idle_current + abs(self.duty * s.current)
         )
         if vbat < p.battery_shutdown_v:
