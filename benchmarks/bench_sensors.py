@@ -1,0 +1,142 @@
+"""Speed of the simulated sensors: LIDAR scans, RGBD frame pairs and CSI view sets per second.
+
+    python benchmarks/bench_sensors.py            # about 30 s
+    python benchmarks/bench_sensors.py --quick    # a few seconds, noisier
+
+Prints the machine, then the median rate over several timed batches of each sensor with its
+target (issue 4). The LIDAR runs over the ROS map ``berlin`` (600 x 600 cells of 5 cm, from
+../shared/data/maps beside the repository) from random free poses; the cameras in the ``track``
+world from poses along the road. Noise is on (seeded), as in a simulation run. The first call of
+each sensor (numba compilation or cache load, rasters) is excluded and reported separately.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from qcarlab.constants import DEFAULT_PARAMS  # noqa: E402
+from qcarlab.sim import _kernels  # noqa: E402
+from qcarlab.sim.camera import CSICameras, RGBDCamera  # noqa: E402
+from qcarlab.sim.lidar import Lidar  # noqa: E402
+from qcarlab.sim.world import load_world  # noqa: E402
+
+BERLIN = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "maps" / "berlin.yaml"
+
+
+def machine() -> str:
+    cpu = platform.processor() or ""
+    if not cpu:
+        try:
+            for line in Path("/proc/cpuinfo").read_text().splitlines():
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+        except OSError:
+            pass
+    try:
+        import numba
+
+        nb = f"numba {numba.__version__}"
+    except ImportError:
+        nb = "numba not installed (pure Python kernels)"
+    import cv2
+
+    return (
+        f"{cpu or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+        f"numpy {np.__version__}, OpenCV {cv2.__version__}, {nb}"
+    )
+
+
+def rate(fn, n: int, batches: int) -> float:
+    """Median calls per second over ``batches`` batches of ``n`` calls."""
+    out = []
+    for _ in range(batches):
+        t = time.perf_counter()
+        for i in range(n):
+            fn(i)
+        out.append(n / (time.perf_counter() - t))
+    return statistics.median(out)
+
+
+def first_call(fn) -> float:
+    t = time.perf_counter()
+    fn(0)
+    return time.perf_counter() - t
+
+
+def free_poses(world, count: int, rng: np.random.Generator) -> list[tuple[float, float, float]]:
+    g = world.grid
+    rows, cols = np.nonzero(~g.occupied & ~g.unknown)
+    k = rng.choice(len(rows), count)
+    xs = g.origin[0] + (cols[k] + 0.5) * g.resolution
+    ys = g.origin[1] + (rows[k] + 0.5) * g.resolution
+    yaws = rng.uniform(-math.pi, math.pi, count)
+    return list(zip(xs.tolist(), ys.tolist(), yaws.tolist()))
+
+
+def report(name: str, value: float, unit: str, target: float | None, first: float | None = None) -> None:
+    status = "" if target is None else ("  target >= {:,.0f}: {}".format(target, "met" if value >= target else "NOT met"))
+    extra = f"  (first call {first * 1000:.0f} ms)" if first is not None else ""
+    print(f"  {name:<38} {value:>10,.0f} {unit}{status}{extra}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer, shorter batches")
+    args = ap.parse_args()
+    batches = 3 if args.quick else 7
+    scale = 0.2 if args.quick else 1.0
+    print(f"machine: {machine()}")
+    if not _kernels.HAVE_NUMBA:
+        print("  (without numba the kernels run as plain Python: expect rates some 100x lower)")
+    rng = np.random.default_rng(0)
+    p = DEFAULT_PARAMS
+
+    print("LIDAR over berlin (600 x 600 cells), random free poses, noise on:")
+    lidar_rates = {}
+    if BERLIN.is_file():
+        berlin = load_world(BERLIN)
+        poses = free_poses(berlin, 256, rng)
+        for beams, target in ((1080, 4000.0), (360, 10000.0), (p.lidar_beams, None)):
+            lidar = Lidar(berlin, beams=beams, rng=np.random.default_rng(1))
+            f0 = first_call(lambda i: lidar.scan(poses[i % 256]))
+            r = rate(lambda i: lidar.scan(poses[i % 256]), int(4000 * scale), batches)
+            lidar_rates[beams] = r
+            report(f"{beams} beams", r, "scans/s", target, f0)
+    else:
+        print(f"  skipped: {BERLIN} not found")
+
+    print("RGBD camera in track, poses along the road, noise on:")
+    track = load_world("track")
+    road = [(x, -1.7, 0.0) for x in np.linspace(-1.0, 1.0, 64)]
+    cam = RGBDCamera(track, rng=np.random.default_rng(2))
+    f0 = first_call(lambda i: cam.render(road[i % 64], i / 30))
+    rgbd = rate(lambda i: cam.render(road[i % 64], i / 30), int(600 * scale), batches)
+    report("640x480 colour + depth", rgbd, "frame pairs/s", 150.0, f0)
+
+    print("CSI cameras in track:")
+    csi = CSICameras(track, rng=np.random.default_rng(3))
+    f0 = first_call(lambda i: csi.render(road[i % 64], i / 30))
+    sets = rate(lambda i: csi.render(road[i % 64], i / 30), int(90 * scale), batches)
+    report("4 x 820x410 views", sets, "sets/s", 30.0, f0)
+
+    if p.lidar_beams in lidar_rates:
+        cost = p.rgbd_rate / rgbd + p.lidar_rate / lidar_rates[p.lidar_beams]
+        print("One simulated second with the LIDAR at 10 Hz and the RGBD camera at 30 Hz (sensors only):")
+        print(f"  {cost * 1000:.1f} ms of sensor work: at most {1.0 / cost:.0f}x real time from the sensors alone")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,509 @@
+"""The sensors' inner loops: ray casting over a label raster, LIDAR scans, camera columns.
+
+Compiled with numba when it is installed (``cache=True``: compiled once per machine, a few
+seconds, then loaded from ``__pycache__``); without numba the same code runs as plain Python,
+correct but some hundred times slower (:data:`HAVE_NUMBA` tells which).
+
+Ray casting (all distances in raster cells inside, metres outside): from a free cell whose
+distance-transform value is D (cells to the nearest occupied cell centre), nothing occupied lies
+closer than D - sqrt(2) to any point of the cell, so the ray jumps that far at once; near
+occupied cells (D <= 2.5) it walks cell by cell (Amanatides-Woo) and stops exactly on the
+boundary of the first occupied cell. A hit on a polygon or circle is then refined against the
+shape itself, so vector worlds are exact and ROS maps are exact to their cells.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:  # pragma: no cover - which branch runs depends on the install
+    from numba import njit
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover
+    HAVE_NUMBA = False
+
+    def njit(*args, **kwargs):  # type: ignore[no-redef]
+        if args and callable(args[0]):
+            return args[0]
+        return lambda f: f
+
+
+_JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
+
+KMAX = 8  # hits kept per camera column
+BIG = 1e30
+
+
+@njit(**_JIT)
+def _enter_box(px, py, dx, dy, nx, ny):
+    """Ray parameter (cells) where a ray from (px, py) enters the grid box, or -1 if it never does."""
+    t0 = 0.0
+    t1 = BIG
+    if dx != 0.0:
+        a = (0.0 - px) / dx
+        b = (nx - px) / dx
+        if a > b:
+            a, b = b, a
+        t0 = max(t0, a)
+        t1 = min(t1, b)
+    elif px < 0.0 or px >= nx:
+        return -1.0
+    if dy != 0.0:
+        a = (0.0 - py) / dy
+        b = (ny - py) / dy
+        if a > b:
+            a, b = b, a
+        t0 = max(t0, a)
+        t1 = min(t1, b)
+    elif py < 0.0 or py >= ny:
+        return -1.0
+    if t0 > t1:
+        return -1.0
+    return t0
+
+
+@njit(**_JIT)
+def march(px, py, dx, dy, t, tmax, label, dt):
+    """First occupied cell along a ray (cell units). Returns (t, label, side).
+
+    ``side`` is 1 when the ray entered the cell through an x face, 2 through a y face, 0 when it
+    started inside; ``label`` is -1 when nothing is hit before ``tmax`` or the grid's edge.
+    """
+    ny, nx = label.shape
+    x = px + t * dx
+    y = py + t * dy
+    if x < 0.0 or y < 0.0 or x >= nx or y >= ny:
+        te = _enter_box(px, py, dx, dy, nx, ny)
+        if te < 0.0 or te > tmax:
+            return tmax, -1, 0
+        if te > t:
+            t = te + 1e-7
+    while t < tmax:
+        x = px + t * dx
+        y = py + t * dy
+        ix = int(math.floor(x))
+        iy = int(math.floor(y))
+        if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+            return tmax, -1, 0
+        lab = label[iy, ix]
+        if lab >= 0:
+            return t, lab, 0
+        d = dt[iy, ix]
+        if d > 2.5:
+            t += d - 1.4143
+            continue
+        # walk cell by cell until clear of the walls again
+        if dx > 0.0:
+            sx = 1
+            tdx = 1.0 / dx
+            tmx = t + (ix + 1 - x) / dx
+        elif dx < 0.0:
+            sx = -1
+            tdx = -1.0 / dx
+            tmx = t + (ix - x) / dx
+        else:
+            sx = 0
+            tdx = BIG
+            tmx = BIG
+        if dy > 0.0:
+            sy = 1
+            tdy = 1.0 / dy
+            tmy = t + (iy + 1 - y) / dy
+        elif dy < 0.0:
+            sy = -1
+            tdy = -1.0 / dy
+            tmy = t + (iy - y) / dy
+        else:
+            sy = 0
+            tdy = BIG
+            tmy = BIG
+        while True:
+            if tmx < tmy:
+                t = tmx
+                tmx += tdx
+                ix += sx
+                side = 1
+            else:
+                t = tmy
+                tmy += tdy
+                iy += sy
+                side = 2
+            if t >= tmax or ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+                return tmax, -1, 0
+            lab = label[iy, ix]
+            if lab >= 0:
+                return t, lab, side
+            if dt[iy, ix] > 3.0:
+                t += 1e-6
+                break
+    return tmax, -1, 0
+
+
+@njit(**_JIT)
+def skip(px, py, dx, dy, t, tmax, label, lab):
+    """Walk on through the cells of shape ``lab`` from ``t``; returns (t_exit, label_after)."""
+    ny, nx = label.shape
+    x = px + t * dx
+    y = py + t * dy
+    ix = int(math.floor(x))
+    iy = int(math.floor(y))
+    if dx > 0.0:
+        sx = 1
+        tdx = 1.0 / dx
+        tmx = t + (ix + 1 - x) / dx
+    elif dx < 0.0:
+        sx = -1
+        tdx = -1.0 / dx
+        tmx = t + (ix - x) / dx
+    else:
+        sx = 0
+        tdx = BIG
+        tmx = BIG
+    if dy > 0.0:
+        sy = 1
+        tdy = 1.0 / dy
+        tmy = t + (iy + 1 - y) / dy
+    elif dy < 0.0:
+        sy = -1
+        tdy = -1.0 / dy
+        tmy = t + (iy - y) / dy
+    else:
+        sy = 0
+        tdy = BIG
+        tmy = BIG
+    while True:
+        if tmx < tmy:
+            t = tmx
+            tmx += tdx
+            ix += sx
+        else:
+            t = tmy
+            tmy += tdy
+            iy += sy
+        if t >= tmax or ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+            return t, -1
+        nl = label[iy, ix]
+        if nl != lab:
+            return t, nl
+
+
+@njit(**_JIT)
+def exact(lab, ox, oy, dx, dy, tguess, tol, kinds, pstart, pcount, verts, circles):
+    """Exact (t_in, t_out, nx, ny) in metres of a ray against shape ``lab`` near ``tguess``.
+
+    ``t_in`` is -1 when the ray misses the shape there (the raster's cells then stand).
+    (nx, ny) is the outward surface normal where the ray enters.
+    """
+    k = kinds[lab]
+    if k == 2:
+        cx = circles[lab, 0]
+        cy = circles[lab, 1]
+        r = circles[lab, 2]
+        fx = ox - cx
+        fy = oy - cy
+        b = fx * dx + fy * dy
+        c = fx * fx + fy * fy - r * r
+        disc = b * b - c
+        if disc < 0.0:
+            return -1.0, -1.0, 0.0, 0.0
+        s = math.sqrt(disc)
+        t0 = -b - s
+        t1 = -b + s
+        if t0 < tguess - tol or t0 > tguess + tol:
+            return -1.0, -1.0, 0.0, 0.0
+        hx = ox + t0 * dx - cx
+        hy = oy + t0 * dy - cy
+        return t0, t1, hx / r, hy / r
+    if k != 1:
+        return -1.0, -1.0, 0.0, 0.0
+    p0 = pstart[lab]
+    n = pcount[lab]
+    tin = BIG
+    nxin = 0.0
+    nyin = 0.0
+    for j in range(n):
+        ax = verts[p0 + j, 0]
+        ay = verts[p0 + j, 1]
+        bx = verts[p0 + (j + 1) % n, 0]
+        by = verts[p0 + (j + 1) % n, 1]
+        ex = bx - ax
+        ey = by - ay
+        den = dx * ey - dy * ex
+        if den == 0.0:
+            continue
+        wx = ax - ox
+        wy = ay - oy
+        tt = (wx * ey - wy * ex) / den
+        ss = (wx * dy - wy * dx) / den
+        if ss < 0.0 or ss > 1.0:
+            continue
+        if tt >= tguess - tol and tt < tin:
+            tin = tt
+            ln = math.sqrt(ex * ex + ey * ey)
+            nxin = ey / ln
+            nyin = -ex / ln
+    if tin > tguess + tol:
+        return -1.0, -1.0, 0.0, 0.0
+    if nxin * dx + nyin * dy > 0.0:
+        nxin = -nxin
+        nyin = -nyin
+    tout = BIG
+    for j in range(n):
+        ax = verts[p0 + j, 0]
+        ay = verts[p0 + j, 1]
+        bx = verts[p0 + (j + 1) % n, 0]
+        by = verts[p0 + (j + 1) % n, 1]
+        ex = bx - ax
+        ey = by - ay
+        den = dx * ey - dy * ex
+        if den == 0.0:
+            continue
+        wx = ax - ox
+        wy = ay - oy
+        tt = (wx * ey - wy * ex) / den
+        ss = (wx * dy - wy * dx) / den
+        if ss < 0.0 or ss > 1.0:
+            continue
+        if tt > tin + 1e-9 and tt < tout:
+            tout = tt
+    if tout >= BIG:
+        tout = tin
+    return tin, tout, nxin, nyin
+
+
+@njit(**_JIT)
+def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, label, dt, kinds, pstart, pcount, verts, circles, balls,
+               noise, rmin, near_mode, out):
+    """Ranges (m) of every beam into ``out``.
+
+    ``balls``: (m, 3) circles (x, y, radius) cut by the scan plane, intersected analytically.
+    ``near_mode`` < 0: exact distances, ``inf`` where nothing is hit within ``rmax``. Otherwise
+    the device's reading: the distance plus ``noise[i]`` (when ``noise`` has one value per beam),
+    0 beyond ``rmax`` or with no return, and nearer than ``rmin`` 0 (``near_mode`` 0) or ``rmin``
+    (``near_mode`` 1).
+    """
+    noisy = noise.shape[0] == cos_b.shape[0]
+    inv = 1.0 / res
+    px = (ox - x0) * inv
+    py = (oy - y0) * inv
+    cyaw = math.cos(yaw)
+    syaw = math.sin(yaw)
+    tmax = rmax * inv + 2.0
+    tol = 2.5 * res
+    nb = balls.shape[0]
+    for i in range(cos_b.shape[0]):
+        dx = cos_b[i] * cyaw - sin_b[i] * syaw
+        dy = sin_b[i] * cyaw + cos_b[i] * syaw
+        t, lab, side = march(px, py, dx, dy, 0.0, tmax, label, dt)
+        r = BIG
+        if lab >= 0:
+            r = t * res
+            if kinds[lab] != 0:
+                te, to, nx_, ny_ = exact(lab, ox, oy, dx, dy, r, tol, kinds, pstart, pcount, verts, circles)
+                if te >= 0.0:
+                    r = te
+        for j in range(nb):
+            fx = ox - balls[j, 0]
+            fy = oy - balls[j, 1]
+            b = fx * dx + fy * dy
+            c = fx * fx + fy * fy - balls[j, 2] * balls[j, 2]
+            disc = b * b - c
+            if disc >= 0.0:
+                tb = -b - math.sqrt(disc)
+                if 0.0 <= tb < r:
+                    r = tb
+        if near_mode < 0:
+            out[i] = r if r <= rmax else np.inf
+            continue
+        if r > rmax:
+            out[i] = 0.0
+            continue
+        if noisy:
+            r += noise[i]
+        if r > rmax:
+            r = 0.0
+        elif r < rmin:
+            r = rmin if near_mode == 1 else 0.0
+        out[i] = r
+
+
+@njit(**_JIT)
+def _row_of(z, d, cam_z, k, fy, cy):
+    return cy - (z - cam_z) * k * fy / d
+
+
+@njit(**_JIT)
+def render_columns(
+    color, depth, ox, oy, cam_z, yaw, cos_c, sin_c, kcol, fy, cy, max_dist,
+    x0, y0, res, label, dt, kinds, heights, colors, pstart, pcount, verts, circles,
+    gain, gx0, gy0, gres, balls, light_x, light_y,
+):
+    """Draw the walls, obstacles and balls of every column of a level camera over the floor.
+
+    ``color`` (W, H, 3) uint8 and ``depth`` (W, H) float32 are *transposed* images (one row per
+    image column) already holding the floor and the background; this paints, far to near, each
+    column's visible bands. Column u looks along body azimuth (cos_c[u], sin_c[u]); a point at
+    horizontal distance d along it and height z is at row cy - (z - cam_z) * kcol[u] * fy / d and
+    has depth d / kcol[u] (the z-depth of a pinhole; kcol = 1 for a cylindrical panorama).
+    ``balls``: (m, 6) x, y, radius, B, G, R of spheres resting on the floor.
+    """
+    W = color.shape[0]
+    H = color.shape[1]
+    inv = 1.0 / res
+    px = (ox - x0) * inv
+    py = (oy - y0) * inv
+    cyaw = math.cos(yaw)
+    syaw = math.sin(yaw)
+    tmax = max_dist * inv
+    tol = 2.5 * res
+    gny, gnx = gain.shape
+    nb = balls.shape[0]
+    hd = np.empty(KMAX + 8)  # entry distance (m)
+    ho = np.empty(KMAX + 8)  # exit distance (m)
+    hl = np.empty(KMAX + 8, np.int64)  # label, or -2 - ball index
+    hnx = np.empty(KMAX + 8)
+    hny = np.empty(KMAX + 8)
+    for u in range(W):
+        dx = cos_c[u] * cyaw - sin_c[u] * syaw
+        dy = sin_c[u] * cyaw + cos_c[u] * syaw
+        k = kcol[u]
+        n = 0
+        t = 0.0
+        vcover = float(H)
+        while n < KMAX:
+            t, lab, side = march(px, py, dx, dy, t, tmax, label, dt)
+            if lab < 0:
+                break
+            din = t * res
+            # grid walls: shade as if facing the ray (the cells' staircase would stripe them)
+            nxv = -dx
+            nyv = -dy
+            t2, nextlab = skip(px, py, dx, dy, t, tmax, label, lab)
+            dout = t2 * res
+            if kinds[lab] != 0:
+                te, to, ex_, ey_ = exact(lab, ox, oy, dx, dy, din, tol, kinds, pstart, pcount, verts, circles)
+                if te >= 0.0:
+                    din = te
+                    nxv = ex_
+                    nyv = ey_
+                    if abs(to - dout) < tol:
+                        dout = to
+            if din < 1e-3:
+                din = 1e-3
+            hd[n] = din
+            ho[n] = max(dout, din)
+            hl[n] = lab
+            hnx[n] = nxv
+            hny[n] = nyv
+            n += 1
+            h = heights[lab]
+            if h >= cam_z:
+                vtop = _row_of(h, din, cam_z, k, fy, cy)
+            else:
+                vtop = _row_of(h, max(dout, din), cam_z, k, fy, cy)
+            if vtop < vcover:
+                vcover = vtop
+            if vcover <= 0.0:
+                break
+            t = t2 + 1e-4  # just past the exit boundary (so rounding cannot land back inside)
+        # balls: spheres cut by this column's vertical plane
+        for j in range(nb):
+            if n >= KMAX + 8:
+                break
+            fx = balls[j, 0] - ox
+            fy_ = balls[j, 1] - oy
+            dc = fx * dx + fy_ * dy
+            e = abs(fx * dy - fy_ * dx)
+            r = balls[j, 2]
+            if dc <= 0.0 or e >= r:
+                continue
+            if n > 0 and dc - r > hd[n - 1] and vcover <= 0.0:
+                continue
+            hd[n] = dc
+            ho[n] = dc
+            hl[n] = -2 - j
+            hnx[n] = e
+            hny[n] = 0.0
+            n += 1
+        # painter's order: far to near (insertion sort by entry distance, descending)
+        for a in range(1, n):
+            b = a
+            while b > 0 and hd[b] > hd[b - 1]:
+                hd[b], hd[b - 1] = hd[b - 1], hd[b]
+                ho[b], ho[b - 1] = ho[b - 1], ho[b]
+                hl[b], hl[b - 1] = hl[b - 1], hl[b]
+                hnx[b], hnx[b - 1] = hnx[b - 1], hnx[b]
+                hny[b], hny[b - 1] = hny[b - 1], hny[b]
+                b -= 1
+        for a in range(n):
+            lab = hl[a]
+            din = hd[a]
+            if lab <= -2:  # a ball
+                j = -2 - lab
+                r = balls[j, 2]
+                e = hnx[a]
+                rs = math.sqrt(r * r - e * e)
+                vt = _row_of(r + rs, din, cam_z, k, fy, cy)
+                vb = _row_of(r - rs, din, cam_z, k, fy, cy)
+                r0 = max(int(math.ceil(vt)), 0)
+                r1 = min(int(math.floor(vb)), H - 1)
+                hx = ox + dx * din
+                hy = oy + dy * din
+                gi = int((hy - gy0) / gres)
+                gj = int((hx - gx0) / gres)
+                g = gain[gi, gj] if 0 <= gi < gny and 0 <= gj < gnx else 1.0
+                zdep = (din - rs) / k
+                for v in range(r0, r1 + 1):
+                    z = cam_z - (v - cy) * din / (k * fy)
+                    q = (z - r) / r
+                    lat = e / r
+                    s2 = 1.0 - q * q - lat * lat
+                    sh = 0.35 + 0.65 * math.sqrt(s2) if s2 > 0.0 else 0.35
+                    for c in range(3):
+                        val = balls[j, 3 + c] * sh * g
+                        color[u, v, c] = 255 if val >= 255.0 else np.uint8(val)
+                    depth[u, v] = zdep
+                continue
+            h = heights[lab]
+            dout = ho[a]
+            hx = ox + dx * din
+            hy = oy + dy * din
+            gi = int((hy - gy0) / gres)
+            gj = int((hx - gx0) / gres)
+            g = gain[gi, gj] if 0 <= gi < gny and 0 <= gj < gnx else 1.0
+            lam = abs(hnx[a] * light_x + hny[a] * light_y)
+            sh = (0.72 + 0.28 * lam) * g
+            # front face
+            vt = _row_of(h, din, cam_z, k, fy, cy)
+            vb = _row_of(0.0, din, cam_z, k, fy, cy)
+            r0 = max(int(math.ceil(vt)), 0)
+            r1 = min(int(math.floor(vb)), H - 1)
+            b0 = colors[lab, 0] * sh
+            b1 = colors[lab, 1] * sh
+            b2 = colors[lab, 2] * sh
+            c0 = np.uint8(min(b0, 255.0))
+            c1 = np.uint8(min(b1, 255.0))
+            c2 = np.uint8(min(b2, 255.0))
+            zd = din / k
+            for v in range(r0, r1 + 1):
+                color[u, v, 0] = c0
+                color[u, v, 1] = c1
+                color[u, v, 2] = c2
+                depth[u, v] = zd
+            # top face, seen from above when the shape is lower than the camera
+            if h < cam_z and dout > din:
+                vtt = _row_of(h, dout, cam_z, k, fy, cy)
+                r0 = max(int(math.ceil(vtt)), 0)
+                r1 = min(int(math.ceil(vt)) - 1, H - 1)
+                t0 = np.uint8(min(colors[lab, 0] * 1.12 * g, 255.0))
+                t1 = np.uint8(min(colors[lab, 1] * 1.12 * g, 255.0))
+                t2_ = np.uint8(min(colors[lab, 2] * 1.12 * g, 255.0))
+                for v in range(r0, r1 + 1):
+                    color[u, v, 0] = t0
+                    color[u, v, 1] = t1
+                    color[u, v, 2] = t2_
+                    if v > cy:
+                        depth[u, v] = (cam_z - h) * fy / (v - cy)

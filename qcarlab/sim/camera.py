@@ -1,0 +1,521 @@
+"""The simulated cameras: the Intel D435 RGBD camera and the four CSI wide-angle cameras.
+
+    >>> import numpy as np
+    >>> from qcarlab.sim.world import load_world
+    >>> from qcarlab.sim.camera import RGBDCamera, CSICameras, stitch_panorama
+    >>> world = load_world("track")
+    >>> cam = RGBDCamera(world, rng=np.random.default_rng(0))
+    >>> frame = cam.render(world.start)          # RGBDFrame: color (480, 640, 3) BGR, depth (480, 640) m
+    >>> cam.intrinsics                            # fx, fy, cx, cy, width, height
+    >>> csi = CSICameras(world, rng=np.random.default_rng(0)).render(world.start)
+    >>> pano = stitch_panorama(csi)               # right | rear | left | front, 3280 x 410
+
+**RGBD (D435).** A pinhole at the mount (``rgbd_x`` ahead of the car's centre, ``rgbd_z`` above
+the floor, looking forward, pitched down by ``rgbd_pitch``), 640 x 480, square pixels, vertical
+field of view ``rgbd_vfov`` (42.5 deg; the D435's 69.4 deg horizontal FOV is that of its 16:9
+mode: at 4:3 the sensor is cropped to about 55 deg, as the real camera's 640 x 480 intrinsics,
+fx = fy = 616 px, show). Pixel (u, v): u to the right, v down; the principal point is the image
+centre (cx, cy) = (319.5, 239.5), so the two middle columns straddle the optical axis. The depth
+image is aligned to the colour image and holds the **z-depth from the camera** (the distance
+along the optical axis from the D435's optical centre, as the RealSense reports it): a wall 2 m
+ahead of the car's centre reads ``2 - rgbd_x`` = 1.81 m in the middle of the image. Depth is 0
+(no data) nearer than :data:`RGBD_MIN_DEPTH` and beyond ``rgbd_max_depth``. Noise: colour
++-:data:`COLOR_NOISE_SD` levels per channel, depth sigma = :data:`DEPTH_NOISE` * z^2.
+
+**CSI.** Four 160 deg equidistant fisheye cameras (r = f theta), 820 x 410, on the roof
+``csi_x`` from the centre facing right, rear, left and front, ``csi_z`` above the floor.
+
+How it is drawn: the floor is a top-down texture (markings, brightness regions) warped into the
+image (a homography for the pinhole; a precomputed per-pixel ray map for the wide-angle views),
+then every image column casts a ray through the world's raster and paints the walls, obstacles
+and balls it meets far to near (their front faces, and the tops of those lower than the camera),
+then stop-sign plates are drawn as projected sprites with a depth test. Vertical shapes are exact
+for a level camera; with a pitch the level image is rendered and rotated (a homography).
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from qcarlab.constants import DEFAULT_PARAMS, QCarParams
+from qcarlab.sensors import CameraIntrinsics, CSIFrames, RGBDFrame
+from qcarlab.sim import _kernels
+from qcarlab.sim.raster import brightness_grid, build_raster
+from qcarlab.sim.world import Sign, World, load_world
+
+__all__ = [
+    "COLOR_NOISE_SD",
+    "CSICameras",
+    "DEPTH_NOISE",
+    "RGBDCamera",
+    "RGBD_MIN_DEPTH",
+    "stitch_panorama",
+]
+
+RGBD_MIN_DEPTH = 0.1  # m: the D435 reads 0 nearer than this
+DEPTH_NOISE = 0.004  # depth noise sigma = DEPTH_NOISE * z^2 (m): 4 mm at 1 m, 16 mm at 2 m
+COLOR_NOISE_SD = 2.5  # colour noise, levels of 255 per channel
+FLOOR_PX_PER_M = 200.0  # floor texture resolution (5 mm texels)
+MAX_VIEW_DIST = 30.0  # m, how far the cameras look for walls
+LIGHT_DIR = (0.6, 0.8)  # horizontal direction of the light that shades vertical faces
+CSI_OVERSAMPLE = 0.8  # cylinder pixels per fisheye pixel at the centre of a CSI view
+_NOISE_PAD = 48
+_SPRITE = 128
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------
+def _stop_sprites() -> tuple[np.ndarray, np.ndarray]:
+    """Front (red octagon, white border, STOP) and back (grey octagon) of a stop sign, BGRA."""
+    s = _SPRITE
+    c = (s - 1) / 2.0
+    ang = math.pi / 8.0 + np.arange(8) * math.pi / 4.0
+
+    def octagon(half_flats: float) -> np.ndarray:
+        r = half_flats / math.cos(math.pi / 8.0)
+        return np.round(np.column_stack((c + r * np.cos(ang), c - r * np.sin(ang))) * 16).astype(np.int32)
+
+    front = np.zeros((s, s, 4), np.uint8)
+    back = np.zeros((s, s, 4), np.uint8)
+    cv2.fillPoly(front, [octagon(s / 2.0)], (235, 235, 235, 255), cv2.LINE_AA, 4)
+    cv2.fillPoly(front, [octagon(s / 2.0 * 0.88)], (16, 16, 200, 255), cv2.LINE_AA, 4)
+    font = cv2.FONT_HERSHEY_DUPLEX
+    scale = cv2.getFontScaleFromHeight(font, int(s * 0.24), 3)
+    (tw, th), _ = cv2.getTextSize("STOP", font, scale, 3)
+    cv2.putText(front, "STOP", (int(c - tw / 2), int(c + th / 2)), font, scale, (235, 235, 235, 255), 3, cv2.LINE_AA)
+    cv2.fillPoly(back, [octagon(s / 2.0)], (150, 150, 150, 255), cv2.LINE_AA, 4)
+    return front, back
+
+
+_SPRITES: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def _sprites() -> tuple[np.ndarray, np.ndarray]:
+    global _SPRITES
+    if _SPRITES is None:
+        _SPRITES = _stop_sprites()
+    return _SPRITES
+
+
+class _Noise:
+    """Precomputed noise tiles; each frame takes a window at an offset drawn from the rng."""
+
+    def __init__(self, rng: np.random.Generator, w: int, h: int, color_sd: float, depth: bool):
+        self.rng = rng
+        self.w, self.h = w, h
+        shape = (w + _NOISE_PAD, h + _NOISE_PAD)
+        n = rng.normal(0.0, color_sd, shape + (3,))
+        self.pos = np.clip(np.rint(n), 0, 255).astype(np.uint8)
+        self.neg = np.clip(np.rint(-n), 0, 255).astype(np.uint8)
+        self.depth = rng.standard_normal(shape, dtype=np.float32) if depth else None
+
+    def window(self) -> tuple[int, int]:
+        o = self.rng.integers(0, _NOISE_PAD, 2)
+        return int(o[0]), int(o[1])
+
+    def color(self, img: np.ndarray) -> None:
+        a, b = self.window()
+        cv2.add(img, self.pos[a : a + self.w, b : b + self.h], dst=img)
+        a, b = self.window()
+        cv2.subtract(img, self.neg[a : a + self.w, b : b + self.h], dst=img)
+
+    def depth_noise(self, depth: np.ndarray, coef: float) -> None:
+        assert self.depth is not None
+        a, b = self.window()
+        n = self.depth[a : a + self.w, b : b + self.h]
+        sq = cv2.multiply(depth, depth)
+        cv2.scaleAdd(cv2.multiply(sq, n), coef, depth, dst=depth)
+
+
+class _ColumnView:
+    """A level camera whose columns are vertical planes: a pinhole or a cylindrical panorama.
+
+    Images are kept *transposed* (one row per image column) while drawing, so each column's
+    pixels are contiguous. Column u looks along azimuth ``az[u]`` (rad, left positive) from the
+    camera's forward direction; a point at horizontal distance d and height z is at row
+    ``cy - (z - cam_z) * k[u] * fy / d``.
+    """
+
+    def __init__(
+        self,
+        world: World,
+        mount: tuple[float, float, float, float],
+        az: np.ndarray,
+        k: np.ndarray,
+        fy: float,
+        cy: float,
+        height: int,
+        pinhole: CameraIntrinsics | None,
+        tex_level: int = 0,
+    ):
+        self.world = world
+        self.mx, self.my, self.cam_z, self.myaw = mount
+        self.W, self.H = len(az), int(height)
+        self.fy, self.cy = float(fy), float(cy)
+        self.cos_c = np.ascontiguousarray(np.cos(az))
+        self.sin_c = np.ascontiguousarray(np.sin(az))
+        self.k = np.ascontiguousarray(k, dtype=np.float64)
+        self.pinhole = pinhole
+        self.raster = build_raster(world)
+        self.gain = brightness_grid(world)
+        tex, (tx0, ty1, ppm) = world.floor_texture(FLOOR_PX_PER_M)
+        self.levels = [tex]
+        for _ in range(5):
+            if min(self.levels[-1].shape[:2]) < 8:
+                break
+            self.levels.append(cv2.pyrDown(self.levels[-1]))
+        self.tex_x0, self.tex_y1, self.ppm = tx0, ty1, ppm
+        self.bg = tuple(int(c) for c in world.background)
+        self.r0 = int(math.floor(self.cy)) + 1  # first row below the horizon
+        h_rows = np.arange(self.H, dtype=np.float64)
+        below = h_rows >= self.r0
+        # horizontal distance along the column ray at which each row meets the floor (k = 1)
+        dist = np.full(self.H, np.inf)
+        dist[below] = self.cam_z * self.fy / (h_rows[below] - self.cy)
+        self.row_dist = dist
+        # floor depth (transposed): d / k per column
+        self.floor_depth = np.ascontiguousarray((dist[None, :] / self.k[:, None]).astype(np.float32))
+        self.color_t = np.empty((self.W, self.H, 3), np.uint8)
+        self.sky = np.empty((self.W, self.r0, 3), np.uint8)  # the background above the horizon
+        self.sky[:] = self.bg
+        self.depth_t = np.empty((self.W, self.H), np.float32)
+        if pinhole is not None:
+            self._plan_levels()
+        else:
+            self._plan_rays(tex_level)
+
+    # --- floor: pinhole by homographies, one per texture level --------------------------------
+    def _plan_levels(self) -> None:
+        assert self.pinhole is not None
+        texel = 1.0 / self.ppm
+        rows = np.arange(self.r0, self.H)
+        z = self.row_dist[self.r0 :]
+        # footprint of a pixel on the floor: geometric mean of its across (z/fx) and along
+        # (z^2/(h fy)) extents; choose the texture level whose texels match it
+        foot = np.sqrt((z / self.pinhole.fx) * (z * z / (self.cam_z * self.fy)))
+        lev = np.clip(np.floor(np.log2(np.maximum(foot / texel, 1.0))), 0, len(self.levels) - 1).astype(int)
+        self.spans: list[tuple[int, int, int]] = []  # (level, row_from, row_to)
+        start = 0
+        for i in range(1, len(rows) + 1):
+            if i == len(rows) or lev[i] != lev[start]:
+                self.spans.append((int(lev[start]), int(rows[start]), int(rows[i - 1]) + 1))
+                start = i
+
+    def _floor_pinhole(self, cx_w: float, cy_w: float, yaw: float) -> None:
+        assert self.pinhole is not None
+        K = self.pinhole.matrix
+        s, c = math.sin(yaw), math.cos(yaw)
+        M = np.array(
+            [
+                [s, -c, -cx_w * s + cy_w * c],
+                [0.0, 0.0, self.cam_z],
+                [c, s, -cx_w * c - cy_w * s],
+            ]
+        )
+        KM = K @ M
+        for lev, ra, rb in self.spans:
+            sc = (2**lev) / self.ppm
+            # pyrDown keeps level-L pixel i centred on level-0 pixel i * 2^L
+            h0 = 0.5 / self.ppm
+            T = np.array([[sc, 0.0, self.tex_x0 + h0], [0.0, -sc, self.tex_y1 - h0], [0.0, 0.0, 1.0]])
+            P = np.array([[0.0, 1.0, -ra], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+            cv2.warpPerspective(
+                self.levels[lev], P @ KM @ T, (rb - ra, self.W), dst=self.color_t[:, ra:rb],
+                flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=self.bg,
+            )
+
+    # --- floor: any projection by a per-pixel ray map ------------------------------------------
+    def _plan_rays(self, tex_level: int) -> None:
+        d = self.row_dist[self.r0 :]  # (Hb,)
+        fx = d[None, :] * self.cos_c[:, None]  # camera frame: x forward, y left
+        fy = d[None, :] * self.sin_c[:, None]
+        self.ray_xy = np.ascontiguousarray(np.stack([fx, fy], axis=-1).astype(np.float32))  # (W, Hb, 2)
+        self.ray_level = min(tex_level, len(self.levels) - 1)
+
+    def _floor_rays(self, cx_w: float, cy_w: float, yaw: float) -> None:
+        sc = (2**self.ray_level) / self.ppm
+        h0 = 0.5 / self.ppm  # level-L pixel i is centred on level-0 pixel i * 2^L
+        s, c = math.sin(yaw), math.cos(yaw)
+        # camera (x fwd, y left) -> world -> texture pixel of the level
+        A = np.array(
+            [
+                [c / sc, -s / sc, (cx_w - self.tex_x0 - h0) / sc],
+                [-s / sc, -c / sc, (self.tex_y1 - h0 - cy_w) / sc],
+            ]
+        )
+        m = cv2.transform(self.ray_xy, A)
+        cv2.remap(
+            self.levels[self.ray_level], m, None, cv2.INTER_LINEAR, dst=self.color_t[:, self.r0 :],
+            borderMode=cv2.BORDER_CONSTANT, borderValue=self.bg,
+        )
+
+    # --- a frame ----------------------------------------------------------------------------------
+    def camera_pose(self, pose: tuple[float, float, float]) -> tuple[float, float, float]:
+        x, y, yaw = (float(v) for v in pose)
+        c, s = math.cos(yaw), math.sin(yaw)
+        return (x + c * self.mx - s * self.my, y + s * self.mx + c * self.my, yaw + self.myaw)
+
+    def draw(self, pose: tuple[float, float, float], t: float) -> None:
+        """Draw the view into ``color_t``/``depth_t`` (transposed; depth = inf where nothing)."""
+        cx_w, cy_w, yaw = self.camera_pose(pose)
+        np.copyto(self.color_t[:, : self.r0], self.sky)
+        np.copyto(self.depth_t, self.floor_depth)
+        if self.pinhole is not None:
+            self._floor_pinhole(cx_w, cy_w, yaw)
+        else:
+            self._floor_rays(cx_w, cy_w, yaw)
+        balls = self.world.obstacles_at(t)
+        b = np.array([(c.x, c.y, c.radius, *c.color) for c in balls], np.float64).reshape(-1, 6)
+        r, g = self.raster, self.gain
+        _kernels.render_columns(
+            self.color_t, self.depth_t, cx_w, cy_w, self.cam_z, yaw, self.cos_c, self.sin_c, self.k,
+            self.fy, self.cy, MAX_VIEW_DIST,
+            r.x0, r.y0, r.res, r.label, r.dt, r.kinds, r.heights, r.colors, r.poly_start, r.poly_count,
+            r.verts, r.circles, g.gain, g.x0, g.y0, g.res, b, LIGHT_DIR[0], LIGHT_DIR[1],
+        )
+        for sign in self.world.signs:
+            self._draw_sign(sign, cx_w, cy_w, yaw)
+
+    def project(self, pts: np.ndarray, cx_w: float, cy_w: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+        """World points (n, 3) -> transposed pixel coords (n, 2: row-in-image v, column u) and depth."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        rx, ry = pts[:, 0] - cx_w, pts[:, 1] - cy_w
+        fwd = rx * c + ry * s
+        left = -rx * s + ry * c
+        up = pts[:, 2] - self.cam_z
+        if self.pinhole is not None:
+            p = self.pinhole
+            u = p.cx - p.fx * left / fwd
+            v = p.cy - p.fy * up / fwd
+            return np.column_stack((v, u)), fwd
+        dh = np.hypot(fwd, left)
+        az = np.arctan2(left, fwd)
+        u = self.col_of_az(az)
+        v = self.cy - self.fy * up / dh
+        return np.column_stack((v, u)), dh
+
+    def col_of_az(self, az: np.ndarray) -> np.ndarray:  # cylinder views override via attribute
+        raise NotImplementedError
+
+    def _draw_sign(self, sign: Sign, cx_w: float, cy_w: float, yaw: float) -> None:
+        px, py, pz = sign.plate_center
+        to_cam = (cx_w - px) * math.cos(sign.facing) + (cy_w - py) * math.sin(sign.facing)
+        front = to_cam > 0.0
+        half = sign.size / 2.0
+        rx, ry = math.cos(sign.facing + math.pi / 2.0), math.sin(sign.facing + math.pi / 2.0)
+        if not front:  # seen from behind, the viewer's right is the other way
+            rx, ry = -rx, -ry
+        # sprite corners (top-left, top-right, bottom-right, bottom-left) as the viewer sees them
+        sq = np.array(
+            [
+                [px - rx * half, py - ry * half, pz + half],
+                [px + rx * half, py + ry * half, pz + half],
+                [px + rx * half, py + ry * half, pz - half],
+                [px - rx * half, py - ry * half, pz - half],
+            ]
+        )
+        pix, dep = self.project(sq, cx_w, cy_w, yaw)
+        if np.any(dep < 0.05):
+            return
+        _, dcen = self.project(np.array([[px, py, pz]]), cx_w, cy_w, yaw)
+        x0 = max(int(math.floor(pix[:, 0].min())), 0)
+        x1 = min(int(math.ceil(pix[:, 0].max())) + 1, self.H)
+        y0 = max(int(math.floor(pix[:, 1].min())), 0)
+        y1 = min(int(math.ceil(pix[:, 1].max())) + 1, self.W)
+        if x0 >= x1 or y0 >= y1:
+            return
+        s = _SPRITE
+        # sprite pixel centres: corners of the octagon's square are at -0.5 and s - 0.5
+        src = np.array([[-0.5, -0.5], [s - 0.5, -0.5], [s - 0.5, s - 0.5], [-0.5, s - 0.5]], np.float32)
+        # transposed image coords: x = v (image row), y = u (image column)
+        dst = (pix - [x0, y0]).astype(np.float32)
+        Hs = cv2.getPerspectiveTransform(src, dst)
+        sprite = _sprites()[0 if front else 1]
+        patch = cv2.warpPerspective(sprite, Hs, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        # patch is (rows = image columns y, cols = image rows x) like the transposed buffers
+        zroi = self.depth_t[y0:y1, x0:x1]
+        d = float(dcen[0])
+        mask = (patch[:, :, 3] > 127) & (zroi > d)
+        if not mask.any():
+            return
+        g = self.gain
+        gi = int((py - g.y0) / g.res)
+        gj = int((px - g.x0) / g.res)
+        gain = float(g.gain[gi, gj]) if 0 <= gi < g.gain.shape[0] and 0 <= gj < g.gain.shape[1] else 1.0
+        rgb = patch[:, :, :3]
+        if gain != 1.0:
+            rgb = cv2.convertScaleAbs(rgb, alpha=gain)
+        self.color_t[y0:y1, x0:x1][mask] = rgb[mask]
+        zroi[mask] = d
+
+
+def _level_view_size(W: int, H: int, fx: float, fy: float, cx: float, cy: float, pitch: float):
+    """Level-camera image bounds (u0, v0, u1, v1) covering a camera pitched down by ``pitch``."""
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    c, s = math.cos(pitch), math.sin(pitch)
+    # pitched optical frame (X right, Y down, Z fwd) -> level optical frame: rotation about X
+    R = np.array([[1, 0, 0], [0, c, s], [0, -s, c]])
+    Hm = K @ R @ np.linalg.inv(K)
+    corners = np.array([[-0.5, -0.5, 1], [W - 0.5, -0.5, 1], [W - 0.5, H - 0.5, 1], [-0.5, H - 0.5, 1]]).T
+    q = Hm @ corners
+    q = q[:2] / q[2]
+    return q[0].min(), q[1].min(), q[0].max(), q[1].max(), Hm, R
+
+
+# --------------------------------------------------------------------------------------------
+# the RGBD camera
+# --------------------------------------------------------------------------------------------
+class RGBDCamera:
+    """The Intel D435 at its mount: ``render(pose, t)`` -> :class:`~qcarlab.sensors.RGBDFrame`."""
+
+    def __init__(self, world: World | str, params: QCarParams = DEFAULT_PARAMS, rng: np.random.Generator | None = None):
+        self.world = world if isinstance(world, World) else load_world(world, params)
+        self.params = params
+        p = params
+        W, H = int(p.rgbd_width), int(p.rgbd_height)
+        f = (H / 2.0) / math.tan(p.rgbd_vfov / 2.0)
+        self.intrinsics = CameraIntrinsics(fx=f, fy=f, cx=(W - 1) / 2.0, cy=(H - 1) / 2.0, width=W, height=H)
+        self.pitch = float(p.rgbd_pitch)
+        intr = self.intrinsics
+        if abs(self.pitch) < 1e-9:
+            level = intr
+            self._rot = None
+        else:
+            u0, v0, u1, v1, Hm, R = _level_view_size(W, H, intr.fx, intr.fy, intr.cx, intr.cy, self.pitch)
+            a0, b0 = int(math.floor(u0)) - 1, int(math.floor(v0)) - 1
+            lw, lh = int(math.ceil(u1)) + 2 - a0, int(math.ceil(v1)) + 2 - b0
+            level = CameraIntrinsics(intr.fx, intr.fy, intr.cx - a0, intr.cy - b0, lw, lh)
+            # pitched pixel -> level pixel (for remapping), and the depth factor z_p = z_l / (R r)_z
+            T = np.array([[1, 0, -a0], [0, 1, -b0], [0, 0, 1.0]])
+            self._rot = T @ Hm
+            us, vs = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+            rz = R[2, 0] * (us - intr.cx) / intr.fx + R[2, 1] * (vs - intr.cy) / intr.fy + R[2, 2]
+            self._depth_factor = (1.0 / rz).astype(np.float32)
+        self._level = level
+        u = np.arange(level.width, dtype=np.float64)
+        xn = (u - level.cx) / level.fx
+        self._view = _ColumnView(
+            self.world, (p.rgbd_x, 0.0, p.rgbd_z, 0.0), np.arctan(-xn), np.sqrt(1.0 + xn * xn),
+            level.fy, level.cy, level.height, level,
+        )
+        self.rng = rng
+        self._noise = _Noise(rng, H, W, COLOR_NOISE_SD, True) if rng is not None else None
+
+    @property
+    def rate(self) -> float:
+        return self.params.rgbd_rate
+
+    def camera_pose(self, pose: tuple[float, float, float]) -> tuple[float, float, float]:
+        """The camera's (x, y, yaw) in the world for a car pose."""
+        return self._view.camera_pose(pose)
+
+    def render(self, pose: tuple[float, float, float], t: float = 0.0) -> RGBDFrame:
+        """The colour image (BGR uint8) and aligned depth (float32 m, 0 = none) seen from ``pose``."""
+        v = self._view
+        v.draw(pose, t)
+        color = cv2.transpose(v.color_t)
+        depth = cv2.transpose(v.depth_t)
+        if self._rot is not None:
+            W, H = self.intrinsics.width, self.intrinsics.height
+            flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+            color = cv2.warpPerspective(color, self._rot, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+            depth = cv2.warpPerspective(depth, self._rot, (W, H), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                        borderMode=cv2.BORDER_REPLICATE)
+            depth = cv2.multiply(depth, self._depth_factor)
+        cv2.threshold(depth, self.params.rgbd_max_depth, 0.0, cv2.THRESH_TOZERO_INV, dst=depth)  # inf -> 0
+        if self._noise is not None:
+            self._noise.color(color)
+            self._noise.depth_noise(depth, DEPTH_NOISE)
+        cv2.threshold(depth, self.params.rgbd_max_depth, 0.0, cv2.THRESH_TOZERO_INV, dst=depth)
+        cv2.threshold(depth, RGBD_MIN_DEPTH, 0.0, cv2.THRESH_TOZERO, dst=depth)
+        return RGBDFrame(t=float(t), color=color, depth=depth)
+
+
+# --------------------------------------------------------------------------------------------
+# the CSI cameras
+# --------------------------------------------------------------------------------------------
+CSI_ORDER = ("right", "rear", "left", "front")
+
+
+class _CylinderView(_ColumnView):
+    def __init__(self, world: World, mount, half_az: float, half_tan: float, f: float):
+        W = int(math.ceil(2.0 * half_az * f))
+        H = int(math.ceil(2.0 * half_tan * f))
+        self.az0 = half_az
+        self.f_az = (W - 1) / (2.0 * half_az)  # columns per radian
+        az = half_az - np.arange(W) / self.f_az
+        super().__init__(world, mount, az, np.ones(W), f, (H - 1) / 2.0, H, None, tex_level=1)
+
+    def col_of_az(self, az: np.ndarray) -> np.ndarray:
+        return (self.az0 - az) * self.f_az
+
+
+class CSICameras:
+    """The four 160 deg CSI cameras: ``render(pose, t)`` -> :class:`~qcarlab.sensors.CSIFrames`."""
+
+    def __init__(self, world: World | str, params: QCarParams = DEFAULT_PARAMS, rng: np.random.Generator | None = None):
+        self.world = world if isinstance(world, World) else load_world(world, params)
+        self.params = params
+        p = params
+        W, H = int(p.csi_width), int(p.csi_height)
+        self.width, self.height = W, H
+        self.f = (W / 2.0) / (p.csi_fov / 2.0)  # equidistant fisheye: r = f * theta (px/rad)
+        cx, cy = (W - 1) / 2.0, (H - 1) / 2.0
+        # rays of every fisheye pixel in the optical frame (X right, Y down, Z forward)
+        us, vs = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+        du, dv = us - cx, vs - cy
+        r = np.hypot(du, dv)
+        th = r / self.f
+        phi = np.arctan2(dv, du)
+        X, Y, Z = np.sin(th) * np.cos(phi), np.sin(th) * np.sin(phi), np.cos(th)
+        az = np.arctan2(-X, Z)  # left positive
+        tan_el = -Y / np.hypot(X, Z)
+        half_az = float(np.abs(az).max()) + 0.02
+        half_tan = float(np.abs(tan_el).max()) + 0.02
+        fc = self.f * CSI_OVERSAMPLE
+        m = p.csi_x
+        mounts = {
+            "right": (0.0, -m, p.csi_z, -math.pi / 2.0),
+            "rear": (-m, 0.0, p.csi_z, math.pi),
+            "left": (0.0, m, p.csi_z, math.pi / 2.0),
+            "front": (m, 0.0, p.csi_z, 0.0),
+        }
+        self._views = {name: _CylinderView(self.world, mounts[name], half_az, half_tan, fc) for name in CSI_ORDER}
+        v0 = self._views["front"]
+        # fisheye pixel -> transposed cylinder pixel: x = cylinder row, y = cylinder column
+        map_x = (v0.cy - v0.fy * tan_el).astype(np.float32)
+        map_y = v0.col_of_az(az).astype(np.float32)
+        self._m1, self._m2 = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
+        self.rng = rng
+        self._noise = _Noise(rng, H, W, COLOR_NOISE_SD, False) if rng is not None else None
+
+    @property
+    def rate(self) -> float:
+        return self.params.csi_rate
+
+    def render_one(self, name: str, pose: tuple[float, float, float], t: float = 0.0) -> np.ndarray:
+        """One view (``right``, ``rear``, ``left`` or ``front``) as BGR uint8 (height, width, 3)."""
+        v = self._views[name]
+        v.draw(pose, t)
+        img = cv2.remap(v.color_t, self._m1, self._m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        if self._noise is not None:
+            self._noise.color(img)
+        return img
+
+    def render(self, pose: tuple[float, float, float], t: float = 0.0) -> CSIFrames:
+        """The four views at once, in the sheet's order right, rear, left, front."""
+        imgs = [self.render_one(n, pose, t) for n in CSI_ORDER]
+        return CSIFrames(float(t), *imgs)
+
+
+def stitch_panorama(frames: CSIFrames | list[np.ndarray]) -> np.ndarray:
+    """The four CSI views side by side in the sheet's order: right | rear | left | front."""
+    imgs = frames.as_list() if isinstance(frames, CSIFrames) else list(frames)
+    if len(imgs) != 4:
+        raise ValueError(f"expected 4 views (right, rear, left, front), got {len(imgs)}")
+    h = min(i.shape[0] for i in imgs)
+    return np.hstack([i[:h] for i in imgs])

@@ -1,0 +1,255 @@
+"""Rasters the sensors precompute once per world: the floor texture, brightness, occupancy + labels.
+
+- :func:`draw_floor`: the floor seen from above (markings, regions' brightness) as a BGR image;
+  the cameras sample it, the top-down render starts from it.
+- :func:`build_raster`: the static shapes as a label grid (cell -> index of the shape covering it,
+  -1 = free) with a distance transform (distance in cells from each free cell to the nearest
+  occupied one) so a ray can skip empty space, plus per-shape tables (kind, height, colour,
+  polygon vertices or circle) so a hit can be refined to the exact surface.
+
+Raster cells: cell (row, col) covers x in [x0 + col res, x0 + (col + 1) res) and
+y in [y0 + row res, y0 + (row + 1) res): row 0 is the *bottom* (y grows with the row), unlike
+images. ROS maps keep their own cells; vector worlds are drawn at :data:`RASTER_RES`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from qcarlab.sim.world import Solid, World
+
+RASTER_RES = 0.005  # m, cell size of vector worlds' rasters (coarsened to stay under MAX_RASTER_CELLS)
+MAX_RASTER_CELLS = 6_000_000
+MAX_TEXTURE_PIXELS = 9_000_000  # the floor texture is coarsened past this (large ROS maps)
+BRIGHTNESS_RES = 0.05  # m, cell size of the brightness grid
+_SHIFT = 4  # fractional bits for cv2 drawing
+_ONE = 1 << _SHIFT
+
+KIND_GRID, KIND_POLYGON, KIND_CIRCLE = 0, 1, 2
+
+
+def _fixed(pts: np.ndarray) -> np.ndarray:
+    return np.round(pts * _ONE).astype(np.int32)
+
+
+# --------------------------------------------------------------------------------------------
+# floor texture
+# --------------------------------------------------------------------------------------------
+def _dash(points: np.ndarray, closed: bool, paint: float, gap: float) -> list[np.ndarray]:
+    """Cut a polyline into dashes of length ``paint`` separated by ``gap`` (along its length)."""
+    pts = np.vstack([points, points[:1]]) if closed else points
+    seg = np.diff(pts, axis=0)
+    seg_len = np.hypot(seg[:, 0], seg[:, 1])
+    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+    total = cum[-1]
+    out = []
+    s = 0.0
+    while s < total:
+        e = min(s + paint, total)
+        ss = np.concatenate([[s], cum[(cum > s) & (cum < e)], [e]])
+        xs = np.interp(ss, cum, pts[:, 0])
+        ys = np.interp(ss, cum, pts[:, 1])
+        out.append(np.column_stack((xs, ys)))
+        s += paint + gap
+    return out
+
+
+def draw_floor(world: World, px_per_m: float) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """The floor texture: (BGR uint8 image, (x0, y1, px_per_m)); see :meth:`World.floor_texture`."""
+    fw, fh = world.floor_size
+    ppm = float(px_per_m)
+    if fw * fh * ppm * ppm > MAX_TEXTURE_PIXELS:
+        ppm = math.sqrt(MAX_TEXTURE_PIXELS / (fw * fh))
+    w, h = max(1, int(math.ceil(fw * ppm))), max(1, int(math.ceil(fh * ppm)))
+    x0, y0 = world.floor_origin
+    y1 = y0 + fh
+    img = np.empty((h, w, 3), np.uint8)
+    img[:] = world.floor_color
+
+    def px(p: np.ndarray) -> np.ndarray:
+        return _fixed(np.column_stack(((p[:, 0] - x0) * ppm - 0.5, (y1 - p[:, 1]) * ppm - 0.5)))
+
+    if world.grid is not None:
+        g = world.grid
+        # unknown cells a little darker, occupied cells (seen from above) in the wall colour
+        shade = np.zeros(g.occupied.shape, np.uint8)
+        shade[g.unknown] = 1
+        shade[g.occupied] = 2
+        shade = cv2.resize(shade[::-1], (w, h), interpolation=cv2.INTER_NEAREST)
+        img[shade == 1] = (np.array(world.floor_color) * 0.8).astype(np.uint8)
+        img[shade == 2] = g.wall_color
+
+    for m in world.markings:
+        color = tuple(int(c) for c in m.color)
+        if m.filled:
+            cv2.fillPoly(img, [px(m.points)], color, cv2.LINE_AA, _SHIFT)
+            continue
+        thick = max(1, int(round(m.width * ppm)))
+        pieces = _dash(m.points, m.closed, *m.dash) if m.dash else [m.points]
+        closed = m.closed and not m.dash
+        for piece in pieces:
+            cv2.polylines(img, [px(piece)], closed, color, thick, cv2.LINE_AA, _SHIFT)
+
+    if world.regions:
+        gain = np.ones((h, w), np.float32)
+        for r in world.regions:
+            cv2.fillPoly(gain, [px(r.polygon)], float(r.brightness), cv2.LINE_8, _SHIFT)
+        img = cv2.convertScaleAbs(img.astype(np.float32) * gain[:, :, None])
+    return img, (x0, y1, ppm)
+
+
+@dataclass(frozen=True)
+class Brightness:
+    """Per-cell brightness gain (rows from the bottom, y up); 1.0 outside every region."""
+
+    gain: np.ndarray  # float32 (ny, nx)
+    x0: float
+    y0: float
+    res: float
+
+
+def brightness_grid(world: World) -> Brightness:
+    key = ("brightness",)
+    if key in world._cache:
+        return world._cache[key]
+    xmin, ymin, xmax, ymax = world.bounds
+    res = BRIGHTNESS_RES
+    nx, ny = int(math.ceil((xmax - xmin) / res)) + 2, int(math.ceil((ymax - ymin) / res)) + 2
+    x0, y0 = xmin - res, ymin - res
+    gain = np.ones((ny, nx), np.float32)
+    for r in world.regions:
+        p = _fixed(np.column_stack(((r.polygon[:, 0] - x0) / res - 0.5, (r.polygon[:, 1] - y0) / res - 0.5)))
+        cv2.fillPoly(gain, [p], float(r.brightness), cv2.LINE_8, _SHIFT)
+    out = Brightness(gain, x0, y0, res)
+    world._cache[key] = out
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# occupancy raster with labels and a distance transform
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Raster:
+    """Static shapes as cells (see the module docstring) and the tables to refine a hit exactly."""
+
+    x0: float
+    y0: float
+    res: float
+    label: np.ndarray  # int32 (ny, nx), -1 = free, else index into the tables
+    dt: np.ndarray  # float32 (ny, nx), cells from a free cell's centre to the nearest occupied one
+    kinds: np.ndarray  # int32 (L,): KIND_GRID, KIND_POLYGON, KIND_CIRCLE
+    heights: np.ndarray  # float64 (L,) top of each shape above the floor
+    colors: np.ndarray  # float32 (L, 3) BGR
+    poly_start: np.ndarray  # int32 (L,) first vertex of each polygon in verts
+    poly_count: np.ndarray  # int32 (L,)
+    verts: np.ndarray  # float64 (V, 2)
+    circles: np.ndarray  # float64 (L, 3): cx, cy, r
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.label.shape  # type: ignore[return-value]
+
+
+def build_raster(world: World, z: float | None = None, res: float | None = None) -> Raster:
+    """The raster of the shapes a sensor sees (cached on the world).
+
+    ``z=None``: the cameras' raster of every shape standing on the floor (walls, obstacles, sign
+    posts; sign plates are drawn by the camera itself). ``z`` = a height (the LIDAR's): only the
+    shapes cut by the horizontal plane at that height, sign plates included; ROS map walls always.
+    """
+    key = ("raster", z, res)
+    if key in world._cache:
+        return world._cache[key]
+    solids: list[Solid] = []
+    for s in world.static_solids():
+        if z is None:
+            if s.z0 <= 0.0:
+                solids.append(s)
+        elif s.z0 <= z < s.height:
+            solids.append(s)
+
+    xmin, ymin, xmax, ymax = world.bounds
+    g = world.grid
+    if g is not None:
+        r = g.resolution
+        # align the raster to the grid's cells, grown to hold every other shape
+        pad = 2
+        c0 = int(math.floor((xmin - g.origin[0]) / r)) - pad
+        r0 = int(math.floor((ymin - g.origin[1]) / r)) - pad
+        c1 = int(math.ceil((xmax - g.origin[0]) / r)) + pad
+        r1 = int(math.ceil((ymax - g.origin[1]) / r)) + pad
+        nx, ny = c1 - c0, r1 - r0
+        x0, y0 = g.origin[0] + c0 * r, g.origin[1] + r0 * r
+    else:
+        r = float(res) if res else RASTER_RES
+        area = (xmax - xmin + 0.1) * (ymax - ymin + 0.1)
+        if area / (r * r) > MAX_RASTER_CELLS:
+            r = math.sqrt(area / MAX_RASTER_CELLS)
+        nx = int(math.ceil((xmax - xmin) / r)) + 4
+        ny = int(math.ceil((ymax - ymin) / r)) + 4
+        x0, y0 = xmin - 2 * r, ymin - 2 * r
+
+    label = np.full((ny, nx), -1, np.int32)
+    kinds, heights, colors, pstart, pcount, circles = [], [], [], [], [], []
+    verts: list[np.ndarray] = []
+    nverts = 0
+    if g is not None:
+        gy, gx = g.occupied.shape
+        rr0, cc0 = -r0, -c0  # where the grid's row/col 0 sits in the raster
+        label[rr0 : rr0 + gy, cc0 : cc0 + gx][g.occupied] = 0
+        kinds.append(KIND_GRID)
+        heights.append(g.wall_height)
+        colors.append(g.wall_color)
+        pstart.append(0)
+        pcount.append(0)
+        circles.append((0.0, 0.0, 0.0))
+
+    for s in solids:
+        idx = len(kinds)
+        kinds.append(KIND_POLYGON if s.kind == "polygon" else KIND_CIRCLE)
+        heights.append(s.height)
+        colors.append(s.color)
+        if s.kind == "polygon":
+            assert s.points is not None
+            pts = s.points
+            pstart.append(nverts)
+            pcount.append(len(pts))
+            verts.append(pts)
+            nverts += len(pts)
+            circles.append((0.0, 0.0, 0.0))
+            cells = _fixed(np.column_stack(((pts[:, 0] - x0) / r - 0.5, (pts[:, 1] - y0) / r - 0.5)))
+            cv2.fillPoly(label, [cells], idx, cv2.LINE_8, _SHIFT)
+        else:
+            assert s.center is not None
+            pstart.append(0)
+            pcount.append(0)
+            circles.append((s.center[0], s.center[1], s.radius))
+            c = _fixed(np.array([[(s.center[0] - x0) / r - 0.5, (s.center[1] - y0) / r - 0.5]]))[0]
+            rad = max(1, int(round(s.radius / r * _ONE)))
+            cv2.circle(label, (int(c[0]), int(c[1])), rad, idx, -1, cv2.LINE_8, _SHIFT)
+
+    free = (label < 0).astype(np.uint8)
+    if free.all():
+        dt = np.full(label.shape, 1e9, np.float32)
+    else:
+        dt = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    out = Raster(
+        x0=float(x0),
+        y0=float(y0),
+        res=float(r),
+        label=label,
+        dt=dt,
+        kinds=np.array(kinds, np.int32),
+        heights=np.array(heights, np.float64),
+        colors=np.array(colors, np.float32).reshape(-1, 3),
+        poly_start=np.array(pstart, np.int32),
+        poly_count=np.array(pcount, np.int32),
+        verts=np.vstack(verts).astype(np.float64) if verts else np.zeros((0, 2)),
+        circles=np.array(circles, np.float64).reshape(-1, 3),
+    )
+    world._cache[key] = out
+    return out
