@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["plot_follow", "plot_path", "plot_speed", "plot_step_response", "plot_sweep"]
+__all__ = ["plot_cloud", "plot_depth", "plot_follow", "plot_path", "plot_polar_scan", "plot_speed",
+           "plot_step_response", "plot_sweep"]
 
 
 def _figure(width: float = 7.6, height: float = 6.0) -> Any:
@@ -155,4 +156,56 @@ def plot_step_response(log: Mapping[str, Any], metrics: Mapping[str, Any], file:
     ax.set_ylabel("speed (m/s)")
     ax.grid(True, alpha=0.4)
     ax.legend(loc="best", fontsize=8)
+    return _save(fig, file)
+
+
+def plot_polar_scan(angles: np.ndarray, ranges: np.ndarray, file: str | Path, title: str = "LIDAR scan") -> Path:
+    """The sheet's body-frame polar plot (Figure 24): forward up, angles counter-clockwise."""
+    fig = _figure(6.0, 6.0)
+    ax = fig.add_subplot(1, 1, 1, projection="polar")
+    ok = ranges > 0
+    ax.scatter(angles[ok], ranges[ok], s=2, color="tab:red")
+    ax.set_theta_zero_location("N")  # forward (body x) up
+    ax.set_theta_direction(1)  # counter-clockwise, REP-103
+    ax.set_title(f"{title} ({int(ok.sum())} returns; range in m)")
+    return _save(fig, file)
+
+
+def plot_cloud(cloud: np.ndarray, poses: Sequence[Sequence[float]], file: str | Path,
+               background: np.ndarray | None = None, extent: Sequence[float] | None = None) -> Path:
+    """Scan points accumulated in the world frame (the sheet's point-cloud map, Figure 25),
+    over an optional top-down render of the world (``extent`` = [xmin, xmax, ymin, ymax])."""
+    fig = _figure()
+    ax = fig.add_subplot(1, 1, 1)
+    if background is not None and extent is not None:
+        ax.imshow(background[:, :, ::-1], extent=extent, origin="upper", alpha=0.5)
+    ax.scatter(cloud[:, 0], cloud[:, 1], s=1, color="tab:red", label="LIDAR returns")
+    if poses:
+        p = np.asarray(poses)
+        ax.plot(p[:, 0], p[:, 1], "-", color="tab:blue", lw=1)
+        ax.quiver(p[-1, 0], p[-1, 1], np.cos(p[-1, 2]), np.sin(p[-1, 2]), color="tab:blue", scale=15,
+                  label="LIDAR pose")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.4)
+    ax.set_xlabel("X (m)")
+    ax.set_ylabel("Y (m)")
+    ax.set_title("point cloud in the world frame")
+    ax.legend(loc="upper right", fontsize=8)
+    return _save(fig, file)
+
+
+def plot_depth(depth: np.ndarray, file: str | Path) -> Path:
+    """A depth image with a colour scale bar in metres; pixels with no data (0) in black.
+    Answers the sheet's question "darker = closer?" by looking at the bar."""
+    fig = _figure(7.2, 5.0)
+    ax = fig.add_subplot(1, 1, 1)
+    shown = np.ma.masked_equal(depth, 0.0)
+    from matplotlib import colormaps
+
+    cmap = colormaps["viridis"].with_extremes(bad="black")
+    im = ax.imshow(shown, cmap=cmap)
+    bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04)
+    bar.set_label("depth (m): dark = near, bright = far; black = no data")
+    ax.set_title("RGBD depth")
+    ax.set_axis_off()
     return _save(fig, file)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -30,6 +31,8 @@ START_POSE = (0.0, 0.0, -math.pi / 2.0)  # the lab sheet's start: origin, headin
 
 class SimCar(Car):
     """A simulated QCar on its stand or on the floor, optionally in a world with sensors."""
+
+    lidar_beams: int | None = None  # beams per scan; None = the device's (QCarParams.lidar_beams)
 
     def __init__(
         self,
@@ -58,7 +61,10 @@ class SimCar(Car):
         self._cmd = Command()
         self._realtime = bool(realtime)
         self._t0_wall = time.monotonic()
-        self._sensors: dict[str, Any] = {}
+        self._sensors: dict[str, Any] = {}  # built on first read: rasters cost time and memory
+        self._frames: dict[str, tuple[int, Any]] = {}  # sensor -> (frame index, frame)
+        self._history: deque[tuple[float, float, float, float]] = deque(maxlen=256)
+        self._remember_pose()
 
     # --- time -----------------------------------------------------------------------------------
     @property
@@ -76,6 +82,25 @@ class SimCar(Car):
             lag = (time.monotonic() - self._t0_wall) - self.vehicle.state.t
             if lag > 0.0:
                 self.vehicle.step(lag)
+                self._remember_pose()
+
+    def _remember_pose(self) -> None:
+        s = self.vehicle.state
+        self._history.append((s.t, s.x, s.y, s.yaw))
+
+    def pose_at(self, t: float) -> tuple[float, float, float]:
+        """The true pose at a recent time ``t``, interpolated between the steps around it."""
+        hist = self._history
+        if t >= hist[-1][0]:
+            return hist[-1][1:]
+        for i in range(len(hist) - 1, 0, -1):
+            t0, x0, y0, a0 = hist[i - 1]
+            t1, x1, y1, a1 = hist[i]
+            if t0 <= t:
+                u = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
+                da = (a1 - a0 + math.pi) % (2.0 * math.pi) - math.pi
+                return (x0 + u * (x1 - x0), y0 + u * (y1 - y0), a0 + u * da)
+        return hist[0][1:]
 
     def advance(self, dt: float) -> None:
         if not (math.isfinite(dt) and dt >= 0.0):
@@ -85,6 +110,7 @@ class SimCar(Car):
             self._sync()
         else:
             self.vehicle.step(dt)
+            self._remember_pose()
 
     # --- I/O ------------------------------------------------------------------------------------
     def _apply(self, cmd: Command) -> None:
@@ -132,8 +158,58 @@ class SimCar(Car):
             wheel_distance=s.wheel_distance,
         )
 
+    # --- exteroceptive sensors ------------------------------------------------------------------
+    def _world(self) -> Any:
+        if self.world is None:  # sensors without a named world see the lab room
+            from qcarlab.sim.world import load_world
+
+            self.world = load_world("studio", self.params)
+        return self.world
+
+    def _sensor(self, kind: str) -> Any:
+        sensor = self._sensors.get(kind)
+        if sensor is None:
+            from qcarlab.sim import camera, lidar
+
+            rng = np.random.default_rng(self._sensor_seq.spawn(1)[0])
+            world = self._world()
+            if kind == "lidar":
+                sensor = lidar.Lidar(world, self.params, beams=self.lidar_beams, rng=rng)
+            elif kind == "rgbd":
+                sensor = camera.RGBDCamera(world, self.params, rng)
+            else:
+                sensor = camera.CSICameras(world, self.params, rng)
+            self._sensors[kind] = sensor
+        return sensor
+
+    def _latest_frame(self, kind: str, rate: float, render) -> Any:
+        """The latest frame of a sensor that takes ``rate`` frames/s: frame k is taken at k / rate
+        from the pose at that time; reads between two frames return the same frame."""
+        self._sync()
+        k = math.floor(self.vehicle.state.t * rate + 1e-9)
+        cached = self._frames.get(kind)
+        if cached is not None and cached[0] == k:
+            return cached[1]
+        t_k = k / rate
+        frame = render(self._sensor(kind), self.pose_at(t_k), t_k)
+        self._frames[kind] = (k, frame)
+        return frame
+
+    def read_lidar(self) -> Any:
+        return self._latest_frame("lidar", self.params.lidar_rate, lambda s, pose, t: s.scan(pose, t))
+
+    def read_rgbd(self) -> Any:
+        return self._latest_frame("rgbd", self.params.rgbd_rate, lambda s, pose, t: s.render(pose, t))
+
+    def read_csi(self) -> Any:
+        return self._latest_frame("csi", self.params.csi_rate, lambda s, pose, t: s.render(pose, t))
+
+    def lidar_pose(self) -> tuple[float, float, float]:
+        """The LIDAR's pose in the world frame now (for plotting scans in the world)."""
+        return self._sensor("lidar").sensor_pose(self.pose_at(self.time))
+
     def identity(self) -> Identity:
-        caps = ["drive", "lamps", "encoder", "imu", "battery", "truth"]
+        caps = ["drive", "lamps", "encoder", "imu", "battery", "truth", "lidar", "rgbd", "csi"]
         if self.stepped:
             caps.append("lockstep")
         return Identity(

@@ -19,6 +19,7 @@ class Result:
     metrics: dict[str, Any]
     logs: dict[str, dict[str, Any]] = field(default_factory=dict)
     figures: dict[str, Callable[[Path], None]] = field(default_factory=dict)
+    data: dict[str, Any] = field(default_factory=dict)  # in-memory artefacts (frames, scans), not saved
 
     def save(self, out: str | Path) -> list[Path]:
         """Write results.json, the CSV logs and the figures into ``out``; return the paths."""
