@@ -9,6 +9,7 @@ from __future__ import annotations
 from qcarlab.cli.app import app, main
 from qcarlab.cli import io_test  # noqa: F401  (io-test)
 from qcarlab.cli import paths  # noqa: F401  (path-gen, path-follow)
+from qcarlab.cli import sensors  # noqa: F401  (lidar-scan, camera)
 from qcarlab.cli.pending import register_pending
 
 register_pending()
