@@ -70,4 +70,5 @@ def open_car(
         from qcarlab.car.tcp import TcpCar
     except ImportError:
         raise NotBuiltError("--car tcp://...: the TCP car is not built yet (issue 5)") from None
-    return TcpCar(host, port, params=params, throttle_limit=throttle_limit, **options)
+    # the server decides seed, world and stand; the client's on_stand only warns on a mismatch
+    return TcpCar(host, port, params=params, throttle_limit=throttle_limit, on_stand=on_stand, **options)

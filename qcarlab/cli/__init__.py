@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from qcarlab.cli.app import app, main
 from qcarlab.cli import io_test  # noqa: F401  (io-test)
+from qcarlab.cli import net  # noqa: F401  (serve, ping)
+from qcarlab.cli import drive  # noqa: F401  (keyboard-drive)
 from qcarlab.cli import paths  # noqa: F401  (path-gen, path-follow)
 from qcarlab.cli import sensors  # noqa: F401  (lidar-scan, camera)
 from qcarlab.cli.pending import register_pending

@@ -33,9 +33,9 @@ import math
 import os
 import select
 import signal
-import termios
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -46,6 +46,11 @@ import numpy as np
 from qcarlab.car.base import Car, Readout, Truth
 from qcarlab.control.speed import basic_speed_estimation
 from qcarlab.errors import InputError, NotBuiltError
+
+try:
+    import termios
+except ImportError:  # Windows: no POSIX terminals (keyboard-drive runs in WSL there)
+    termios = None  # type: ignore[assignment]
 
 __all__ = [
     "ACTIONS",
@@ -91,22 +96,6 @@ KEYMAP: dict[str, str] = {
     "ctrl-\\": "interrupt",
 }
 ACTIONS = frozenset(KEYMAP.values())
-
-#: the keys, as the help and the live panel teach them
-KEY_HELP: tuple[tuple[str, str], ...] = (
-    ("W / Up", "faster (throttle target + one step)"),
-    ("S / Down", "slower, then reverse"),
-    ("A / Left", "steer left (steering target + one step)"),
-    ("D / Right", "steer right"),
-    ("C", "centre the steering"),
-    ("Space", "brake: throttle 0 at once, brake lamp on"),
-    ("H", "headlamps on/off"),
-    ("Z / ,", "left indicator on/off"),
-    ("X / .", "right indicator on/off"),
-    ("E", "hazard lamps on/off"),
-    ("Q / Ctrl-C", "stop the car and quit"),
-)
-
 
 @dataclass(frozen=True)
 class DriveConfig:
@@ -310,7 +299,7 @@ class KeyDecoder:
             return 1
         if nxt == ord("O"):  # SS3: ESC O X
             return 3 if i + 2 < len(buf) else 0
-        if nxt != ord("["):  # Alt+key: ESC then the key; report the key alone
+        if nxt != ord("["):  # Alt+key: ESC then the key (reported as "escape", then the key)
             return 1
         j = i + 2
         while j < len(buf):
@@ -330,15 +319,18 @@ def cbreak_terminal(fd: int) -> Iterator[list[Any]]:
     Off: canonical input, echo, signals from keys (Ctrl-C, Ctrl-Z, Ctrl-\\ arrive as bytes, so a
     suspended process can never leave the car driving), XON/XOFF flow control (Ctrl-S would
     freeze the output), CR->NL. Reads return at once (VMIN = VTIME = 0). Output processing stays
-    on, so printing works as usual. Yields the saved settings.
+    on, so printing works as usual. Keys typed before the block are dropped. Yields the saved
+    settings.
     """
+    if termios is None:
+        raise NotBuiltError("keyboard-drive needs a POSIX terminal (Linux, macOS; on Windows run it in WSL)")
     saved = termios.tcgetattr(fd)
     mode = termios.tcgetattr(fd)
     mode[0] &= ~(termios.IXON | termios.ICRNL)
     mode[3] &= ~(termios.ECHO | termios.ICANON | termios.ISIG | termios.IEXTEN)
     mode[6][termios.VMIN] = 0
     mode[6][termios.VTIME] = 0
-    termios.tcsetattr(fd, termios.TCSANOW, mode)
+    termios.tcsetattr(fd, termios.TCSAFLUSH, mode)  # keys typed before now must not drive the car
     try:
         yield saved
     finally:
@@ -440,7 +432,10 @@ class _Signals:
 
     def __enter__(self) -> _Signals:
         if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            for name in ("SIGINT", "SIGTERM", "SIGHUP"):
+                sig = getattr(signal, name, None)
+                if sig is None:
+                    continue
                 self._previous[sig] = signal.signal(sig, self._handle)
         return self
 
@@ -468,8 +463,8 @@ def keyboard_drive(
     (a function of the time since start returning the keys pressed since the last call, or None
     for end of input; for tests). ``on_frame`` gets a :class:`Frame` every tick and must be quick.
     SIGINT, SIGTERM and SIGHUP end the drive like ``q`` does (reason ``interrupted`` or
-    ``signal``). A
-    :class:`~qcarlab.errors.CarError` (a lost connection) propagates after the stop was tried.
+    ``signal``). A :class:`~qcarlab.errors.CarError` (a lost connection) propagates after the
+    stop was tried.
     """
     if not (math.isfinite(rate) and 1.0 <= rate <= 1000.0):
         raise InputError(f"--rate must be between 1 and 1000 Hz, got {rate}")
@@ -503,7 +498,7 @@ def keyboard_drive(
     deadline = wall0
     last_lidar = last_truth = wall0
     last_tick = wall0
-    rate_est = rate
+    recent: deque[float] = deque(maxlen=max(2, int(rate)))  # tick times of the last second
     try:
         with _Signals() as sigs:
             while True:
@@ -522,9 +517,9 @@ def keyboard_drive(
                     reason = "interrupted" if sigs.received == signal.SIGINT else "signal"
                     break
                 step = min(now - last_tick, 5 * dt) if ticks else 0.0
-                if ticks:
-                    rate_est = 0.9 * rate_est + 0.1 / max(now - last_tick, 1e-6)
                 last_tick = now
+                recent.append(now)
+                rate_est = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else rate
                 state = apply_key(state, None, step)
                 car.write(state.throttle, state.steering, lamps(state))
                 if car.stepped:

@@ -1,0 +1,235 @@
+"""``qcarlab serve`` (a car over TCP) and ``qcarlab ping`` (sheet 3.1's connectivity test)."""
+
+from __future__ import annotations
+
+import math
+import signal
+import struct
+import sys
+import threading
+import time
+from typing import Annotated, Any
+
+import typer
+
+from qcarlab.car import open_car, parse_car_uri
+from qcarlab.cli.app import app
+from qcarlab.cli.common import DebugOpt, JsonOpt, ParamsOpt, SeedOpt, WorldOpt
+from qcarlab.errors import CarError, InputError, NotBuiltError
+from qcarlab.net.protocol import DEFAULT_PORT, VERSION
+
+TokenOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--token", envvar="QCARLAB_TOKEN", show_envvar=True,
+        help="Shared secret; needed to serve on anything but loopback (clients send the same).",
+    ),
+]
+
+
+@app.command("serve")
+def serve_cmd(
+    backend: Annotated[
+        str, typer.Option(help="[b]sim[/b]: the built-in simulator; [b]quanser[/b]: the physical QCar (run on the car).")
+    ] = "sim",
+    host: Annotated[str, typer.Option(help="Address to listen on; anything but loopback needs --token.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=0, max=65535, help="TCP port (0 picks a free one and prints it).")] = DEFAULT_PORT,
+    lockstep: Annotated[
+        bool, typer.Option("--lockstep", help="Simulator time moves only when the client advances it (deterministic runs).")
+    ] = False,
+    token: TokenOpt = None,
+    watchdog: Annotated[
+        float, typer.Option(help="Stop the car (throttle 0, hazard lamps) after this many seconds without a command.")
+    ] = 0.25,
+    on_stand: Annotated[
+        bool,
+        typer.Option(
+            "--on-stand/--on-floor",
+            help="Simulated car on the floor (default: drive it) or on its stand (wheels turn, car stays put).",
+        ),
+    ] = False,
+    throttle_limit: Annotated[float, typer.Option(help="Throttle limit enforced by the server, whatever clients send.")] = 0.3,
+    max_clients: Annotated[int, typer.Option(min=1, max=1024, help="Most connections at once (one controller, the rest monitors).")] = 16,
+    world: WorldOpt = None,
+    seed: SeedOpt = 0,
+    params: ParamsOpt = None,
+    debug: DebugOpt = False,
+) -> None:
+    """Serve a car over TCP: the simulator (real time, or --lockstep) or the physical QCar.
+
+    Example: qcarlab serve --backend sim --port 18960   then   qcarlab io-test --car tcp://127.0.0.1:18960
+    """
+    from qcarlab.net.server import CarServer, is_loopback
+
+    backend = backend.strip().lower()
+    if backend not in ("sim", "quanser"):
+        raise InputError(f"--backend must be 'sim' or 'quanser', got {backend!r}")
+    if not (math.isfinite(watchdog) and 0.01 <= watchdog <= 60.0):
+        raise InputError(f"--watchdog must be between 0.01 and 60 s, got {watchdog}")
+    token = token or None
+    if not is_loopback(host) and not token:
+        raise InputError(
+            f"refusing to serve on {host or 'all interfaces'} without a token: anyone on that network could drive "
+            "the car; pass --token SECRET (or set QCARLAB_TOKEN), or bind to 127.0.0.1"
+        )
+    if backend == "quanser":
+        if lockstep:
+            raise InputError("--lockstep needs --backend sim (the physical car's time does not wait)")
+        if world is not None:
+            raise InputError("--world is for --backend sim; the physical car lives in the real world")
+        from qcarlab.car.quanser import QuanserCar
+        from qcarlab.constants import DEFAULT_PARAMS, load_params
+
+        car = QuanserCar(load_params(params) if params else DEFAULT_PARAMS, throttle_limit=throttle_limit)
+        what = f"the physical QCar ({car.identity().name})"
+    else:
+        try:
+            car = open_car(
+                "sim", world=world, seed=seed, on_stand=on_stand, realtime=not lockstep,
+                params=params, throttle_limit=throttle_limit,
+            )
+        except ImportError as exc:
+            raise NotBuiltError(f"--world {world!r}: simulator worlds are not built yet ({exc})") from None
+        stand = "on its stand" if on_stand else "on the floor"
+        what = f"the simulated QCar (seed {seed}, {stand}{', world ' + str(world) if world else ''})"
+    with car:
+        server = CarServer(car, host, port, token=token, watchdog=watchdog, lockstep=lockstep, max_clients=max_clients)
+        server.start()
+        mode = "lock-step" if lockstep else "real time"
+        print(
+            f"serving {what} on {server.uri} ({mode}, protocol v{VERSION}, watchdog {watchdog:g} s, "
+            f"throttle limit {car.throttle_limit:g}{', token required' if token else ''}); Ctrl-C to stop",
+            flush=True,
+        )
+        previous = None
+        if threading.current_thread() is threading.main_thread():
+            previous = signal.signal(signal.SIGTERM, lambda *_: server.request_stop())
+        try:
+            server.serve_forever()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            server.stop()
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
+    print("stopped serving; the car is stopped", flush=True)
+
+
+def normalise_uri(uri: str) -> tuple[str, int]:
+    """``tcp://HOST:PORT``, Quanser's ``tcpip://HOST:PORT`` or a bare ``HOST[:PORT]`` -> (host, port)."""
+    text = (uri or "").strip()
+    if text.startswith("tcpip://"):
+        text = "tcp://" + text[len("tcpip://") :]
+    if "://" not in text:
+        if text in ("sim", ""):
+            raise InputError(f"{uri!r}: ping needs a served car, tcp://HOST:PORT (the in-process simulator needs no ping)")
+        host_part = text
+        if host_part.count(":") == 1 or (host_part.startswith("[") and "]:" in host_part):
+            text = "tcp://" + host_part
+        else:
+            text = f"tcp://{host_part}:{DEFAULT_PORT}"
+    scheme, host, port = parse_car_uri(text)
+    if scheme != "tcp" or host is None or port is None:
+        raise InputError(f"{uri!r}: expected tcp://HOST:PORT")
+    return host, port
+
+
+@app.command("ping")
+def ping_cmd(
+    uri: Annotated[str, typer.Argument(help="The car: tcp://HOST:PORT (or HOST[:PORT], port 18960 by default).")],
+    count: Annotated[int, typer.Option("--count", "-c", min=1, max=1_000_000, help="Round trips to make.")] = 5,
+    interval: Annotated[float, typer.Option("--interval", "-i", min=0.0, max=3600.0, help="Seconds between round trips.")] = 0.2,
+    timeout: Annotated[float, typer.Option(help="Seconds to wait for the connection and for each reply.")] = 2.0,
+    token: TokenOpt = None,
+    json_out: JsonOpt = False,
+    debug: DebugOpt = False,
+) -> None:
+    """Round-trip latency, loss and identity of a car (sheet 3.1); exit 0 when it answers, 1 otherwise.
+
+    Example: qcarlab ping tcp://192.168.2.15:18960 --count 20 --interval 0.1
+    """
+    from qcarlab.car.tcp import TcpCar, TcpConnectError
+
+    if not (math.isfinite(timeout) and timeout > 0):
+        raise InputError(f"--timeout must be a positive number of seconds, got {timeout}")
+    host, port = normalise_uri(uri)
+    shown = f"tcp://{'[' + host + ']' if ':' in host else host}:{port}"
+    try:
+        car = TcpCar(host, port, role="monitor", token=token or None, timeout=timeout, connect_timeout=timeout,
+                     client="qcarlab ping")
+    except TcpConnectError as exc:
+        if json_out:
+            from qcarlab.record import dumps
+
+            sys.stdout.write(dumps({"uri": shown, "reachable": False, "reason": exc.kind, "error": str(exc)}) + "\n")
+        raise
+    rtts: list[float] = []
+    lost = 0
+    with car:
+        ident = car.identity()
+        battery = None
+        try:
+            battery = car.read().battery_voltage
+        except (CarError, NotBuiltError):
+            pass  # e.g. a lock-step server before its controller's first read
+        remote = ident.extra.get("remote_backend")
+        if not json_out:
+            batt = f"battery {battery:.2f} V" if battery is not None else "battery unknown"
+            mode = ", lock-step" if car.stepped else ""
+            print(f"PING {shown}: {ident.name}, backend {remote}, protocol v{car.protocol}, {batt}{mode}", flush=True)
+        start = time.monotonic()
+        for i in range(count):
+            try:
+                rtt = car.ping(struct.pack("<Q", i), timeout=timeout)
+                rtts.append(rtt)
+                if not json_out:
+                    print(f"reply {i + 1}: {rtt * 1e3:.3f} ms", flush=True)
+            except TimeoutError:
+                lost += 1
+                if not json_out:
+                    print(f"reply {i + 1}: timed out after {timeout:g} s", flush=True)
+            except TcpConnectError as exc:
+                lost += count - i
+                if json_out:
+                    from qcarlab.record import dumps
+
+                    sys.stdout.write(dumps({"uri": shown, "reachable": False, "reason": exc.kind, "error": str(exc)}) + "\n")
+                raise
+            if i + 1 < count:
+                delay = start + (i + 1) * interval - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+    stats = _stats(rtts)
+    result = {
+        "uri": shown,
+        "reachable": bool(rtts),
+        "name": ident.name,
+        "backend": remote,
+        "protocol": car.protocol,
+        "capabilities": ident.capabilities,
+        "lockstep": car.stepped,
+        "battery_v": battery,
+        "sent": count,
+        "received": len(rtts),
+        "loss": lost / count,
+        "rtt_ms": stats,
+        "samples_ms": [r * 1e3 for r in rtts],
+    }
+    if json_out:
+        from qcarlab.record import dumps
+
+        sys.stdout.write(dumps(result) + "\n")
+    else:
+        print(f"--- {shown}: {count} sent, {len(rtts)} received, {100.0 * lost / count:.0f}% loss")
+        if rtts:
+            print("rtt min/avg/max/jitter = {min:.3f}/{avg:.3f}/{max:.3f}/{jitter:.3f} ms".format(**stats))
+    if not rtts:
+        raise TcpConnectError(f"{shown}: no reply to any of {count} pings (timed out after {timeout:g} s each)", "timeout")
+
+
+def _stats(rtts: list[float]) -> dict[str, float | None]:
+    if not rtts:
+        return {"min": None, "avg": None, "max": None, "jitter": None}
+    ms = [r * 1e3 for r in rtts]
+    jitter = sum(abs(b - a) for a, b in zip(ms, ms[1:])) / (len(ms) - 1) if len(ms) > 1 else 0.0
+    return {"min": min(ms), "avg": sum(ms) / len(ms), "max": max(ms), "jitter": jitter}

@@ -1,0 +1,66 @@
+"""``qcarlab serve`` as a user runs it: another process, then io-test and ping against it."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def start_serve(*args: str) -> tuple[subprocess.Popen, str]:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("QCARLAB_TOKEN", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "qcarlab", "serve", "--port", "0", *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT,
+    )
+    line: list[str] = []
+    reader = threading.Thread(target=lambda: line.append(proc.stdout.readline()))
+    reader.start()
+    reader.join(30)
+    if not line or "serving" not in line[0]:
+        proc.kill()
+        pytest.fail(f"serve did not start: {line} {proc.stderr.read() if proc.poll() is not None else ''}")
+    uri = re.search(r"tcp://[\d.]+:\d+", line[0]).group(0)
+    return proc, uri
+
+
+def stop_serve(proc: subprocess.Popen) -> tuple[int, str, str]:
+    proc.send_signal(signal.SIGTERM)
+    try:
+        out, err = proc.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        pytest.fail("serve did not stop on SIGTERM")
+    return proc.returncode, out, err
+
+
+def test_serve_lockstep_then_io_test_and_ping(cli):
+    proc, uri = start_serve("--lockstep", "--seed", "3", "--on-floor")
+    try:
+        args = ("io-test", "--on-floor", "--throttle", "0.1", "--duration", "0.5", "--seed", "3", "--json")
+        code, out, err = cli(*args, "--car", uri)
+        assert code == 0, err
+        code_p, out_p, err_p = cli("ping", uri, "-c", "2", "-i", "0", "--json")
+        assert code_p == 0, err_p
+    finally:
+        code_s, out_s, err_s = stop_serve(proc)
+    assert code_s == 0 and "stopped serving; the car is stopped" in out_s, err_s
+    assert "Traceback" not in err_s and "connected as control" in err_s and "car stopped" in err_s
+    tcp = json.loads(out)
+    tcp.pop("car")
+    local = json.loads(cli(*args)[1])
+    local.pop("car")
+    assert tcp == local  # same seed, same numbers, across processes
+    ping = json.loads(out_p)
+    assert ping["backend"] == "sim" and ping["lockstep"] is True and ping["battery_v"] > 10
