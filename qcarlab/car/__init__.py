@@ -35,7 +35,7 @@ def open_car(
     *,
     world: Any = None,
     seed: int = 0,
-    on_stand: bool = False,
+    on_stand: bool | None = None,
     realtime: bool = False,
     params: QCarParams | str | Path | None = None,
     throttle_limit: float | None = None,
@@ -46,6 +46,8 @@ def open_car(
 
     ``world`` is a world name, a world/ROS-map file or a loaded World (simulated cars only);
     ``params`` a :class:`QCarParams` or a YAML file overriding the simulator's car parameters.
+    ``on_stand``: a simulated car starts on its stand if True, on the floor otherwise; for a TCP
+    car an explicit value is checked against the served car's and a mismatch is reported.
     """
     scheme, host, port = parse_car_uri(uri)
     if not isinstance(params, QCarParams):
@@ -60,7 +62,7 @@ def open_car(
         return SimCar(
             params,
             seed=seed,
-            on_stand=on_stand,
+            on_stand=bool(on_stand),
             world=world,
             start=start,
             realtime=realtime,

@@ -204,10 +204,6 @@ class SimCar(Car):
     def read_csi(self) -> Any:
         return self._latest_frame("csi", self.params.csi_rate, lambda s, pose, t: s.render(pose, t))
 
-    def lidar_pose(self) -> tuple[float, float, float]:
-        """The LIDAR's pose in the world frame now (for plotting scans in the world)."""
-        return self._sensor("lidar").sensor_pose(self.pose_at(self.time))
-
     def identity(self) -> Identity:
         caps = ["drive", "lamps", "encoder", "imu", "battery", "truth", "lidar", "rgbd", "csi"]
         if self.stepped:

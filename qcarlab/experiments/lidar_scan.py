@@ -55,6 +55,18 @@ def to_world(scan: LidarScan, sensor_pose: tuple[float, float, float]) -> np.nda
     return np.column_stack((x + c * pts[:, 0] - s * pts[:, 1], y + s * pts[:, 0] + c * pts[:, 1]))
 
 
+def lidar_world_pose(car: Car, t: float) -> tuple[float, float, float] | None:
+    """The LIDAR's world pose from the car's ground truth (simulators, local or served), or None."""
+    truth = car.truth()
+    if truth is None:
+        return None
+    x, y, yaw = (truth.x, truth.y, truth.yaw)
+    if hasattr(car, "pose_at"):  # the local simulator knows the pose at the scan's own time
+        x, y, yaw = car.pose_at(t)
+    lx = car.params.lidar_x
+    return (x + lx * math.cos(yaw), y + lx * math.sin(yaw), yaw)
+
+
 def capture(car: Car, scans: int = 1, drive: bool = False, target: float | None = None,
             on_scan=None) -> Result:
     """Take ``scans`` LIDAR turns; return the summary, the last scan and the world point cloud."""
@@ -69,7 +81,7 @@ def capture(car: Car, scans: int = 1, drive: bool = False, target: float | None 
                     car.write(*DRIVE_COMMAND)
                 car.advance(tick)
         scan = car.read_lidar()
-        pose = car.lidar_pose() if hasattr(car, "lidar_pose") else None
+        pose = lidar_world_pose(car, scan.t)
         if pose is not None:
             clouds.append(to_world(scan, pose))
             poses.append(pose)
