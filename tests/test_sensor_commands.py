@@ -94,3 +94,15 @@ def test_sensor_frames_are_deterministic():
 
     (a1, d1), (a2, d2), (b1, _) = grab(4), grab(4), grab(5)
     assert np.array_equal(a1, a2) and np.array_equal(d1, d2) and not np.array_equal(a1, b1)
+
+
+def test_watch_shows_sectors_live_on_a_terminal():
+    from ptyrun import PtyRun
+
+    run = PtyRun("lidar-scan", "--watch", "--world", "obstacles", "--scans", "5")
+    rc = run.finish(timeout=20)
+    assert rc == 0, run.text[-2000:]
+    text = run.text
+    assert "nearest obstacle per sector" in text and "ahead-left" in text
+    assert "scan 5" in text and "Traceback" not in text
+    assert run.after == run.before

@@ -54,7 +54,9 @@ class SimCar(Car):
         self.start = tuple(float(v) for v in start)
         self.vehicle = Vehicle(params, on_stand=on_stand, pose=self.start)
         seq = np.random.SeedSequence(seed)
-        imu_seq, analog_seq, self._sensor_seq = seq.spawn(3)
+        imu_seq, analog_seq, lidar_seq, rgbd_seq, csi_seq = seq.spawn(5)
+        # one noise stream per sensor, fixed by the seed whatever order the sensors are first read in
+        self._sensor_seqs = {"lidar": lidar_seq, "rgbd": rgbd_seq, "csi": csi_seq}
         self._imu_rng = np.random.default_rng(imu_seq)
         self._analog_rng = np.random.default_rng(analog_seq)
         self._gyro_bias = self._imu_rng.normal(0.0, params.gyro_bias_sd, 3)
@@ -171,7 +173,7 @@ class SimCar(Car):
         if sensor is None:
             from qcarlab.sim import camera, lidar
 
-            rng = np.random.default_rng(self._sensor_seq.spawn(1)[0])
+            rng = np.random.default_rng(self._sensor_seqs[kind])
             world = self._world()
             if kind == "lidar":
                 sensor = lidar.Lidar(world, self.params, beams=self.lidar_beams, rng=rng)

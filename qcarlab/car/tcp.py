@@ -47,6 +47,8 @@ class TcpConnectError(CarError):
 class TcpCar(Car):
     """A car behind a qcarlab server at ``host:port``."""
 
+    frame_timeout = 15.0  # s to wait for a sensor frame (the first one may be built on demand)
+
     def __init__(
         self,
         host: str,
@@ -193,8 +195,15 @@ class TcpCar(Car):
     def connected(self) -> bool:
         return self._sock is not None
 
-    def _request(self, mtype: int, *parts: Any, expect: tuple[int, ...], timeout: float | None = None) -> P.Frame:
-        """Send one request, return its reply; error frames become exceptions."""
+    def _request(
+        self, mtype: int, *parts: Any, expect: tuple[int, ...], timeout: float | None = None,
+        keep_on_timeout: bool = False,
+    ) -> P.Frame:
+        """Send one request, return its reply; error frames become exceptions.
+
+        ``timeout`` overrides the connection's reply timeout for this request. On a timeout the
+        connection is dropped (a reply may still be in flight), unless ``keep_on_timeout``: then
+        TimeoutError is raised and a late reply is skipped later (pings)."""
         with self._lock:
             sock, reader = self._sock, self._reader
             if sock is None or reader is None:
@@ -220,10 +229,11 @@ class TcpCar(Car):
                         continue  # a late reply to a request we gave up on (a lost ping)
                     break
             except TimeoutError:
-                if reader.broken or timeout is None:
+                if reader.broken or not keep_on_timeout:
                     self._drop()
+                    waited = self.timeout if timeout is None else timeout
                     raise TcpConnectError(
-                        f"{self.uri}: no reply within {self.timeout:g} s (timed out); the connection was closed", "timeout"
+                        f"{self.uri}: no reply within {waited:g} s (timed out); the connection was closed", "timeout"
                     ) from None
                 raise
             except P.ProtocolError as exc:
@@ -352,7 +362,9 @@ class TcpCar(Car):
     def _frame(self, request: int, reply: int, cap: str, what: str) -> Any:
         if cap not in self._caps:
             raise NotBuiltError(f"{self.uri}: the served car has no {what}")
-        frame = self._request(request, expect=(reply,))
+        # a first frame may take seconds (the served simulator builds its sensor), a 2 MB frame
+        # over Wi-Fi a while: frames wait longer than commands
+        frame = self._request(request, expect=(reply,), timeout=max(self.timeout, self.frame_timeout))
         try:
             t, arrays = P.unpack_arrays(frame.payload, what)
         except P.ProtocolError as exc:
@@ -372,7 +384,7 @@ class TcpCar(Car):
         """One round trip; returns the latency in seconds. A ``timeout`` raises TimeoutError and
         keeps the connection (a late pong is skipped later)."""
         t0 = time.perf_counter()
-        frame = self._request(M.PING, payload, expect=(M.PONG,), timeout=timeout)
+        frame = self._request(M.PING, payload, expect=(M.PONG,), timeout=timeout, keep_on_timeout=timeout is not None)
         rtt = time.perf_counter() - t0
         if bytes(frame.payload) != bytes(payload):
             raise TcpConnectError(f"{self.uri}: pong does not echo the ping", "protocol")

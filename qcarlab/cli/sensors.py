@@ -95,7 +95,8 @@ def _lidar_summary(result: Result) -> None:
 
 
 def _sector_table(k: int, scan) -> Table:
-    table = Table(title=f"nearest obstacle per sector (scan {k + 1}, t = {scan.t:.1f} s)", title_justify="left")
+    table = Table(title=f"nearest obstacle per sector (scan {k + 1}, t = {scan.t:.1f} s)", title_justify="left",
+                  min_width=50)
     table.add_column("sector")
     table.add_column("nearest", justify="right")
     for name, r in zip(SECTORS, sector_minima(scan, len(SECTORS))):
