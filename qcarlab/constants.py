@@ -132,18 +132,6 @@ def load_params(path: str | Path | None) -> QCarParams:
     """Read a YAML parameter file (see the module docstring); ``None`` gives the defaults."""
     if path is None:
         return DEFAULT_PARAMS
-    import yaml
+    from qcarlab.yamlio import load_yaml
 
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"{p}: cannot read parameter file ({exc.strerror or exc})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or "malformed YAML"
-        raise InputError(f"{p}{where}: {problem}") from None
-    return params_from_mapping(data, str(p))
+    return params_from_mapping(load_yaml(path, "parameter file"), str(Path(path)))

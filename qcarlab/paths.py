@@ -292,15 +292,9 @@ def _read_csv(text: str, name: str) -> list[list[float]]:
 
 
 def _read_yaml(text: str, name: str) -> list[list[float]]:
-    import yaml
+    from qcarlab.yamlio import parse_yaml
 
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or "malformed YAML"
-        raise InputError(f"{name}{where}: {problem}") from None
+    data = parse_yaml(text, name)
     if isinstance(data, Mapping):
         if "path" not in data:
             raise InputError(f"{name}: a mapping needs the key 'path' (a list of [x, y] pairs)")

@@ -122,7 +122,7 @@ class SimCar(Car):
 
     def read(self) -> Readout:
         self._sync()
-        v, s, p = self.vehicle, self.vehicle.state, self.params
+        s, p = self.vehicle.state, self.params
         counts_per_rad = p.encoder_cpr / (2.0 * math.pi)
         noise = self._imu_rng.normal(0.0, 1.0, 6)
         gyro = self._gyro_bias + p.gyro_noise * noise[:3]

@@ -8,6 +8,7 @@ from typing import Annotated, Any
 
 import typer
 from rich.console import Console
+from rich.table import Table
 
 from qcarlab.car import Car, open_car
 from qcarlab.experiments.result import Result
@@ -64,3 +65,11 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
     summary(result)
     if written:
         stdout.print(f"wrote {len(written)} file(s) to {out}: " + ", ".join(p.name for p in written))
+
+
+def summary_table(title: str) -> Table:
+    """The two-column "what / value" table every command's human summary prints."""
+    table = Table(title=title, title_justify="left", show_header=False)
+    table.add_column("what")
+    table.add_column("value", justify="right")
+    return table

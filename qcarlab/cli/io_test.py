@@ -13,7 +13,7 @@ from qcarlab.car.lamps import known_lamp_words, lamps_on, parse_lamps
 from qcarlab.cli.app import app
 from qcarlab.cli.common import (
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
-    emit, interactive, open_from_options, stdout,
+    emit, interactive, open_from_options, stdout, summary_table,
 )
 from qcarlab.control.speed import basic_speed_estimation
 from qcarlab.errors import InputError
@@ -40,9 +40,7 @@ def _live_table(t: float, r, cmd, params) -> Table:
 
 def _summary(result: Result) -> None:
     m = result.metrics
-    table = Table(title="io-test", title_justify="left", show_header=False)
-    table.add_column("what")
-    table.add_column("value", justify="right")
+    table = summary_table("io-test")
     table.add_row("command", f"throttle {m['command']['throttle']:+.3f}, steering {m['steering_rad']:+.3f} rad")
     table.add_row("duration", f"{m['duration_s']:.2f} s")
     table.add_row("encoder counts", f"{m['encoder_counts']:,}")

@@ -8,7 +8,7 @@ import struct
 import sys
 import threading
 import time
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 

@@ -14,7 +14,7 @@ from qcarlab import paths, plots
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import (
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
-    emit, open_from_options, stdout,
+    emit, open_from_options, stdout, summary_table,
 )
 from qcarlab.constants import DEFAULT_PARAMS
 from qcarlab.errors import InputError
@@ -118,9 +118,7 @@ def path_gen_cmd(
         print(dumps(summary))
         return
     _warn_tight_spots(summary)
-    table = Table(title=f"path-gen {shape}", title_justify="left", show_header=False)
-    table.add_column("what")
-    table.add_column("value", justify="right")
+    table = summary_table(f"path-gen {shape}")
     table.add_row("points", str(summary["points"]))
     table.add_row("length", f"{summary['length_m']:.3f} m")
     x0, y0, x1, y1 = summary["bbox"]
@@ -146,10 +144,7 @@ def _parse_lookaheads(text: str) -> list[float]:
 
 def _follow_summary(result: Result) -> None:
     m = result.metrics
-    table = Table(title=f"path-follow ({m['config']['controller']}, look-ahead {m['config']['lookahead']} m)",
-                  title_justify="left", show_header=False)
-    table.add_column("what")
-    table.add_column("value", justify="right")
+    table = summary_table(f"path-follow ({m['config']['controller']}, look-ahead {m['config']['lookahead']} m)")
     table.add_row("RMS cross-track error", f"{m['rms_cross_track_m'] * 100:.1f} cm")
     table.add_row("max cross-track error", f"{m['max_cross_track_m'] * 100:.1f} cm at "
                   f"({m['worst_point'][0]:+.2f}, {m['worst_point'][1]:+.2f})")
@@ -179,10 +174,7 @@ def _sweep_summary(result: Result) -> None:
 
 def _step_summary(result: Result) -> None:
     m = result.metrics
-    table = Table(title=f"speed step 0 -> {m['speed_step_mps']} m/s (Kp {m['kp']}, Ki {m['ki']}, Kff {m['kff']})",
-                  title_justify="left", show_header=False)
-    table.add_column("what")
-    table.add_column("value", justify="right")
+    table = summary_table(f"speed step 0 -> {m['speed_step_mps']} m/s (Kp {m['kp']}, Ki {m['ki']}, Kff {m['kff']})")
 
     def fmt(v, unit):
         return "n/a" if v is None else f"{v:.3f} {unit}"

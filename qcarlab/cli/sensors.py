@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 from typing import Annotated
 
@@ -17,7 +16,7 @@ from qcarlab.car import parse_car_uri
 from qcarlab.cli.app import app
 from qcarlab.cli.common import (
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RealtimeOpt, SeedOpt, emit, interactive, open_from_options,
-    stdout,
+    stdout, summary_table,
 )
 from qcarlab.constants import load_params
 from qcarlab.errors import InputError
@@ -76,10 +75,7 @@ def _list_worlds() -> None:
 
 def _lidar_summary(result: Result) -> None:
     m = result.metrics
-    table = Table(title=f"lidar-scan: {m['scans']} scan(s) of {m['beams']} beams at {m['rate_hz']:g} Hz",
-                  title_justify="left", show_header=False)
-    table.add_column("what")
-    table.add_column("value", justify="right")
+    table = summary_table(f"lidar-scan: {m['scans']} scan(s) of {m['beams']} beams at {m['rate_hz']:g} Hz")
     table.add_row("points with a return", f"{m['points_with_return']} of {m['beams']}")
     if m["nearest_obstacle_m"] is None:
         table.add_row("nearest obstacle", "none within range")
@@ -175,9 +171,7 @@ def lidar_scan_cmd(
 
 def _camera_summary(result: Result) -> None:
     m = result.metrics
-    table = Table(title="camera", title_justify="left", show_header=False)
-    table.add_column("what")
-    table.add_column("value", justify="right")
+    table = summary_table("camera")
     if "rgbd" in m:
         r = m["rgbd"]
         d = r["depth"]

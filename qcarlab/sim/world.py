@@ -91,6 +91,7 @@ import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import InputError
+from qcarlab.yamlio import load_yaml
 
 __all__ = [
     "Ball",
@@ -733,19 +734,7 @@ def _free_start(grid: OccupancyGrid) -> tuple[float, float, float]:
 
 
 def _read_yaml(path: Path) -> Any:
-    import yaml
-
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read world file ({exc.strerror or exc})") from None
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or "malformed YAML"
-        raise InputError(f"{path}{where}: {problem}") from None
+    return load_yaml(path, "world file")
 
 
 def _shipped() -> dict[str, Path]:

@@ -1,0 +1,35 @@
+"""Reading the YAML files users write (car parameters, worlds, paths), with one-line errors.
+
+    data = load_yaml("my_world.yaml", "world file")
+    # -> InputError "my_world.yaml line 7: mapping values are not allowed here" on bad YAML
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from qcarlab.errors import InputError
+
+
+def parse_yaml(text: str, source: str) -> Any:
+    """``yaml.safe_load`` whose syntax errors become one line naming ``source`` and the line."""
+    import yaml
+
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or "malformed YAML"
+        raise InputError(f"{source}{where}: {problem}") from None
+
+
+def load_yaml(path: str | Path, what: str = "file") -> Any:
+    """Read and parse a YAML file; a missing or unreadable file is one line too."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
+    return parse_yaml(text, str(p))
