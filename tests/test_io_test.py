@@ -148,3 +148,11 @@ def test_lamp_parsing():
     assert parse_lamps({"brake": 0.5})[0] == 0.5
     with pytest.raises(InputError):
         parse_lamps({"brake": 2.0})
+
+
+def test_an_out_that_is_a_file_is_refused_before_the_run(cli, tmp_path):
+    blocker = tmp_path / "results"
+    blocker.write_text("not a folder")
+    code, out, err = cli("io-test", "--duration", "30", "--out", blocker)
+    assert code == 2 and "is not a folder" in err and out == ""
+    assert blocker.read_text() == "not a folder"  # nothing lost

@@ -25,9 +25,9 @@ def parse_car_uri(uri: str) -> tuple[str, str | None, int | None]:
         rest = text[len("tcp://") :].rstrip("/")
         host, sep, port_text = rest.rpartition(":")
         if not sep or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
-            raise InputError(f"--car {uri!r}: expected tcp://HOST:PORT with a port in 1-65535")
+            raise InputError(f"car address {uri!r}: expected tcp://HOST:PORT with a port in 1-65535")
         return "tcp", host.strip("[]"), int(port_text)
-    raise InputError(f"--car {uri!r}: expected 'sim' or 'tcp://HOST:PORT'")
+    raise InputError(f"car address {uri!r}: expected 'sim' or 'tcp://HOST:PORT'")
 
 
 def open_car(

@@ -22,8 +22,16 @@ WorldOpt = Annotated[
     typer.Option("--world", help="Simulator world: a shipped name (studio, track, ...), a world YAML or a ROS map YAML."),
 ]
 SeedOpt = Annotated[int, typer.Option("--seed", min=0, help="Seed of the simulator's noise; same seed, same numbers.")]
+def check_out(out: Path | None) -> Path | None:
+    """Refuse an --out that cannot be a folder before the run starts, not after it."""
+    if out is not None and out.exists() and not out.is_dir():
+        raise typer.BadParameter(f"{out} exists and is not a folder")
+    return out
+
+
 OutOpt = Annotated[
-    Path | None, typer.Option("--out", help="Folder for results.json, the CSV log and the figures.")
+    Path | None,
+    typer.Option("--out", help="Folder for results.json, the CSV log and the figures.", callback=check_out),
 ]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the results as JSON on stdout, nothing else.")]
 RealtimeOpt = Annotated[

@@ -13,6 +13,7 @@ from rich.table import Table
 from qcarlab import paths, plots
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import (
+    check_out,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
     emit, open_from_options, stdout, summary_table,
 )
@@ -89,7 +90,7 @@ def path_gen_cmd(
     height: HeightOpt = None,
     fmt: Annotated[str, typer.Option("--format", help="File format: csv (header x,y), npy or yaml.")] = "csv",
     name: Annotated[str | None, typer.Option(help="File name without extension (default: the shape).")] = None,
-    out: Annotated[Path, typer.Option("--out", help="Folder for the path file and its plot.")] = Path("."),
+    out: Annotated[Path, typer.Option("--out", help="Folder for the path file and its plot.", callback=check_out)] = Path("."),
     plot: Annotated[bool, typer.Option("--plot/--no-plot", help="Write a PNG plot of the path.")] = True,
     json_out: JsonOpt = False,
     debug: DebugOpt = False,

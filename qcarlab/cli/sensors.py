@@ -15,6 +15,7 @@ from qcarlab import plots
 from qcarlab.car import parse_car_uri
 from qcarlab.cli.app import app
 from qcarlab.cli.common import (
+    check_out,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RealtimeOpt, SeedOpt, emit, interactive, open_from_options,
     stdout, summary_table,
 )
@@ -196,7 +197,7 @@ def camera_cmd(
     car: CarOpt = "sim",
     world: WorldOpt = None,
     seed: SeedOpt = 0,
-    out: Annotated[Path, typer.Option("--out", help="Folder for the images and results.json.")] = Path("."),
+    out: Annotated[Path, typer.Option("--out", help="Folder for the images and results.json.", callback=check_out)] = Path("."),
     json_out: JsonOpt = False,
     realtime: RealtimeOpt = False,
     params: ParamsOpt = None,
