@@ -76,8 +76,10 @@ class QCarParams:
     rgbd_pitch: float = 0.0  # rad, + = looking down
     rgbd_width: int = 640
     rgbd_height: int = 480
-    rgbd_hfov: float = math.radians(69.4)  # colour horizontal field of view
-    rgbd_vfov: float = math.radians(42.5)
+    # the D435's colour field of view is 69.4 x 42.5 deg at 16:9; at 640x480 (4:3) with square
+    # pixels the simulator takes the focal length from the vertical FOV (f = 616 px, ~55 deg across)
+    rgbd_hfov: float = math.radians(69.4)  # at 16:9; informational
+    rgbd_vfov: float = math.radians(42.5)  # sets the focal length
     rgbd_rate: float = 30.0  # Hz
     rgbd_max_depth: float = 10.0  # m; beyond reads 0 (no data)
     csi_x: float = 0.10  # m, the four 160 deg cameras around the roof, offset from the centre
