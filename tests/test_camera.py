@@ -284,3 +284,86 @@ def test_cameras_in_a_ros_map():
     assert (f.depth > 0).mean() > 0.3
     csi = CSICameras(w).render(w.start)
     assert csi.front.shape == (410, 820, 3)
+
+
+# --- the fast paths: the helper thread, the floor composited under the rest ---------------------
+def _frames(cam_factory, poses):
+    cam = cam_factory()
+    return [cam.render(p, t=0.1 * i) for i, p in enumerate(poses)]
+
+
+@pytest.mark.parametrize("pitch", [0.0, 0.12])
+def test_helper_thread_draws_the_same_frames(monkeypatch, pitch):
+    from qcarlab.sim import camera
+
+    w = load_world("track")
+    params = dataclasses.replace(P, rgbd_pitch=pitch)
+    poses = [w.start, (0.5, -1.6, 0.3), (2.0, 0.0, 1.6), (-2.2, 0.4, -1.2)]
+
+    def make():
+        return RGBDCamera(w, params, rng=np.random.default_rng(7))
+
+    monkeypatch.setattr(camera, "SPLIT_FRAMES", True)
+    split = _frames(make, poses)
+    monkeypatch.setattr(camera, "SPLIT_FRAMES", False)
+    serial = _frames(make, poses)
+    for a, b in zip(split, serial, strict=True):
+        assert np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth)
+
+
+def test_cameras_in_two_threads_at_once():
+    # the helper thread is shared: two cameras rendering concurrently get their own frames
+    import threading
+
+    w = load_world("track")
+    poses = [(x, -1.7, 0.05 * x) for x in np.linspace(-1.0, 1.0, 12)]
+    expect = _frames(lambda: RGBDCamera(w, rng=np.random.default_rng(3)), poses)
+    got: dict[int, list] = {}
+
+    def run(k: int) -> None:
+        got[k] = _frames(lambda: RGBDCamera(w, rng=np.random.default_rng(3)), poses)
+
+    threads = [threading.Thread(target=run, args=(k,)) for k in range(2)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join(timeout=60)
+    for k in range(2):
+        assert len(got[k]) == len(poses)
+        for a, b in zip(got[k], expect, strict=True):
+            assert np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth)
+
+
+def _render_in_child(q):
+    w = load_world("track")
+    f = RGBDCamera(w, rng=np.random.default_rng(0)).render(w.start)
+    q.put(float(f.depth.mean()))
+
+
+def test_camera_works_in_a_forked_child():
+    # a child forked after the parent's helper thread started must not wait on a thread it lacks
+    import multiprocessing as mp
+
+    if "fork" not in mp.get_all_start_methods():
+        pytest.skip("no fork on this platform")
+    w = load_world("track")
+    parent = RGBDCamera(w, rng=np.random.default_rng(0)).render(w.start)
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    proc = ctx.Process(target=_render_in_child, args=(q,))
+    proc.start()
+    proc.join(timeout=60)
+    assert proc.exitcode == 0
+    assert q.get(timeout=5) == pytest.approx(float(parent.depth.mean()))
+
+
+def test_sign_below_the_horizon_stays_over_the_floor():
+    # a low stop sign (its plate below the camera) is drawn over floor pixels: the floor,
+    # composited under everything else, must not cover it
+    w = room(signs=[{"type": "stop", "position": [1.2, 0.0], "facing": "180deg", "size": 0.1, "height": 0.07}])
+    cam = RGBDCamera(w)
+    f = cam.render(EAST)
+    m = red_mask(f.color)
+    assert m.sum() > 200
+    vs, _ = np.nonzero(m)
+    assert vs.mean() > cam.intrinsics.cy + 5  # below the horizon

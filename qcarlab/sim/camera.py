@@ -26,16 +26,29 @@ ahead of the car's centre reads ``2 - rgbd_x`` = 1.81 m in the middle of the ima
 ``csi_x`` from the centre facing right, rear, left and front, ``csi_z`` above the floor.
 
 How it is drawn: the floor is a top-down texture (markings, brightness regions) warped into the
-image (a homography for the pinhole; a precomputed per-pixel ray map for the wide-angle views),
-then every image column casts a ray through the world's raster and paints the walls, obstacles
-and balls it meets far to near (their front faces, and the tops of those lower than the camera),
-then stop-sign plates are drawn as projected sprites with a depth test. Vertical shapes are exact
-for a level camera; with a pitch the level image is rendered and rotated (a homography).
+image (a homography per texture level for the pinhole; a precomputed per-pixel ray map for the
+wide-angle views), then every image column casts a ray through the world's raster and paints the
+walls, obstacles and balls it meets far to near (their front faces, and the tops of those lower
+than the camera), then stop-sign plates are drawn as projected sprites with a depth test.
+Vertical shapes are exact for a level camera; with a pitch the level image is rendered and
+rotated (a homography).
+
+Speed (an RGBD pair in under a millisecond on two cores): images are drawn as packed BGRA words
+(OpenCV's 4-channel warps are some 2.5x its 3-channel ones; the numba kernel writes a pixel at
+once), transposed while the columns are painted, with colour and depth 0 where nothing stands.
+The pinhole's floor is warped upright on its own, its nearest rows in a helper thread
+(:data:`SPLIT_FRAMES`) while this thread paints the columns; then one numba pass per row puts
+the floor and the background under the rest and finishes the depth (noise, range limits), the
+two halves of the rows in the two threads. Noise comes from precomputed tiles at random offsets.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import queue
+import threading
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -43,7 +56,7 @@ import numpy as np
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.sensors import CameraIntrinsics, CSIFrames, RGBDFrame
 from qcarlab.sim import _kernels
-from qcarlab.sim.raster import brightness_grid, build_raster
+from qcarlab.sim.raster import brightness_grid, build_raster, floor_pyramid
 from qcarlab.sim.world import Sign, World, load_world
 
 __all__ = [
@@ -64,11 +77,81 @@ LIGHT_DIR = (0.6, 0.8)  # horizontal direction of the light that shades vertical
 CSI_OVERSAMPLE = 0.8  # cylinder pixels per fisheye pixel at the centre of a CSI view
 _NOISE_PAD = 48
 _SPRITE = 128
+_NO_NOISE = np.zeros((0, 0), np.float32)
+
+
+#: Share an RGBD frame with a helper thread (one per process): the near floor while the calling
+#: thread paints the walls and objects, then half the rows of the finishing passes. OpenCV and
+#: the numba kernels release the GIL, so on two free cores a frame takes about 0.7 of the time
+#: (no gain when the other core is busy); the result is the same pixel for pixel. Off without
+#: numba (the pure-Python kernels hold the GIL) or on one core; set to False to draw every frame
+#: in the calling thread.
+SPLIT_FRAMES = _kernels.HAVE_NUMBA and (os.cpu_count() or 1) >= 2
 
 
 # --------------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------------
+class _Helper:
+    """The helper thread (one per process, shared by every camera): runs the jobs handed to it."""
+
+    def __init__(self) -> None:
+        self.pid = os.getpid()
+        self.jobs: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._run, name="qcarlab-camera-helper", daemon=True).start()
+
+    def _run(self) -> None:
+        while True:
+            fn, args, done = self.jobs.get()
+            try:
+                fn(*args)
+            except BaseException as e:  # handed to the waiting caller
+                done.put(e)
+            else:
+                done.put(None)
+
+    def submit(self, fn: Callable[..., None], *args: Any) -> queue.SimpleQueue:
+        done: queue.SimpleQueue = queue.SimpleQueue()
+        self.jobs.put((fn, args, done))
+        return done
+
+
+_HELPER: _Helper | None = None
+_HELPER_LOCK = threading.Lock()
+
+
+def _helper() -> _Helper | None:
+    """The process's helper thread (started on first use), or None when frames are not split."""
+    global _HELPER
+    if not SPLIT_FRAMES:
+        return None
+    h = _HELPER
+    if h is None or h.pid != os.getpid():  # a forked child has no thread: start its own
+        with _HELPER_LOCK:
+            if _HELPER is None or _HELPER.pid != os.getpid():
+                _HELPER = _Helper()
+            h = _HELPER
+    return h
+
+
+def _after_fork_in_child() -> None:
+    global _HELPER, _HELPER_LOCK
+    _HELPER = None
+    _HELPER_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
+def _wait(done: queue.SimpleQueue | None) -> None:
+    """Wait for a job handed to the helper (None: nothing to wait for); re-raise its error."""
+    if done is not None:
+        err = done.get()
+        if err is not None:
+            raise err
+
+
 def _stop_sprites() -> tuple[np.ndarray, np.ndarray]:
     """Front (red octagon, white border, STOP) and back (grey octagon) of a stop sign, BGRA."""
     s = _SPRITE
@@ -113,30 +196,32 @@ class _Noise:
         self.neg = np.clip(np.rint(-n), 0, 255).astype(np.uint8)
         self.depth = rng.standard_normal(shape, dtype=np.float32) if depth else None
 
-    def window(self) -> tuple[int, int]:
-        o = self.rng.integers(0, _NOISE_PAD, 2)
-        return int(o[0]), int(o[1])
+    def windows(self) -> list[int]:
+        """This frame's window offsets: (row, col) for the colour's + and - tiles, then depth's.
 
-    def color(self, img: np.ndarray) -> None:
-        a, b = self.window()
-        cv2.add(img, self.pos[a : a + self.w, b : b + self.h], dst=img)
-        a, b = self.window()
-        cv2.subtract(img, self.neg[a : a + self.w, b : b + self.h], dst=img)
+        Six 10-bit fields of one raw 64-bit draw, each scaled to 0 .. _NOISE_PAD - 1
+        (``Generator.integers`` costs some 20 us a call, a noticeable part of a frame)."""
+        x = int(self.rng.bit_generator.random_raw())
+        return [(((x >> (10 * i)) & 1023) * _NOISE_PAD) >> 10 for i in range(6)]
 
-    def depth_noise(self, depth: np.ndarray, coef: float) -> None:
-        assert self.depth is not None
-        a, b = self.window()
-        n = self.depth[a : a + self.w, b : b + self.h]
-        sq = cv2.multiply(depth, depth)
-        cv2.scaleAdd(cv2.multiply(sq, n), coef, depth, dst=depth)
+    def color(self, img: np.ndarray, o: list[int], v0: int = 0) -> None:
+        """Noise on ``img``, rows v0.. of a frame (all of it by default), windows ``o`` (from
+        :meth:`windows`)."""
+        n, w = img.shape[0], img.shape[1]
+        a, b = o[0] + v0, o[1]
+        cv2.add(img, self.pos[a : a + n, b : b + w], dst=img)
+        a, b = o[2] + v0, o[3]
+        cv2.subtract(img, self.neg[a : a + n, b : b + w], dst=img)
 
 
 class _ColumnView:
     """A level camera whose columns are vertical planes: a pinhole or a cylindrical panorama.
 
     Images are kept *transposed* (one row per image column) while drawing, so each column's
-    pixels are contiguous. Column u looks along azimuth ``az[u]`` (rad, left positive) from the
-    camera's forward direction; a point at horizontal distance d and height z is at row
+    pixels are contiguous; colour as BGRA (``color4`` (W, H, 4) uint8, the same memory as
+    ``color_t`` (W, H) uint32 packed pixels, which the numba kernel writes one word at a time).
+    Column u looks along azimuth ``az[u]`` (rad, left positive) from the camera's forward
+    direction; a point at horizontal distance d and height z is at row
     ``cy - (z - cam_z) * k[u] * fy / d``.
     """
 
@@ -162,14 +247,10 @@ class _ColumnView:
         self.pinhole = pinhole
         self.raster = build_raster(world)
         self.gain = brightness_grid(world)
-        tex, (tx0, ty1, ppm) = world.floor_texture(FLOOR_PX_PER_M)
-        self.levels = [tex]
-        for _ in range(5):
-            if min(self.levels[-1].shape[:2]) < 8:
-                break
-            self.levels.append(cv2.pyrDown(self.levels[-1]))
+        self.levels, (tx0, ty1, ppm) = floor_pyramid(world, FLOOR_PX_PER_M)  # BGRA
         self.tex_x0, self.tex_y1, self.ppm = tx0, ty1, ppm
-        self.bg = tuple(int(c) for c in world.background)
+        self.bg = tuple(int(c) for c in world.background) + (255,)
+        self.bg_packed = np.uint32(_kernels.pack_bgr(*self.bg[:3]))
         self.r0 = int(math.floor(self.cy)) + 1  # first row below the horizon
         h_rows = np.arange(self.H, dtype=np.float64)
         below = h_rows >= self.r0
@@ -179,11 +260,14 @@ class _ColumnView:
         self.row_dist = dist
         # floor depth (transposed): d / k per column
         self.floor_depth = np.ascontiguousarray((dist[None, :] / self.k[:, None]).astype(np.float32))
-        self.color_t = np.empty((self.W, self.H, 3), np.uint8)
-        self.sky = np.empty((self.W, self.r0, 3), np.uint8)  # the background above the horizon
-        self.sky[:] = self.bg
+        self.color4 = np.empty((self.W, self.H, 4), np.uint8)
+        self.color_t = self.color4.view(np.uint32).reshape(self.W, self.H)
         self.depth_t = np.empty((self.W, self.H), np.float32)
+        self._no_balls = np.zeros((0, 6), np.float64)
         if pinhole is not None:
+            self.floor_rm = np.empty((self.H - self.r0, self.W, 4), np.uint8)  # the floor, upright
+            self.floor_rm_u32 = self.floor_rm.view(np.uint32).reshape(self.H - self.r0, self.W)
+            self.floor_depth_rm = np.ascontiguousarray(self.floor_depth.T[self.r0 :])  # upright
             self._plan_levels()
         else:
             self._plan_rays(tex_level)
@@ -204,10 +288,21 @@ class _ColumnView:
             if i == len(rows) or lev[i] != lev[start]:
                 self.spans.append((int(lev[start]), int(rows[start]), int(rows[i - 1]) + 1))
                 start = i
-
-    def _floor_pinhole(self, cx_w: float, cy_w: float, yaw: float) -> None:
-        assert self.pinhole is not None
+        # what the pose does not change: per span, image rows -> K, and level texel -> floor (m)
         K = self.pinhole.matrix
+        h0 = 0.5 / self.ppm  # pyrDown keeps level-L pixel i centred on level-0 pixel i * 2^L
+        self._span_plan = []
+        for lev, ra, rb in self.spans:
+            sc = (2**lev) / self.ppm
+            T = np.array([[sc, 0.0, self.tex_x0 + h0], [0.0, -sc, self.tex_y1 - h0], [0.0, 0.0, 1.0]])
+            P = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -ra], [0.0, 0.0, 1.0]])
+            dst = self.floor_rm[ra - self.r0 : rb - self.r0]
+            self._span_plan.append((self.levels[lev], P @ K, T, dst))
+
+    def _floor_pinhole(self, cx_w: float, cy_w: float, yaw: float, near: bool = True, far: bool = True) -> None:
+        """The floor below the horizon into ``floor_rm``: upright (row-major; OpenCV's warp is
+        faster so), at the texture level that matches each row's footprint; ``near``: the
+        nearest span of rows (the finest level, most of the pixels), ``far``: the others."""
         s, c = math.sin(yaw), math.cos(yaw)
         M = np.array(
             [
@@ -216,15 +311,12 @@ class _ColumnView:
                 [c, s, -cx_w * c - cy_w * s],
             ]
         )
-        KM = K @ M
-        for lev, ra, rb in self.spans:
-            sc = (2**lev) / self.ppm
-            # pyrDown keeps level-L pixel i centred on level-0 pixel i * 2^L
-            h0 = 0.5 / self.ppm
-            T = np.array([[sc, 0.0, self.tex_x0 + h0], [0.0, -sc, self.tex_y1 - h0], [0.0, 0.0, 1.0]])
-            P = np.array([[0.0, 1.0, -ra], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        W = self.W
+        plan = self._span_plan  # the nearest span last
+        spans = plan if near and far else plan[-1:] if near else plan[:-1] if far else []
+        for tex, PK, T, dst in spans:
             cv2.warpPerspective(
-                self.levels[lev], P @ KM @ T, (rb - ra, self.W), dst=self.color_t[:, ra:rb],
+                tex, PK @ M @ T, (W, dst.shape[0]), dst=dst,
                 flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=self.bg,
             )
 
@@ -249,7 +341,7 @@ class _ColumnView:
         )
         m = cv2.transform(self.ray_xy, A)
         cv2.remap(
-            self.levels[self.ray_level], m, None, cv2.INTER_LINEAR, dst=self.color_t[:, self.r0 :],
+            self.levels[self.ray_level], m, None, cv2.INTER_LINEAR, dst=self.color4[:, self.r0 :],
             borderMode=cv2.BORDER_CONSTANT, borderValue=self.bg,
         )
 
@@ -260,20 +352,25 @@ class _ColumnView:
         return (x + c * self.mx - s * self.my, y + s * self.mx + c * self.my, yaw + self.myaw)
 
     def draw(self, pose: tuple[float, float, float], t: float) -> None:
-        """Draw the view into ``color_t``/``depth_t`` (transposed; depth = inf where nothing)."""
+        """Draw the view into ``color_t``/``depth_t`` (transposed; depth = inf where nothing): the
+        floor, then the walls, obstacles, balls and signs. Not for a pinhole view, whose floor
+        is drawn apart (``floor_rm``) and composited under the rest by :class:`RGBDCamera`."""
+        assert self.pinhole is None
         cx_w, cy_w, yaw = self.camera_pose(pose)
-        np.copyto(self.color_t[:, : self.r0], self.sky)
-        np.copyto(self.depth_t, self.floor_depth)
-        if self.pinhole is not None:
-            self._floor_pinhole(cx_w, cy_w, yaw)
-        else:
-            self._floor_rays(cx_w, cy_w, yaw)
-        balls = self.world.obstacles_at(t)
-        b = np.array([(c.x, c.y, c.radius, *c.color) for c in balls], np.float64).reshape(-1, 6)
+        self._floor_rays(cx_w, cy_w, yaw)
+        self.draw_objects(cx_w, cy_w, yaw, t)
+
+    def draw_objects(self, cx_w: float, cy_w: float, yaw: float, t: float) -> None:
+        """The numba kernel: the background above the horizon and the floor's depth (for a
+        pinhole view instead colour 0, "nothing drawn", everywhere: see
+        :func:`~qcarlab.sim._kernels.finish_frame`), then the walls, obstacles and balls far to
+        near; then the signs."""
+        balls = self.world.obstacles_at(t) if self.world.balls else ()
+        b = np.array([(c.x, c.y, c.radius, *c.color) for c in balls], np.float64).reshape(-1, 6) if balls else self._no_balls
         r, g = self.raster, self.gain
         _kernels.render_columns(
-            self.color_t, self.depth_t, cx_w, cy_w, self.cam_z, yaw, self.cos_c, self.sin_c, self.k,
-            self.fy, self.cy, MAX_VIEW_DIST,
+            self.color_t, self.depth_t, self.floor_depth, self.bg_packed, self.r0, self.pinhole is not None,
+            cx_w, cy_w, self.cam_z, yaw, self.cos_c, self.sin_c, self.k, self.fy, self.cy, MAX_VIEW_DIST,
             r.x0, r.y0, r.res, r.label, r.dt, r.kinds, r.heights, r.colors, r.poly_start, r.poly_count,
             r.verts, r.circles, g.gain, g.x0, g.y0, g.res, b, LIGHT_DIR[0], LIGHT_DIR[1],
         )
@@ -339,7 +436,8 @@ class _ColumnView:
         # patch is (rows = image columns y, cols = image rows x) like the transposed buffers
         zroi = self.depth_t[y0:y1, x0:x1]
         d = float(dcen[0])
-        mask = (patch[:, :, 3] > 127) & (zroi > d)
+        drawn = self.color_t[y0:y1, x0:x1] != 0  # (a pinhole view: the rest is floor or background)
+        mask = (patch[:, :, 3] > 127) & (np.where(drawn, zroi, self.floor_depth[y0:y1, x0:x1]) > d)
         if not mask.any():
             return
         g = self.gain
@@ -349,7 +447,9 @@ class _ColumnView:
         rgb = patch[:, :, :3]
         if gain != 1.0:
             rgb = cv2.convertScaleAbs(rgb, alpha=gain)
-        self.color_t[y0:y1, x0:x1][mask] = rgb[mask]
+        roi = self.color4[y0:y1, x0:x1]
+        roi[:, :, :3][mask] = rgb[mask]
+        roi[:, :, 3][mask] = 255  # opaque: not floor
         zroi[mask] = d
 
 
@@ -404,6 +504,8 @@ class RGBDCamera:
         )
         self.rng = rng
         self._noise = _Noise(rng, H, W, COLOR_NOISE_SD, True) if rng is not None else None
+        self._color4 = np.empty((level.height, level.width, 4), np.uint8)  # the level view, upright
+        self._color4_u32 = self._color4.view(np.uint32).reshape(level.height, level.width)
 
     @property
     def rate(self) -> float:
@@ -416,23 +518,74 @@ class RGBDCamera:
     def render(self, pose: tuple[float, float, float], t: float = 0.0) -> RGBDFrame:
         """The colour image (BGR uint8) and aligned depth (float32 m, 0 = none) seen from ``pose``."""
         v = self._view
-        v.draw(pose, t)
-        color = cv2.transpose(v.color_t)
-        depth = cv2.transpose(v.depth_t)
-        if self._rot is not None:
-            W, H = self.intrinsics.width, self.intrinsics.height
-            flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-            color = cv2.warpPerspective(color, self._rot, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-            depth = cv2.warpPerspective(depth, self._rot, (W, H), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                                        borderMode=cv2.BORDER_REPLICATE)
-            depth = cv2.multiply(depth, self._depth_factor)
-        cv2.threshold(depth, self.params.rgbd_max_depth, 0.0, cv2.THRESH_TOZERO_INV, dst=depth)  # inf -> 0
-        if self._noise is not None:
-            self._noise.color(color)
-            self._noise.depth_noise(depth, DEPTH_NOISE)
-        cv2.threshold(depth, self.params.rgbd_max_depth, 0.0, cv2.THRESH_TOZERO_INV, dst=depth)
-        cv2.threshold(depth, RGBD_MIN_DEPTH, 0.0, cv2.THRESH_TOZERO, dst=depth)
+        cx_w, cy_w, yaw = v.camera_pose(pose)
+        W, H = self.intrinsics.width, self.intrinsics.height
+        o = self._noise.windows() if self._noise is not None else None
+        helper = _helper()
+        # the near floor (the finest texture level, most of the floor's pixels) in the helper
+        # thread; the walls and objects (transposed), the far floor and the depth image here
+        done = helper.submit(v._floor_pinhole, cx_w, cy_w, yaw, True, False) if helper is not None else None
+        try:
+            v.draw_objects(cx_w, cy_w, yaw, t)
+            v._floor_pinhole(cx_w, cy_w, yaw, done is None, True)
+            depth = cv2.transpose(v.depth_t)
+        finally:
+            _wait(done)
+        if self._rot is None:
+            # then the frame by halves of its rows, the second half in the helper thread
+            color = np.empty((H, W, 3), np.uint8)
+            mid = H // 2 if helper is not None else H
+            done = helper.submit(self._finish_rows, color, depth, o, mid, H) if helper is not None else None
+            try:
+                self._finish_rows(color, depth, o, 0, mid)
+            finally:
+                _wait(done)
+            return RGBDFrame(t=float(t), color=color, depth=depth)
+        # pitched: the level view upright, then rotated
+        self._upright_rows(depth, None, 0, v.H)
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        c4 = cv2.warpPerspective(self._color4, self._rot, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        color = cv2.cvtColor(c4, cv2.COLOR_BGRA2BGR)
+        if o is not None:
+            assert self._noise is not None
+            self._noise.color(color, o)
+        depth = cv2.warpPerspective(depth, self._rot, (W, H), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                    borderMode=cv2.BORDER_REPLICATE)
+        depth = cv2.multiply(depth, self._depth_factor)
+        self._finish_depth(depth, o)
         return RGBDFrame(t=float(t), color=color, depth=depth)
+
+    def _upright_rows(self, depth: np.ndarray, o: list[int] | None, a: int, b: int, finish: bool = False) -> None:
+        """Rows a..b of the level view: the colour upright into ``_color4``, the background and
+        the floor where nothing else was drawn (colour and ``depth``); with ``finish`` the depth
+        noise and range limits too (noise windows ``o``)."""
+        v = self._view
+        cv2.transpose(v.color4[:, a:b], dst=self._color4[a:b])
+        tile, na, nb = self._depth_noise(o)
+        _kernels.finish_frame(
+            self._color4_u32[a:b], depth[a:b], a, v.r0, v.bg_packed, v.floor_rm_u32, v.floor_depth_rm, finish,
+            tile, na, nb, DEPTH_NOISE, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth),
+        )
+
+    def _finish_rows(self, color: np.ndarray, depth: np.ndarray, o: list[int] | None, a: int, b: int) -> None:
+        """Rows a..b of an unpitched frame, done: colour upright, BGR, noise; depth finished."""
+        self._upright_rows(depth, o, a, b, True)
+        cv2.cvtColor(self._color4[a:b], cv2.COLOR_BGRA2BGR, dst=color[a:b])
+        if o is not None:
+            assert self._noise is not None
+            self._noise.color(color[a:b], o, a)
+
+    def _depth_noise(self, o: list[int] | None) -> tuple[np.ndarray, int, int]:
+        if o is None:
+            return _NO_NOISE, 0, 0
+        assert self._noise is not None and self._noise.depth is not None
+        return self._noise.depth, o[4], o[5]
+
+    def _finish_depth(self, depth: np.ndarray, o: list[int] | None) -> None:
+        """The depth image as the D435 reports it: inf -> 0 (no data), noise sigma
+        DEPTH_NOISE z^2 (windows ``o``, None = no noise), 0 beyond the range and too near."""
+        tile, na, nb = self._depth_noise(o)
+        _kernels.finish_depth(depth, tile, na, nb, DEPTH_NOISE, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth))
 
 
 # --------------------------------------------------------------------------------------------
@@ -501,9 +654,10 @@ class CSICameras:
         """One view (``right``, ``rear``, ``left`` or ``front``) as BGR uint8 (height, width, 3)."""
         v = self._views[name]
         v.draw(pose, t)
-        img = cv2.remap(v.color_t, self._m1, self._m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        img = cv2.cvtColor(cv2.remap(v.color4, self._m1, self._m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
+                           cv2.COLOR_BGRA2BGR)
         if self._noise is not None:
-            self._noise.color(img)
+            self._noise.color(img, self._noise.windows())
         return img
 
     def render(self, pose: tuple[float, float, float], t: float = 0.0) -> CSIFrames:
