@@ -1,0 +1,134 @@
+"""``qcarlab stop-sign`` (lab sheet 5.1-5.2): detect the stop sign with the RGBD camera and stop."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated
+
+import typer
+
+from qcarlab import plots
+from qcarlab.car.sim import START_POSE
+from qcarlab.cli.app import app, stderr
+from qcarlab.cli.common import (
+    CarOpt,
+    DebugOpt,
+    JsonOpt,
+    OutOpt,
+    ParamsOpt,
+    RateOpt,
+    RealtimeOpt,
+    SeedOpt,
+    emit,
+    open_from_options,
+    stdout,
+    summary_table,
+)
+from qcarlab.cli.sensors import StartOpt, WorldOpt, _sim_world
+from qcarlab.errors import InputError
+from qcarlab.experiments.result import Result
+from qcarlab.experiments.stop_sign import (
+    BEHAVIOURS,
+    StopSignConfig,
+    run_stop_sign,
+    sign_ahead,
+)
+from qcarlab.perception.stop_sign import MIN_AREA, RED_HSV_MAX, RED_HSV_MIN
+
+
+def parse_hsv(text: str, option: str) -> tuple[int, int, int]:
+    """'H,S,V' -> three ints (checked by the experiment's config: H 0..179, S and V 0..255)."""
+    words = [w.strip() for w in text.split(",")]
+    if len(words) != 3:
+        raise InputError(f"{option} {text!r}: expected H,S,V as three numbers (e.g. 170,100,100)")
+    try:
+        values = [float(w) for w in words]
+    except ValueError:
+        raise InputError(f"{option} {text!r}: expected H,S,V as three numbers (e.g. 170,100,100)") from None
+    if not all(math.isfinite(v) and v.is_integer() for v in values):
+        raise InputError(f"{option} {text!r}: H,S,V must be whole numbers")
+    return tuple(int(v) for v in values)
+
+
+def _fmt(value, unit: str = "m", scale: float = 1.0, digits: int = 3) -> str:
+    return "n/a" if value is None else f"{value * scale:.{digits}f} {unit}"
+
+
+def _summary(result: Result) -> None:
+    m = result.metrics
+    cfg = m["config"]
+    title = f"stop-sign ({m['behaviour']}, {m['speed_mps']:g} m/s"
+    title += f", hold {cfg['hold']:g} s)" if m["behaviour"] == "hold" else ")"
+    table = summary_table(title)
+    if m["detected_at_m"] is None:
+        table.add_row("stop sign", "never detected")
+    else:
+        table.add_row("first detected at (camera)", f"{m['detected_at_m']:.2f} m, t = {m['detected_at_s']:.2f} s")
+    table.add_row("stopped before the sign", "yes" if m["stopped"] else "NO")
+    if m["stop_distance_m"] is not None:
+        table.add_row("stop distance (bumper to sign, true)", _fmt(m["stop_distance_m"]))
+    table.add_row("distance measured at the stop (camera)", _fmt(m["measured_distance_m"]))
+    table.add_row("time to stop", _fmt(m["time_to_stop_s"], "s", digits=2))
+    if m["braking_time_s"] is not None:
+        table.add_row("braking time (decision to rest)", _fmt(m["braking_time_s"], "s", digits=2))
+    if m["behaviour"] == "hold":
+        table.add_row("held for", _fmt(m["hold_s"], "s", digits=2))
+        table.add_row("drove on past the sign", "yes" if m["passed_sign"] else "no")
+    if m["min_distance_m"] is not None and m["behaviour"] == "sheet":
+        table.add_row("closest approach (bumper to sign)", _fmt(m["min_distance_m"]))
+    table.add_row("frames with the sign", f"{m['frames_with_sign']} of {m['frames']}")
+    stdout.print(table)
+
+
+@app.command("stop-sign")
+def stop_sign_cmd(
+    speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
+    behaviour: Annotated[str, typer.Option(help="sheet: the sheet's stopSign block (stop while 0.05 < d < 0.40 m); "
+                                           "hold: slow down, stop, wait --hold s, drive on (Task 4).")] = "sheet",
+    hold: Annotated[float, typer.Option(help="hold: seconds to stand at the sign.")] = 3.0,
+    hsv_min: Annotated[str, typer.Option(help="Lower HSV bound H,S,V (H in OpenCV's 0..179 = deg/2; "
+                                         "H_min > H_max wraps through red's 0).")] = ",".join(map(str, RED_HSV_MIN)),
+    hsv_max: Annotated[str, typer.Option(help="Upper HSV bound H,S,V.")] = ",".join(map(str, RED_HSV_MAX)),
+    min_area: Annotated[int, typer.Option(help="Smallest red blob taken for a sign, pixels.")] = MIN_AREA,
+    kp: Annotated[float, typer.Option(help="speed_controller proportional gain.")] = 0.3,
+    ki: Annotated[float, typer.Option(help="speed_controller integral gain.")] = 1.0,
+    kff: Annotated[float, typer.Option(help="speed_controller feed-forward gain.")] = 0.1,
+    max_time: Annotated[float | None, typer.Option(help="Give up after this many seconds (default: from the "
+                                                   "distance and speed).", show_default=False)] = None,
+    frames: Annotated[bool, typer.Option("--frames", help="With --out: also write annotated camera frames "
+                                         "(10 per second) to frames/.")] = False,
+    start: StartOpt = None,
+    rate: RateOpt = 100.0,
+    car: CarOpt = "sim",
+    world: WorldOpt = None,
+    seed: SeedOpt = 0,
+    out: OutOpt = None,
+    json_out: JsonOpt = False,
+    realtime: RealtimeOpt = False,
+    params: ParamsOpt = None,
+    debug: DebugOpt = False,
+) -> None:
+    """Drive straight, detect the stop sign (HSV red + depth, sheet 5.1) and stop in front of it (5.2).
+
+    Examples: qcarlab stop-sign | qcarlab stop-sign --speed 0.5 --out runs/stop |
+    qcarlab stop-sign --behaviour hold --hold 3 --json
+    """
+    if behaviour not in BEHAVIOURS:
+        raise InputError(f"--behaviour must be one of {', '.join(BEHAVIOURS)}, got {behaviour!r}")
+    cfg = StopSignConfig(speed=speed, behaviour=behaviour, hold=hold, hsv_min=parse_hsv(hsv_min, "--hsv-min"),
+                         hsv_max=parse_hsv(hsv_max, "--hsv-max"), min_area=min_area, kp=kp, ki=ki, kff=kff,
+                         rate=rate, max_time=max_time, frames=frames and out is not None)
+    cfg.check()
+    world_obj, pose = _sim_world(car, world, start, "stop-sign", params)
+    sign = None
+    if world_obj is not None:
+        sign = sign_ahead(world_obj, pose or getattr(world_obj, "start", None) or START_POSE)
+        if sign is None:
+            stderr.print("warning: no stop sign ahead of the car in this world; the true stop distance is not "
+                          "measured", markup=False)
+    with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
+        result = run_stop_sign(qcar, cfg, sign)
+    result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
+    log = result.logs["log.csv"]
+    result.figures["speed.png"] = lambda f: plots.plot_speed(log, f)
+    emit(result, json_out, out, _summary)
