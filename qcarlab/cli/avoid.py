@@ -1,0 +1,95 @@
+"""``qcarlab avoid`` (lab sheet section 6.1): LIDAR obstacle stop, steer, and both combined."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from qcarlab.cli.app import app
+from qcarlab.cli.common import (
+    CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt,
+    emit, open_from_options, stdout, summary_table,
+)
+from qcarlab.cli.sensors import StartOpt, WorldOpt, _sim_world
+from qcarlab.constants import load_params
+from qcarlab.errors import InputError
+from qcarlab.experiments.avoid import STRATEGIES, AvoidConfig, avoid, draw_drive
+from qcarlab.experiments.result import Result
+
+
+def _summary(result: Result) -> None:
+    m = result.metrics
+    cfg = m["config"]
+    table = summary_table(f"avoid ({m['strategy']}, {cfg['speed']:g} m/s, stop distance {cfg['stop_distance']:g} m, "
+                          f"world {m.get('world') or 'remote'})")
+    if m["collisions"] is None:
+        table.add_row("collisions", "not checked (no simulated world)")
+    else:
+        hit = m["collision"]
+        table.add_row("collisions", "0" if not hit else
+                      f"1 at t = {hit['t']:.2f} s, ({hit['x']:+.2f}, {hit['y']:+.2f}) (run ended)")
+        table.add_row("min clearance (footprint to obstacles)", f"{m['min_clearance_m'] * 100:.1f} cm")
+    table.add_row("distance driven", f"{m['distance_m']:.2f} m in {m['duration_s']:.1f} s")
+    table.add_row("mean speed", f"{m['mean_speed_mps']:.3f} m/s")
+    if m["stopped_before_obstacle"] is not None:
+        gap = m["stop_gap_m"]
+        table.add_row("stopped before obstacle", f"{m['stopped_before_obstacle']:.3f} m from the LIDAR at "
+                      f"t = {m['stopped_at_s']:.2f} s" + ("" if gap is None else f" (bumper gap {gap * 100:.1f} cm)"))
+    elif m["strategy"] == "stop":
+        table.add_row("stopped before obstacle", "no (nothing came within the stop distance)")
+    if "backups" in m:
+        table.add_row("back-ups", str(m["backups"]))
+        table.add_row("time per state", ", ".join(f"{k} {v:.1f} s" for k, v in m["time_in_state_s"].items()))
+    stdout.print(table)
+
+
+@app.command("avoid")
+def avoid_cmd(
+    strategy: Annotated[str, typer.Option(help="stop (sheet Task 1-2: speed 0 near an obstacle), steer (Task 3: "
+                                          "up to +-0.5 rad away from it, speed untouched) or combined (Task 4: "
+                                          "avoid, stop and back up before contact).")] = "combined",
+    speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
+    stop_distance: Annotated[float, typer.Option(help="Stop when a return in the forward window is closer than "
+                                                 "this, m from the LIDAR (0.2125 m behind the front bumper).")] = 0.4,
+    half_width: Annotated[float, typer.Option(help="Half width of the forward window, m (car half width 0.096 + "
+                                              "margin).")] = 0.15,
+    duration: Annotated[float, typer.Option(help="Run length, s (a collision ends it earlier).")] = 20.0,
+    start: StartOpt = None,
+    rate: RateOpt = 100.0,
+    car: CarOpt = "sim",
+    world: WorldOpt = None,
+    seed: SeedOpt = 0,
+    out: OutOpt = None,
+    json_out: JsonOpt = False,
+    realtime: RealtimeOpt = False,
+    params: ParamsOpt = None,
+    debug: DebugOpt = False,
+) -> None:
+    """LIDAR obstacle detection and avoidance (sheet 6.1): stop, steer or both, with collisions checked.
+
+    Examples: qcarlab avoid --strategy stop | qcarlab avoid --world hallway --duration 30 --out runs/hall |
+    qcarlab avoid --strategy steer --start 0.5,0,-1.57 --json
+    """
+    if strategy not in STRATEGIES:
+        raise InputError(f"--strategy must be one of {', '.join(STRATEGIES)}, got {strategy!r}")
+    cfg = AvoidConfig(strategy=strategy, speed=speed, stop_distance=stop_distance, half_width=half_width,
+                      duration=duration, rate=rate)
+    cfg.check(load_params(params))
+    world_obj, pose = _sim_world(car, world, start, "obstacles", params)
+    with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
+        if pose is not None and world_obj is not None:
+            from qcarlab.experiments.avoid import Clearance
+
+            if Clearance(world_obj, qcar.params)(*pose)[0] <= 0.0:
+                raise InputError(f"--start {start}: the car would stand inside an obstacle of '{world_obj.name}'")
+        result = avoid(qcar, cfg, world=world_obj)
+    result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
+    if world_obj is not None:
+        import cv2
+
+        result.figures["drive.png"] = lambda f: cv2.imwrite(str(f), draw_drive(world_obj, result))
+    emit(result, json_out, out, _summary)
+
+
+__all__ = ["avoid_cmd"]

@@ -1,0 +1,376 @@
+"""LIDAR obstacle detection and avoidance (lab sheet section 6.1): the sheet's two MATLAB Function
+blocks and the Task 4 combination. Pure: numpy in, numbers out; no car, no I/O.
+
+Every function takes the scan as the car gives it (:class:`qcarlab.sensors.LidarScan`): ``angles``
+in the body frame, counter-clockwise from forward (REP-103: + = left), ``ranges`` in metres from
+the LIDAR, ``0`` = no return. A return is the body-frame point ``x = r cos(theta)`` (forward),
+``y = r sin(theta)`` (left). On the QCar the LIDAR sits on the roof over the car's centre
+(``QCarParams.lidar_x = 0``), so its front bumper is ``length / 2 = 0.2125 m`` ahead of the LIDAR:
+a stop distance is measured from the LIDAR, as the sheet's function sees it.
+
+- :func:`lidar_stop` ("LIDAR Stop.slx", Figure 60): speed only, 0 when an obstacle is near.
+- :func:`lidar_steer` ("LIDAR Basic/Base.slx", Figure 61): steering only, up to +-0.5 rad away
+  from the obstacle; the speed is untouched.
+- :class:`LidarAvoid` (Task 4, open problem): both at once, as the window state machine of the
+  race-car team's report (Stop, Straight, Straight Left/Right, Turn Left/Right, Back) with LIDAR
+  windows along the arcs the car can drive (:func:`free_distance`) and a back-up recovery.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from qcarlab.constants import DEFAULT_PARAMS, QCarParams
+
+__all__ = ["LidarAvoid", "STATES", "forward_range", "free_distance", "lidar_steer", "lidar_stop",
+           "rear_free_distance", "scan_points"]
+
+MAX_STEER = 0.5  # rad, the sheet's steering strategy's limit
+
+
+def scan_points(ranges, angles, lidar_x: float = 0.0) -> np.ndarray:
+    """The returns as (m, 2) points in the car's body frame (x forward, y left) about its centre;
+    beams without a return (range 0, or not finite) are dropped. ``lidar_x``: the LIDAR's offset
+    ahead of the centre (0 on the QCar)."""
+    r = np.asarray(ranges, dtype=float)
+    a = np.asarray(angles, dtype=float)
+    ok = np.isfinite(r) & (r > 0.0)
+    r, a = r[ok], a[ok]
+    return np.column_stack((lidar_x + r * np.cos(a), r * np.sin(a)))
+
+
+def forward_range(ranges, angles, half_width: float = 0.15) -> float:
+    """Nearest range (m) among the returns in the forward window, ``inf`` if the window is empty.
+
+    The window is the corridor the car drives through when it goes straight: returns with
+    ``x = r cos(theta) > 0`` and ``|y| = |r sin(theta)| <= half_width``. A corridor, not a cone:
+    a cone of +-10 deg is only +-7 cm wide at 0.4 m, narrower than the car (0.192 m).
+    """
+    r = np.asarray(ranges, dtype=float)
+    a = np.asarray(angles, dtype=float)
+    ok = np.isfinite(r) & (r > 0.0)
+    x, y = r * np.cos(a), r * np.sin(a)
+    sel = ok & (x > 0.0) & (np.abs(y) <= half_width)
+    return float(r[sel].min()) if sel.any() else math.inf
+
+
+def lidar_stop(ranges, angles, desired_speed: float, stop_distance: float = 0.4, half_width: float = 0.15) -> float:
+    """The sheet's stop strategy ("LIDAR Stop", Figure 60): the speed to command.
+
+        v = 0              if some return in the forward window has r < stop_distance
+        v = desired_speed  otherwise
+
+    The forward window is :func:`forward_range`'s corridor of +-``half_width`` (m) ahead of the
+    car (0.15 m: the car's half width 0.096 m plus 5 cm). ``stop_distance`` is measured from the
+    LIDAR (over the car's centre, 0.2125 m behind the front bumper). Acts on the speed only.
+    """
+    return 0.0 if forward_range(ranges, angles, half_width) < stop_distance else float(desired_speed)
+
+
+def lidar_steer(
+    ranges,
+    angles,
+    detect_distance: float = 1.0,
+    full_distance: float = 0.4,
+    fov: float = math.radians(90.0),
+    max_steering: float = MAX_STEER,
+) -> float:
+    """The sheet's steering strategy ("LIDAR Basic/Base", Figure 61): the steering angle (rad).
+
+    Take the nearest return (r*, theta*) with ``|theta| <= fov`` and ``r < detect_distance``; steer
+    away from its side, harder the closer it is::
+
+        delta = -sign(theta*) * max_steering * clip((detect_distance - r*) / (detect_distance - full_distance), 0, 1)
+
+    so an obstacle on the left (theta* > 0) gives a right turn (delta < 0), full lock (0.5 rad)
+    from ``full_distance`` in. An obstacle dead ahead (theta* = 0) is passed on the side with
+    more room (the side whose nearest return in the window is farther; left on a tie). Nothing in
+    the window: 0. The speed is not this block's business (the sheet: "the speed remains
+    untouched").
+    """
+    r = np.asarray(ranges, dtype=float)
+    a = np.remainder(np.asarray(angles, dtype=float) + math.pi, 2.0 * math.pi) - math.pi
+    sel = np.isfinite(r) & (r > 0.0) & (np.abs(a) <= fov) & (r < detect_distance)
+    if not sel.any():
+        return 0.0
+    rs, as_ = r[sel], a[sel]
+    i = int(np.argmin(rs))
+    r_star, th = float(rs[i]), float(as_[i])
+    if th > 0.0:
+        side = 1.0
+    elif th < 0.0:
+        side = -1.0
+    else:  # dead ahead: the obstacle counts as being on the side with less room
+        left, right = rs[as_ > 0.0], rs[as_ < 0.0]
+        room_left = float(left.min()) if left.size else math.inf
+        room_right = float(right.min()) if right.size else math.inf
+        side = -1.0 if room_left >= room_right else 1.0
+    span = max(detect_distance - full_distance, 1e-9)
+    gain = min(1.0, max(0.0, (detect_distance - r_star) / span))
+    return -side * max_steering * gain
+
+
+def free_distance(
+    points: np.ndarray,
+    steering: float,
+    params: QCarParams = DEFAULT_PARAMS,
+    margin: float = 0.05,
+    horizon: float = 3.0,
+) -> float:
+    """How far (m, along the path of the car's centre) the car can drive forward with the wheels at
+    ``steering`` before its footprint, grown by ``margin``, meets one of ``points`` (body frame
+    about the centre, from :func:`scan_points`). Capped at ``horizon``.
+
+    Straight (steering 0): the corridor ``|y| <= w = width/2 + margin`` ahead of the front bumper::
+
+        d = min over points with |y| <= w and x >= length/2 of (x - length/2)
+
+    Turning: the kinematic bicycle turns about ``C = (-L/2, R)`` with ``R = L / tan(delta)`` (the
+    rear axle's radius; L the wheelbase). With ``a = L/2 + length/2`` (rear axle to front bumper)
+    and ``R_in = |R| - w``, the footprint sweeps the annulus ``R_in <= rho <= hypot(|R| + w, a)``.
+    A point at ``rho = |P - C|`` and at angle ``phi`` around C (0 at the rear axle, + in the
+    direction of travel) is first touched by the car's leading edge at that radius, at angle::
+
+        phi_lead = acos(R_in / rho)   if rho <= hypot(a, R_in)   (the inner side)
+                 = asin(a / rho)      otherwise                 (the front bumper)
+
+    and the centre then has driven ``(phi - phi_lead) * hypot(R, L/2)``. Points beside or behind
+    the leading edge (``phi < phi_lead``) are not in the way of forward motion.
+    """
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    half_len, w = params.length / 2.0, params.width / 2.0 + margin
+    L = params.wheelbase
+    if not len(pts):
+        return float(horizon)
+    if abs(steering) < 1e-3:
+        x, y = pts[:, 0], pts[:, 1]
+        sel = (np.abs(y) <= w) & (x >= half_len)
+        return float(min(horizon, (x[sel] - half_len).min())) if sel.any() else float(horizon)
+    R = L / math.tan(abs(steering))
+    xr = pts[:, 0] + L / 2.0  # rear-axle frame
+    yr = pts[:, 1] if steering > 0 else -pts[:, 1]  # mirror right turns into left turns
+    a = L / 2.0 + half_len
+    r_in = R - w
+    r_out = math.hypot(R + w, a)
+    rho = np.hypot(xr, R - yr)
+    sel = (rho >= r_in) & (rho <= r_out)
+    if not sel.any():
+        return float(horizon)
+    rho, xr, yr = rho[sel], xr[sel], yr[sel]
+    phi = np.arctan2(xr, R - yr)  # 0 at the rear axle, + ahead
+    lead = np.where(rho <= math.hypot(a, r_in),
+                    np.arccos(np.clip(r_in / rho, -1.0, 1.0)),
+                    np.arcsin(np.clip(a / rho, -1.0, 1.0)))
+    ahead = phi >= lead
+    if not ahead.any():
+        return float(horizon)
+    d = float((phi[ahead] - lead[ahead]).min()) * math.hypot(R, L / 2.0)
+    return float(min(horizon, d))
+
+
+def rear_free_distance(points: np.ndarray, params: QCarParams = DEFAULT_PARAMS, margin: float = 0.05,
+                       horizon: float = 3.0) -> float:
+    """Free distance (m) behind the rear bumper in the corridor ``|y| <= width/2 + margin``."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    half_len, w = params.length / 2.0, params.width / 2.0 + margin
+    if not len(pts):
+        return float(horizon)
+    x, y = pts[:, 0], pts[:, 1]
+    sel = (np.abs(y) <= w) & (x <= -half_len)
+    return float(min(horizon, (-half_len - x[sel]).min())) if sel.any() else float(horizon)
+
+
+STATES = ("stop", "straight", "straight-left", "straight-right", "turn-left", "turn-right", "back")
+
+
+@dataclass
+class AvoidWindows:
+    """The windows of one scan: free distance (m) along each arc and behind the car."""
+
+    turn_left: float
+    gentle_left: float
+    straight: float
+    gentle_right: float
+    turn_right: float
+    rear: float
+
+
+class LidarAvoid:
+    """Task 4: avoid obstacles and stop (then back up) before contact. A state machine after the
+    race-car team's report (shared seeds 003), with LIDAR windows instead of depth windows.
+
+    Windows: the free distance :func:`free_distance` (grown by ``margin``) along five arcs, full
+    lock left ``+turn_steering``, gentle left ``+gentle_steering``, straight, gentle right, full
+    lock right; and :func:`rear_free_distance` behind. ``gap = stop_distance - length/2`` is the
+    sheet's stop distance (from the LIDAR) expressed ahead of the bumper. Each scan:
+
+    - no scan -> **stop** (the report: no data, Stop);
+    - about to make contact: the free distance along the arc being driven is below ``gap``
+      -> **stop** (speed 0, brake) for ``stop_hold`` s, then **back**;
+    - **straight** (delta 0): when ``straight < turn_distance + latency * v_close`` -> **turn-left** if
+      ``turn_left >= turn_right`` else **turn-right**; when ``gentle_left - gentle_right >
+      balance`` -> **straight-left** (delta = +gentle_steering), ``< -balance`` -> **straight-right**;
+    - **straight-left/right**: back to **straight** when the difference falls below ``balance/2``
+      (hysteresis) or the arc ahead gets shorter than the turn distance (then as straight);
+    - **turn-left/right** (full lock, speed x ``turn_speed_factor``): until ``straight >=
+      clear_distance`` -> **straight**;
+    - **back** (the report's collision recovery; speed ``-back_speed``, wheels turned to the side
+      opposite the planned turn so the nose swings towards the room): until a forward arc is clear
+      (``max(turn_left, straight, turn_right) >= clear_distance``), ``back_distance`` m are
+      reversed, or the rear gets within ``gap`` -> **turn** to the side with more room.
+
+    Speed in the forward states: ``min(speed x factor, max(sqrt(2 decel (ahead - gap)), min_speed))``
+    with ``ahead`` the free distance along the arc being driven (it slows down as it closes in;
+    ``factor`` = ``turn_speed_factor`` in turns, else 1). ``v_close`` is the larger of the speed
+    last commanded and the rate at which the straight window shrank over the last two scans (an
+    obstacle rolling towards the car closes faster than the car drives); ``latency`` (0.26 s: a
+    scan period plus the steering servo's lag) turns it into extra distance. The contact check
+    uses ``max(gap, margin + stopping_distance(v))``, so a fast car stops in time.
+
+    ``step(scan, speed)`` takes the scan (or None) and the desired speed, returns
+    ``(speed_ref, steering)``; ``state`` and ``windows`` show why.
+    """
+
+    def __init__(
+        self,
+        stop_distance: float = 0.4,
+        turn_distance: float = 0.62,
+        clear_distance: float = 1.0,
+        balance: float = 0.4,
+        gentle_steering: float = 0.15,
+        turn_steering: float = MAX_STEER,
+        turn_speed_factor: float = 0.7,
+        back_speed: float = 0.2,
+        back_distance: float = 0.4,
+        stop_hold: float = 0.3,
+        margin: float = 0.05,
+        decel: float = 0.8,
+        latency: float = 0.26,
+        min_speed: float = 0.1,
+        params: QCarParams = DEFAULT_PARAMS,
+    ):
+        self.params = params
+        self.decel, self.latency, self.min_speed = decel, latency, min_speed
+        self.gap = max(stop_distance - params.length / 2.0, 0.0)
+        self.turn_distance, self.clear_distance = turn_distance, clear_distance
+        self.balance = balance
+        self.gentle_steering, self.turn_steering = gentle_steering, turn_steering
+        self.turn_speed_factor = turn_speed_factor
+        self.back_speed, self.back_distance, self.stop_hold = back_speed, back_distance, stop_hold
+        self.margin = margin
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = "straight"
+        self.windows: AvoidWindows | None = None
+        self.side = 1.0  # the turn planned after backing up: +1 left, -1 right
+        self._since = 0.0  # s in the current stop/back state
+        self._backed = 0.0  # m reversed in the current back state
+        self._t: float | None = None
+        self._v = 0.0  # the last speed commanded
+        self._closing: list[float] = [0.0, 0.0]  # how fast the straight window shrank, last two scans
+        self._prev_straight: float | None = None
+        self.backups = 0
+
+    def _windows(self, scan) -> AvoidWindows:
+        pts = scan_points(scan.ranges, scan.angles, self.params.lidar_x)
+        f = lambda d: free_distance(pts, d, self.params, self.margin)  # noqa: E731
+        g, s = self.gentle_steering, self.turn_steering
+        return AvoidWindows(f(s), f(g), f(0.0), f(-g), f(-s), rear_free_distance(pts, self.params, self.margin))
+
+    def _steering(self) -> float:
+        return {"straight-left": self.gentle_steering, "straight-right": -self.gentle_steering,
+                "turn-left": self.turn_steering, "turn-right": -self.turn_steering,
+                "back": -self.side * self.turn_steering}.get(self.state, 0.0)
+
+    def _ahead(self, w: AvoidWindows) -> float:
+        """Free distance along the arc the current state drives."""
+        return {"straight-left": w.gentle_left, "straight-right": w.gentle_right, "turn-left": w.turn_left,
+                "turn-right": w.turn_right}.get(self.state, w.straight)
+
+    def _enter(self, state: str) -> None:
+        if state != self.state:
+            self.state = state
+            self._since = 0.0
+            self._backed = 0.0
+
+    def _turn_side(self, w: AvoidWindows) -> float:
+        left, right = w.turn_left + w.gentle_left, w.turn_right + w.gentle_right
+        return 1.0 if left >= right else -1.0
+
+    def step(self, scan, speed: float) -> tuple[float, float]:
+        """One decision per LIDAR scan: ``(speed_ref m/s, steering rad)`` for desired ``speed``."""
+        if scan is None:
+            self._enter("stop")
+            self._t = None
+            self._v = 0.0
+            return 0.0, 0.0
+        dt = 0.0 if self._t is None else max(0.0, float(scan.t) - self._t)
+        self._t = float(scan.t)
+        w = self.windows = self._windows(scan)
+        self._since += dt
+        if self._prev_straight is not None and dt > 0.0:
+            rate = (self._prev_straight - w.straight) / dt
+            self._closing = [self._closing[1], min(max(rate, 0.0), 3.0)]
+        self._prev_straight = w.straight
+        st = self.state
+        if st == "stop":
+            if self._since >= self.stop_hold:
+                self.side = self._turn_side(w)
+                self.backups += 1
+                self._enter("back")
+            else:
+                self._v = 0.0
+                return 0.0, 0.0
+        elif st == "back":
+            self._backed += self.back_speed * dt
+            if max(w.turn_left, w.straight, w.turn_right) >= self.clear_distance and self._backed > 0.05 \
+                    or self._backed >= self.back_distance or w.rear < self.gap:
+                best = max(w.turn_left, w.straight, w.turn_right)
+                if w.straight >= self.clear_distance and w.straight >= best - 1e-9:
+                    self._enter("straight")
+                else:
+                    self._enter("turn-left" if self._turn_side(w) > 0 else "turn-right")
+        elif st in ("turn-left", "turn-right"):
+            if w.straight >= self.clear_distance:
+                self._enter("straight")
+        elif st in ("straight-left", "straight-right"):
+            diff = w.gentle_left - w.gentle_right
+            if w.straight < self.turn_distance + self.latency * max(abs(self._v), min(self._closing)) or (diff if st == "straight-left" else -diff) < self.balance / 2.0:
+                self._enter("straight")
+        v_now = abs(self._v)
+        # an obstacle coming towards the car (the report's rolling ball) closes faster than the car
+        # drives: the window's shrink rate, when two scans in a row agree, counts instead
+        closing = max(v_now, min(self._closing))
+        turn_distance = self.turn_distance + self.latency * closing
+        if self.state == "straight":
+            diff = w.gentle_left - w.gentle_right
+            if w.straight < turn_distance:
+                self._enter("turn-left" if w.turn_left >= w.turn_right else "turn-right")
+            elif diff > self.balance:
+                self._enter("straight-left")
+            elif diff < -self.balance:
+                self._enter("straight-right")
+        if self.state == "back":
+            self._v = -abs(self.back_speed)
+            return self._v, self._steering()
+        # the sheet's stop, along the arc actually driven: about to make contact -> stop, then back up
+        ahead = self._ahead(w)
+        if ahead < max(self.gap, self.margin + self.stopping_distance(v_now)):
+            self._enter("stop")
+            self._v = 0.0
+            return 0.0, 0.0
+        factor = self.turn_speed_factor if self.state in ("turn-left", "turn-right") else 1.0
+        v = float(speed) * factor
+        cap = max(math.sqrt(2.0 * self.decel * max(ahead - self.gap, 0.0)), self.min_speed)
+        self._v = min(v, cap)
+        return self._v, self._steering()
+
+    def stopping_distance(self, v: float) -> float:
+        """Distance (m) the car covers from a scan that says stop to rest at speed ``v``: a scan
+        period of latency (0.1 s) then braking at about 1 m/s^2 (the PI controller at the 0.3
+        throttle limit, measured): ``0.1 v + v^2 / 2``."""
+        return 0.1 * v + v * v / 2.0
