@@ -59,3 +59,12 @@ def test_loop_stops_the_car_on_error_and_on_stop():
         log = run_loop(car, lambda t, r: STOP if t >= 0.05 else Command(0.1, 0.0), 1.0)
         assert log.stopped_early and log.ticks == 5
         assert car.read().throttle == 0.0
+
+
+def test_speed_controller_holds_a_car_at_rest():
+    pi = SpeedController()
+    for _ in range(50):  # braking from 0.5 m/s winds the integral negative
+        pi(0.0, 0.5, 0.01)
+    assert pi.integral < 0
+    assert pi(0.0, 0.005, 0.01) == 0.0 and pi.integral == 0.0  # at rest: no creeping backwards
+    assert pi(0.0, 0.2, 0.01) < 0.0  # still moving: it brakes

@@ -41,6 +41,9 @@ class SpeedController:
 
     The integral term K_i integral(e dt) is clamped to +-``integral_limit`` (anti-windup) and held at zero while the
     controller is not armed. Defaults are Quanser's: K_ff = 0.1, K_p = 0.3, K_i = 1.
+
+    A car asked to stand still (v_ref = 0) that is at rest (|v| < ``rest_speed``) gets throttle 0
+    and a reset integrator: otherwise the integral built up while braking backs the car away.
     """
 
     def __init__(
@@ -50,6 +53,7 @@ class SpeedController:
         kff: float = 0.1,
         throttle_limit: float = DEFAULT_PARAMS.throttle_limit,
         integral_limit: float = 0.4,
+        rest_speed: float = 0.01,
     ):
         for name, value in (("kp", kp), ("ki", ki), ("kff", kff)):
             if not (math.isfinite(value) and value >= 0.0):
@@ -57,13 +61,14 @@ class SpeedController:
         self.kp, self.ki, self.kff = kp, ki, kff
         self.throttle_limit = throttle_limit
         self.integral_limit = integral_limit
+        self.rest_speed = rest_speed
         self.integral = 0.0
 
     def reset(self) -> None:
         self.integral = 0.0
 
     def __call__(self, desired_speed: float, measured_speed: float, dt: float, armed: bool = True) -> float:
-        if not armed:
+        if not armed or (desired_speed == 0.0 and abs(measured_speed) < self.rest_speed):
             self.integral = 0.0
             return 0.0
         e = desired_speed - measured_speed

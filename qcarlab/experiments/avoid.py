@@ -223,7 +223,7 @@ def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None) -> Result
         at_rest = abs(v) < REST_SPEED
         if v_ref == 0.0 and at_rest and st["rest"] is None and math.isfinite(st["front"]):
             st["rest"] = {"t": t, "range_m": st["front"], "gap_m": clear if math.isfinite(clear) else None}
-        throttle = pi(v_ref, v, dt, armed=not (v_ref == 0.0 and at_rest))
+        throttle = pi(v_ref, v, dt)  # speed_controller holds a car at rest with throttle 0
         lamps = "brake" if v_ref == 0.0 else ("reverse" if v_ref < 0 else "")
         if delta > 0.2:
             lamps += ",left-indicators"

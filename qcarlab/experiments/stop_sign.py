@@ -199,9 +199,9 @@ def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None) -> Result:
             st["go_t"] = t
         if d_true is not None and not st["passed"] and d_true < -(p.length + sign.post_radius * 2):
             st["passed"], st["pass_t"] = True, t  # the rear bumper is past the sign
-        # at rest for a stop: throttle 0 and the integrator reset (a disarmed speed_controller), so
-        # the integral the braking wound up does not creep the car backwards while it waits
-        throttle = pi(v_ref, v, dt, armed=not (v_ref == 0.0 and abs(v) < STANDSTILL))
+        # at rest for a stop, speed_controller gives throttle 0 and resets its integrator, so the
+        # integral the braking wound up does not creep the car backwards while it waits
+        throttle = pi(v_ref, v, dt)
         for key, value in (("v_ref", v_ref), ("v_meas", v), ("sign_found", int(det.found)),
                            ("sign_distance", d_meas), ("true_distance", math.nan if d_true is None else d_true),
                            ("state", state)):
