@@ -13,6 +13,7 @@ from qcarlab.cli import drive  # noqa: F401  (keyboard-drive)
 from qcarlab.cli import paths  # noqa: F401  (path-gen, path-follow)
 from qcarlab.cli import sensors  # noqa: F401  (lidar-scan, camera)
 from qcarlab.cli import stop_sign  # noqa: F401  (stop-sign)
+from qcarlab.cli import lane_follow  # noqa: F401  (lane-follow)
 from qcarlab.cli import avoid  # noqa: F401  (avoid)
 from qcarlab.cli.pending import register_pending
 

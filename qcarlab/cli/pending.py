@@ -12,7 +12,6 @@ from qcarlab.cli.app import app
 from qcarlab.errors import NotBuiltError
 
 PENDING: dict[str, tuple[str, str]] = {
-    "lane-follow": ("Vision lane following with HSV tuning (sheet 5.3).", "a later issue"),
     "grade": ("Grade a lab run against its lab sheet's criteria.", "a later issue"),
 }
 

@@ -1,0 +1,123 @@
+"""``qcarlab lane-follow`` (lab sheet 5.3): follow the lane with the RGBD camera; ``--hsv-tune``."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated
+
+import typer
+
+from qcarlab import plots
+from qcarlab.car.sim import START_POSE
+from qcarlab.cli.app import app
+from qcarlab.cli.common import (
+    CarOpt,
+    DebugOpt,
+    JsonOpt,
+    OutOpt,
+    ParamsOpt,
+    RateOpt,
+    RealtimeOpt,
+    SeedOpt,
+    emit,
+    open_from_options,
+    stdout,
+    summary_table,
+)
+from qcarlab.cli.sensors import StartOpt, WorldOpt, _sim_world
+from qcarlab.cli.stop_sign import parse_hsv
+from qcarlab.errors import InputError
+from qcarlab.experiments.lane_follow import (
+    LANE_HALF_WIDTH,
+    LaneFollowConfig,
+    hsv_tune,
+    lane_centre,
+    run_lane_follow,
+    tune_spots,
+)
+from qcarlab.experiments.result import Result
+from qcarlab.perception.lane import LANES, YELLOW_HSV_MAX, YELLOW_HSV_MIN
+
+
+def _fmt(value, unit: str = "m", digits: int = 3) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f} {unit}"
+
+
+def _summary(result: Result) -> None:
+    m = result.metrics
+    if m.get("mode") == "hsv-tune":
+        table = summary_table(f"lane-follow --hsv-tune ({m['lane']} lane, HSV {m['hsv_min']} .. {m['hsv_max']})")
+        for s in m["spots"]:
+            table.add_row(f"spot {s['pose'][0]:.2f}, {s['pose'][1]:.2f}",
+                          f"{s['pixels_in_region']} px in region ({s['pixels_whole_image']} in image)"
+                          + ("" if s["line_found"] else ", NO LINE"))
+        stdout.print(table)
+        return
+    table = summary_table(f"lane-follow ({m['lane']} lane, {m['speed_mps']:g} m/s)")
+    table.add_row("RMS lateral deviation", _fmt(m["rms_lateral_deviation_m"]))
+    table.add_row("max lateral deviation", _fmt(m["max_lateral_deviation_m"]))
+    table.add_row("time out of lane", _fmt(m["time_out_of_lane_s"], "s", 2))
+    table.add_row("distance along the lane", _fmt(m["distance_along_lane_m"], "m", 2))
+    table.add_row("laps", _fmt(m["laps"], "", 2))
+    table.add_row("duration, mean speed", f"{m['duration_s']:.2f} s, {m['mean_speed_mps']:.3f} m/s")
+    table.add_row("frames: white backup / line lost", f"{m['frames_white_backup']} / {m['frames_line_lost']} "
+                  f"of {m['frames']}")
+    stdout.print(table)
+
+
+@app.command("lane-follow")
+def lane_follow_cmd(
+    speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
+    lane: Annotated[str, typer.Option(help="Lane to drive in: right (yellow line on the car's left) or left.")] = "right",
+    duration: Annotated[float, typer.Option(help="Run for this many seconds.")] = 30.0,
+    laps: Annotated[float | None, typer.Option(help="Stop after this many laps (simulator).", show_default=False)] = None,
+    hsv_tune_: Annotated[bool, typer.Option("--hsv-tune", help="Do not drive: threshold frames at 4 spots of the "
+                                            "track and report/write them (hsv_tune.png with --out).")] = False,
+    hsv_min: Annotated[str, typer.Option(help="Lower HSV bound H,S,V (H in OpenCV's 0..179 = deg/2).")]
+    = ",".join(map(str, YELLOW_HSV_MIN)),
+    hsv_max: Annotated[str, typer.Option(help="Upper HSV bound H,S,V.")] = ",".join(map(str, YELLOW_HSV_MAX)),
+    lookahead: Annotated[float, typer.Option(help="Where the fitted line is read, m ahead of the camera.")] = 0.5,
+    stop_distance: Annotated[float, typer.Option(help="automatedDriving stop distance, m.")] = 0.6,
+    start: StartOpt = None,
+    rate: RateOpt = 100.0,
+    car: CarOpt = "sim",
+    world: WorldOpt = None,
+    seed: SeedOpt = 0,
+    out: OutOpt = None,
+    json_out: JsonOpt = False,
+    realtime: RealtimeOpt = False,
+    params: ParamsOpt = None,
+    debug: DebugOpt = False,
+) -> None:
+    """Follow the lane with the RGBD camera (HSV yellow line, linear fit, pure pursuit; sheet 5.3).
+
+    Examples: qcarlab lane-follow | qcarlab lane-follow --laps 1 --out runs/lane |
+    qcarlab lane-follow --hsv-tune --hsv-min 20,100,100 --out runs/tune
+    """
+    if lane not in LANES:
+        raise InputError(f"--lane must be one of {', '.join(LANES)}, got {lane!r}")
+    cfg = LaneFollowConfig(speed=speed, lane=lane, duration=duration, laps=laps,
+                           hsv_min=parse_hsv(hsv_min, "--hsv-min"), hsv_max=parse_hsv(hsv_max, "--hsv-max"),
+                           lookahead=lookahead, stop_distance=stop_distance, rate=rate)
+    cfg.check()
+    world_obj, pose = _sim_world(car, world, start, "track", params)
+    if world_obj is not None and pose is None and lane == "left":
+        x, y, yaw = getattr(world_obj, "start", None) or START_POSE  # the start is in the right lane
+        d = 2.0 * LANE_HALF_WIDTH
+        pose = (x - d * math.sin(yaw), y + d * math.cos(yaw), yaw)
+    if hsv_tune_:
+        if world_obj is None:
+            raise InputError("--hsv-tune places the car at spots of the track: simulator only")
+        s0 = pose or getattr(world_obj, "start", None) or START_POSE
+        frames = []
+        for spot in tune_spots(lane_centre(world_obj, s0), s0):
+            with open_from_options(car, world_obj, seed, realtime, params, start=spot) as qcar:
+                frames.append((spot, qcar.read_rgbd()))
+        result = hsv_tune(frames, cfg)
+    else:
+        with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
+            result = run_lane_follow(qcar, cfg, world_obj)
+        log = result.logs["log.csv"]
+        result.figures["speed.png"] = lambda f: plots.plot_speed(log, f)
+    result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
+    emit(result, json_out, out, _summary)
