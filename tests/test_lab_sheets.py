@@ -7,35 +7,24 @@ import shlex
 from pathlib import Path
 
 import pytest
-import yaml
+
+from qcarlab.grade import check, load_sheet
 
 LABS = Path(__file__).resolve().parents[1] / "labs"
 SHEETS = sorted(LABS.glob("*.yaml"))
 
 
-def lookup(results: dict, dotted: str):
-    value = results
-    for part in dotted.split("."):
-        value = value[part]
-    return value
-
-
 def tasks():
     for sheet in SHEETS:
-        for task in yaml.safe_load(sheet.read_text())["tasks"]:
-            yield pytest.param(task, id=f"{sheet.stem}:{task['id']}")
+        for task in load_sheet(sheet)[1]:
+            yield pytest.param(task, id=f"{sheet.stem}:{task.id}")
 
 
 @pytest.mark.parametrize("task", list(tasks()))
 def test_task_command_meets_its_criteria(cli, task):
-    argv = shlex.split(task["command"])
+    argv = shlex.split(task.command)
     assert argv[0] == "qcarlab" and "--json" in argv
     code, out, err = cli(*argv[1:])
     assert code == 0, err
-    results = json.loads(out)
-    for metric, bound in task["criteria"].items():
-        value = lookup(results, metric)
-        if "max" in bound:
-            assert value <= bound["max"], (metric, value)
-        if "min" in bound:
-            assert value >= bound["min"], (metric, value)
+    verdicts = check(json.loads(out), task.criteria)
+    assert all(v.passed for v in verdicts), [(v.criterion.describe(), v.value, v.reason) for v in verdicts]
