@@ -45,6 +45,18 @@ def pack_bgr(b: int, g: int, r: int) -> int:
 
 
 @njit(**_JIT)
+def dda_axis(d, i, p, t):
+    """Grid traversal (Amanatides-Woo) along one axis of a ray with direction component ``d``,
+    at cell ``i`` and position ``p`` (cells) at ray parameter ``t``: returns the cell step (-1, 0,
+    1), the ray length per cell, and the ray parameter of the next cell boundary."""
+    if d > 0.0:
+        return 1, 1.0 / d, t + (i + 1 - p) / d
+    if d < 0.0:
+        return -1, -1.0 / d, t + (i - p) / d
+    return 0, BIG, BIG
+
+
+@njit(**_JIT)
 def _enter_box(px, py, dx, dy, nx, ny):
     """Ray parameter (cells) where a ray from (px, py) enters the grid box, or -1 if it never does."""
     t0 = 0.0
@@ -103,30 +115,8 @@ def march(px, py, dx, dy, t, tmax, label, dt):
             t += d - 1.4143
             continue
         # walk cell by cell until clear of the walls again
-        if dx > 0.0:
-            sx = 1
-            tdx = 1.0 / dx
-            tmx = t + (ix + 1 - x) / dx
-        elif dx < 0.0:
-            sx = -1
-            tdx = -1.0 / dx
-            tmx = t + (ix - x) / dx
-        else:
-            sx = 0
-            tdx = BIG
-            tmx = BIG
-        if dy > 0.0:
-            sy = 1
-            tdy = 1.0 / dy
-            tmy = t + (iy + 1 - y) / dy
-        elif dy < 0.0:
-            sy = -1
-            tdy = -1.0 / dy
-            tmy = t + (iy - y) / dy
-        else:
-            sy = 0
-            tdy = BIG
-            tmy = BIG
+        sx, tdx, tmx = dda_axis(dx, ix, x, t)
+        sy, tdy, tmy = dda_axis(dy, iy, y, t)
         while True:
             if tmx < tmy:
                 t = tmx
@@ -157,30 +147,8 @@ def skip(px, py, dx, dy, t, tmax, label, lab):
     y = py + t * dy
     ix = int(math.floor(x))
     iy = int(math.floor(y))
-    if dx > 0.0:
-        sx = 1
-        tdx = 1.0 / dx
-        tmx = t + (ix + 1 - x) / dx
-    elif dx < 0.0:
-        sx = -1
-        tdx = -1.0 / dx
-        tmx = t + (ix - x) / dx
-    else:
-        sx = 0
-        tdx = BIG
-        tmx = BIG
-    if dy > 0.0:
-        sy = 1
-        tdy = 1.0 / dy
-        tmy = t + (iy + 1 - y) / dy
-    elif dy < 0.0:
-        sy = -1
-        tdy = -1.0 / dy
-        tmy = t + (iy - y) / dy
-    else:
-        sy = 0
-        tdy = BIG
-        tmy = BIG
+    sx, tdx, tmx = dda_axis(dx, ix, x, t)
+    sy, tdy, tmy = dda_axis(dy, iy, y, t)
     while True:
         if tmx < tmy:
             t = tmx
