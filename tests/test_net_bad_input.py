@@ -3,7 +3,6 @@ frame (or a plain HTTP 400) and/or a closed connection, with one log line; other
 
 from __future__ import annotations
 
-import logging
 import math
 import struct
 import time
@@ -23,23 +22,6 @@ def wait_for(cond, timeout=2.0):
     while time.monotonic() < deadline and not cond():
         time.sleep(0.002)
     return cond()
-
-
-@pytest.fixture
-def netlog():
-    lines: list[str] = []
-
-    class Collect(logging.Handler):
-        def emit(self, record):
-            lines.append(record.getMessage())
-
-    handler, logger = Collect(), logging.getLogger("qcarlab.net")
-    old = logger.level
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
-    yield lines
-    logger.removeHandler(handler)
-    logger.setLevel(old)
 
 
 @pytest.fixture

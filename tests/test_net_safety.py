@@ -3,7 +3,6 @@ limits, token for non-loopback binds, shutdown."""
 
 from __future__ import annotations
 
-import logging
 import time
 
 import pytest
@@ -45,23 +44,6 @@ def served():
     yield make
     for server in servers:
         server.stop()
-
-
-@pytest.fixture
-def netlog():
-    lines: list[str] = []
-
-    class Collect(logging.Handler):
-        def emit(self, record):
-            lines.append(record.getMessage())
-
-    handler, logger = Collect(), logging.getLogger("qcarlab.net")
-    old = logger.level
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
-    yield lines
-    logger.removeHandler(handler)
-    logger.setLevel(old)
 
 
 def connect(server, **kw):
