@@ -8,10 +8,10 @@ import typer
 
 from qcarlab.cli.app import app
 from qcarlab.cli.common import (
+    StartOpt, WorldOpt, sim_world,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt,
     emit, open_from_options, stdout, summary_table,
 )
-from qcarlab.cli.sensors import StartOpt, WorldOpt, _sim_world
 from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.avoid import STRATEGIES, AvoidConfig, avoid, draw_drive
@@ -76,7 +76,7 @@ def avoid_cmd(
     cfg = AvoidConfig(strategy=strategy, speed=speed, stop_distance=stop_distance, half_width=half_width,
                       duration=duration, rate=rate)
     cfg.check(load_params(params))
-    world_obj, pose = _sim_world(car, world, start, "obstacles", params)
+    world_obj, pose = sim_world(car, world, start, "obstacles", params)
     with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
         if pose is not None and world_obj is not None:
             from qcarlab.experiments.avoid import Clearance

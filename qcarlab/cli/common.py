@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from typing import Annotated, Any
@@ -10,16 +11,25 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from qcarlab.car import Car, open_car
+from qcarlab.car import Car, open_car, parse_car_uri
+from qcarlab.constants import load_params
+from qcarlab.errors import InputError
 from qcarlab.experiments.result import Result
 from qcarlab.record import dumps
 
 CarOpt = Annotated[
     str, typer.Option("--car", help="Which car: [b]sim[/b] (built-in simulator) or [b]tcp://HOST:PORT[/b].")
 ]
+SHIPPED = ", ".join(sorted(p.stem for p in (Path(__file__).parents[1] / "worlds").glob("*.yaml")))
 WorldOpt = Annotated[
     str | None,
-    typer.Option("--world", help="Simulator world: a shipped name (studio, track, ...), a world YAML or a ROS map YAML."),
+    typer.Option("--world", help=f"Shipped world ({SHIPPED}), a world YAML or a ROS map YAML (simulator only).",
+                 show_default=False),
+]
+StartOpt = Annotated[
+    str | None,
+    typer.Option("--start", help="Place the car at X,Y,YAW (m, m, rad) instead of the world's start pose.",
+                 show_default=False),
 ]
 SeedOpt = Annotated[int, typer.Option("--seed", min=0, help="Seed of the simulator's noise; same seed, same numbers.")]
 def check_out(out: Path | None) -> Path | None:
@@ -81,3 +91,46 @@ def summary_table(title: str) -> Table:
     table.add_column("what")
     table.add_column("value", justify="right")
     return table
+
+
+KpOpt = Annotated[float, typer.Option("--kp", help="speed_controller proportional gain.")]
+KiOpt = Annotated[float, typer.Option("--ki", help="speed_controller integral gain.")]
+KffOpt = Annotated[float, typer.Option("--kff", help="speed_controller feed-forward gain.")]
+
+
+def parse_start(text: str | None) -> tuple[float, float, float] | None:
+    if text is None:
+        return None
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"--start {text!r}: expected X,Y,YAW as three numbers") from None
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise InputError(f"--start {text!r}: expected X,Y,YAW as three finite numbers")
+    return values
+
+
+def sim_world(car: str, world: str | None, start: str | None, default: str, params: Path | None):
+    """Load the world for a simulated car; refuse simulator-only options for a remote car."""
+    pose = parse_start(start)
+    if parse_car_uri(car)[0] != "sim":
+        if world is not None or pose is not None:
+            raise InputError("--world and --start apply to the simulator only; a remote car is where it is")
+        return None, None
+    from qcarlab.sim.world import load_world
+
+    return load_world(world or default, load_params(params)), pose
+
+
+def parse_hsv(text: str, option: str) -> tuple[int, int, int]:
+    """'H,S,V' -> three ints (checked by the experiment's config: H 0..179, S and V 0..255)."""
+    words = [w.strip() for w in text.split(",")]
+    if len(words) != 3:
+        raise InputError(f"{option} {text!r}: expected H,S,V as three numbers (e.g. 170,100,100)")
+    try:
+        values = [float(w) for w in words]
+    except ValueError:
+        raise InputError(f"{option} {text!r}: expected H,S,V as three numbers (e.g. 170,100,100)") from None
+    if not all(math.isfinite(v) and v.is_integer() for v in values):
+        raise InputError(f"{option} {text!r}: H,S,V must be whole numbers")
+    return tuple(int(v) for v in values)

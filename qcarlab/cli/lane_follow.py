@@ -11,6 +11,7 @@ from qcarlab import plots
 from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app
 from qcarlab.cli.common import (
+    StartOpt, WorldOpt, sim_world, parse_hsv,
     CarOpt,
     DebugOpt,
     JsonOpt,
@@ -24,8 +25,6 @@ from qcarlab.cli.common import (
     stdout,
     summary_table,
 )
-from qcarlab.cli.sensors import StartOpt, WorldOpt, _sim_world
-from qcarlab.cli.stop_sign import parse_hsv
 from qcarlab.errors import InputError
 from qcarlab.experiments.lane_follow import (
     LANE_HALF_WIDTH,
@@ -100,7 +99,7 @@ def lane_follow_cmd(
                            hsv_min=parse_hsv(hsv_min, "--hsv-min"), hsv_max=parse_hsv(hsv_max, "--hsv-max"),
                            lookahead=lookahead, stop_distance=stop_distance, rate=rate)
     cfg.check()
-    world_obj, pose = _sim_world(car, world, start, "track", params)
+    world_obj, pose = sim_world(car, world, start, "track", params)
     if world_obj is not None and pose is None and lane == "left":
         x, y, yaw = getattr(world_obj, "start", None) or START_POSE  # the start is in the right lane
         d = 2.0 * LANE_HALF_WIDTH

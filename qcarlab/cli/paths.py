@@ -13,6 +13,7 @@ from rich.table import Table
 from qcarlab import paths, plots
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import (
+    KpOpt, KiOpt, KffOpt,
     check_out,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
     emit, open_from_options, stdout, summary_table,
@@ -205,9 +206,9 @@ def path_follow_cmd(
     k_carrot: Annotated[float, typer.Option(help="Follow-the-carrot gain K_carrot.")] = 1.0,
     k_stanley: Annotated[float, typer.Option(help="Stanley cross-track gain.")] = 2.0,
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.5,
-    kp: Annotated[float, typer.Option(help="speed_controller proportional gain.")] = 0.3,
-    ki: Annotated[float, typer.Option(help="speed_controller integral gain.")] = 1.0,
-    kff: Annotated[float, typer.Option(help="speed_controller feed-forward gain.")] = 0.1,
+    kp: KpOpt = 0.3,
+    ki: KiOpt = 1.0,
+    kff: KffOpt = 0.1,
     pose: Annotated[str, typer.Option(help="Pose estimate: bicycle (encoder + steering, the sheet's model), "
                                       "gyro (encoder + gyro yaw rate) or truth (simulator only).")] = "bicycle",
     goal_tolerance: Annotated[float, typer.Option(help="Stop within this distance of the last point, m.")] = 0.1,

@@ -15,6 +15,7 @@ from qcarlab import plots
 from qcarlab.car import parse_car_uri
 from qcarlab.cli.app import app
 from qcarlab.cli.common import (
+    StartOpt, WorldOpt, sim_world,
     check_out,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RealtimeOpt, SeedOpt, emit, interactive, open_from_options,
     stdout, summary_table,
@@ -25,42 +26,7 @@ from qcarlab.experiments.camera import grab
 from qcarlab.experiments.lidar_scan import capture, sector_minima
 from qcarlab.experiments.result import Result
 
-SHIPPED = ", ".join(sorted(p.stem for p in (Path(__file__).parents[1] / "worlds").glob("*.yaml")))
-WorldOpt = Annotated[
-    str | None,
-    typer.Option("--world", help=f"Shipped world ({SHIPPED}), a world YAML or a ROS map YAML (simulator only).",
-                 show_default=False),
-]
-StartOpt = Annotated[
-    str | None,
-    typer.Option("--start", help="Place the car at X,Y,YAW (m, m, rad) instead of the world's start pose.",
-                 show_default=False),
-]
 SECTORS = ("ahead", "ahead-left", "left", "behind-left", "behind", "behind-right", "right", "ahead-right")
-
-
-def parse_start(text: str | None) -> tuple[float, float, float] | None:
-    if text is None:
-        return None
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(f"--start {text!r}: expected X,Y,YAW as three numbers") from None
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise InputError(f"--start {text!r}: expected X,Y,YAW as three finite numbers")
-    return values
-
-
-def _sim_world(car: str, world: str | None, start: str | None, default: str, params: Path | None):
-    """Load the world for a simulated car; refuse simulator-only options for a remote car."""
-    pose = parse_start(start)
-    if parse_car_uri(car)[0] != "sim":
-        if world is not None or pose is not None:
-            raise InputError("--world and --start apply to the simulator only; a remote car is where it is")
-        return None, None
-    from qcarlab.sim.world import load_world
-
-    return load_world(world or default, load_params(params)), pose
 
 
 def _list_worlds() -> None:
@@ -136,7 +102,7 @@ def lidar_scan_cmd(
         raise InputError("--watch needs an interactive terminal (and no --json)")
     if target is not None and parse_car_uri(car)[0] != "sim":
         raise InputError("--target applies to the simulator only")
-    world_obj, pose = _sim_world(car, world, start, "studio", params)
+    world_obj, pose = sim_world(car, world, start, "studio", params)
     if target is not None:
         x, y, yaw = pose or world_obj.start
         p = load_params(params)
@@ -209,7 +175,7 @@ def camera_cmd(
     """
     if not (rgbd or csi):
         rgbd = True
-    world_obj, pose = _sim_world(car, world, start, "track", params)
+    world_obj, pose = sim_world(car, world, start, "track", params)
     with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
         result = grab(qcar, rgbd=rgbd, csi=csi)
         result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Annotated
 
 import typer
@@ -11,6 +10,7 @@ from qcarlab import plots
 from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import (
+    StartOpt, WorldOpt, sim_world, parse_hsv, KpOpt, KiOpt, KffOpt,
     CarOpt,
     DebugOpt,
     JsonOpt,
@@ -24,7 +24,6 @@ from qcarlab.cli.common import (
     stdout,
     summary_table,
 )
-from qcarlab.cli.sensors import StartOpt, WorldOpt, _sim_world
 from qcarlab.errors import InputError
 from qcarlab.experiments.result import Result
 from qcarlab.experiments.stop_sign import (
@@ -34,20 +33,6 @@ from qcarlab.experiments.stop_sign import (
     sign_ahead,
 )
 from qcarlab.perception.stop_sign import MIN_AREA, RED_HSV_MAX, RED_HSV_MIN
-
-
-def parse_hsv(text: str, option: str) -> tuple[int, int, int]:
-    """'H,S,V' -> three ints (checked by the experiment's config: H 0..179, S and V 0..255)."""
-    words = [w.strip() for w in text.split(",")]
-    if len(words) != 3:
-        raise InputError(f"{option} {text!r}: expected H,S,V as three numbers (e.g. 170,100,100)")
-    try:
-        values = [float(w) for w in words]
-    except ValueError:
-        raise InputError(f"{option} {text!r}: expected H,S,V as three numbers (e.g. 170,100,100)") from None
-    if not all(math.isfinite(v) and v.is_integer() for v in values):
-        raise InputError(f"{option} {text!r}: H,S,V must be whole numbers")
-    return tuple(int(v) for v in values)
 
 
 def _fmt(value, unit: str = "m", scale: float = 1.0, digits: int = 3) -> str:
@@ -90,9 +75,9 @@ def stop_sign_cmd(
                                          "H_min > H_max wraps through red's 0).")] = ",".join(map(str, RED_HSV_MIN)),
     hsv_max: Annotated[str, typer.Option(help="Upper HSV bound H,S,V.")] = ",".join(map(str, RED_HSV_MAX)),
     min_area: Annotated[int, typer.Option(help="Smallest red blob taken for a sign, pixels.")] = MIN_AREA,
-    kp: Annotated[float, typer.Option(help="speed_controller proportional gain.")] = 0.3,
-    ki: Annotated[float, typer.Option(help="speed_controller integral gain.")] = 1.0,
-    kff: Annotated[float, typer.Option(help="speed_controller feed-forward gain.")] = 0.1,
+    kp: KpOpt = 0.3,
+    ki: KiOpt = 1.0,
+    kff: KffOpt = 0.1,
     max_time: Annotated[float | None, typer.Option(help="Give up after this many seconds (default: from the "
                                                    "distance and speed).", show_default=False)] = None,
     frames: Annotated[bool, typer.Option("--frames", help="With --out: also write annotated camera frames "
@@ -119,7 +104,7 @@ def stop_sign_cmd(
                          hsv_max=parse_hsv(hsv_max, "--hsv-max"), min_area=min_area, kp=kp, ki=ki, kff=kff,
                          rate=rate, max_time=max_time, frames=frames and out is not None)
     cfg.check()
-    world_obj, pose = _sim_world(car, world, start, "stop-sign", params)
+    world_obj, pose = sim_world(car, world, start, "stop-sign", params)
     sign = None
     if world_obj is not None:
         sign = sign_ahead(world_obj, pose or getattr(world_obj, "start", None) or START_POSE)
