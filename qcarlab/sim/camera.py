@@ -395,8 +395,13 @@ class _ColumnView:
         v = self.cy - self.fy * up / dh
         return np.column_stack((v, u)), dh
 
-    def col_of_az(self, az: np.ndarray) -> np.ndarray:  # cylinder views override via attribute
-        raise NotImplementedError
+    def col_of_az(self, az: np.ndarray) -> np.ndarray:
+        """Image column of an azimuth (rad, + = left) for a pinhole view: u = cx - fx tan(az).
+        Wide-angle views (``_CylinderView``) override this with their own projection."""
+        p = self.pinhole
+        if p is None:
+            raise TypeError(f"{type(self).__name__} has no pinhole intrinsics: it must define col_of_az")
+        return p.cx - p.fx * np.tan(az)
 
     def _draw_sign(self, sign: Sign, cx_w: float, cy_w: float, yaw: float) -> None:
         px, py, pz = sign.plate_center
