@@ -322,6 +322,10 @@ class QuanserCar(Car):
         b = s["buffers"]
         return make_frame(MsgType.CSI, self.time, [b[k].copy() for k in ("right", "rear", "left", "front")])
 
+    def sensor_job(self, kind: str) -> Any:
+        # the LIDAR and cameras are their own devices, never the HIL board: read them off the drive lock
+        return getattr(self, f"read_{kind}")
+
     # --- lifecycle --------------------------------------------------------------------------------
     def _close(self) -> None:
         _quietly(lambda: self._apply(Command(0.0, 0.0, ALL_OFF)))

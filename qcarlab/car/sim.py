@@ -187,15 +187,35 @@ class SimCar(Car):
     def _latest_frame(self, kind: str, rate: float, render) -> Any:
         """The latest frame of a sensor that takes ``rate`` frames/s: frame k is taken at k / rate
         from the pose at that time; reads between two frames return the same frame."""
+        return self._frame_job(kind, rate, render)()
+
+    def _frame_job(self, kind: str, rate: float, render) -> Any:
+        """Fix the frame's time and pose now; the returned function renders it (builds the sensor on
+        first use) without touching the vehicle, so a server runs it off the drive lock."""
         self._sync()
         k = math.floor(self.vehicle.state.t * rate + 1e-9)
         cached = self._frames.get(kind)
         if cached is not None and cached[0] == k:
-            return cached[1]
+            return lambda: cached[1]
         t_k = k / rate
-        frame = render(self._sensor(kind), self.pose_at(t_k), t_k)
-        self._frames[kind] = (k, frame)
-        return frame
+        pose = self.pose_at(t_k)
+
+        def job() -> Any:
+            frame = render(self._sensor(kind), pose, t_k)
+            self._frames[kind] = (k, frame)
+            return frame
+
+        return job
+
+    def sensor_job(self, kind: str) -> Any:
+        rate = {"lidar": self.params.lidar_rate, "rgbd": self.params.rgbd_rate, "csi": self.params.csi_rate}[kind]
+        draw = (lambda s, pose, t: s.scan(pose, t)) if kind == "lidar" else (lambda s, pose, t: s.render(pose, t))
+        return self._frame_job(kind, rate, draw)
+
+    def prepare_sensors(self) -> None:
+        """Load the world and build every sensor now (no frame is taken, no noise drawn)."""
+        for kind in ("lidar", "rgbd", "csi"):
+            self._sensor(kind)
 
     def read_lidar(self) -> Any:
         return self._latest_frame("lidar", self.params.lidar_rate, lambda s, pose, t: s.scan(pose, t))

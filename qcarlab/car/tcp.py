@@ -163,6 +163,8 @@ class TcpCar(Car):
             err = _error_fields(frame)
             code, message = err["code"], err["message"]
             if code == "bad_token":
+                if err.get("retry_after_s"):
+                    raise TcpConnectError(f"{uri}: wrong token: {message} (set {TOKEN_ENV} to the server's token)", "token")
                 raise TcpConnectError(
                     f"{uri}: wrong token: the server refused it (pass --token or set {TOKEN_ENV} to the server's token)",
                     "token",
@@ -264,6 +266,10 @@ class TcpCar(Car):
         code, message = err["code"], err["message"]
         if err["fatal"]:
             self._drop()
+        if code == "control_lost":
+            raise TcpConnectError(f"{self.uri}: this connection lost control of the car: {message}", "lost")
+        if code == "timeout":
+            raise TcpConnectError(f"{self.uri}: the server closed the connection: {message}", "lost")
         if code == "bad_value":
             raise InputError(message)
         if code == "unsupported":
@@ -427,4 +433,6 @@ def _error_fields(frame: P.Frame) -> dict[str, Any]:
     err = _json_or_empty(frame.payload)
     code = err.get("code") if isinstance(err.get("code"), str) else "error"
     message = err.get("message") if isinstance(err.get("message"), str) else "(no message)"
-    return {"code": code, "message": message, "fatal": bool(err.get("fatal", code in P.FATAL_CODES))}
+    retry = err.get("retry_after_s")
+    return {"code": code, "message": message, "fatal": bool(err.get("fatal", code in P.FATAL_CODES)),
+            "retry_after_s": retry if isinstance(retry, (int, float)) else None}

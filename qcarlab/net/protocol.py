@@ -21,6 +21,7 @@ import json
 import math
 import socket
 import struct
+import time
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
@@ -69,6 +70,7 @@ MSG_NAMES = {int(m): m.name for m in MsgType}
 
 # flags of COMMAND
 FLAG_READ_BACK = 0x1  # reply with a READOUT taken right after applying, instead of APPLIED
+FLAGS_KNOWN = FLAG_READ_BACK  # a COMMAND with any other bit set is refused (bad_value)
 
 # status bits of READOUT
 STATUS_WATCHDOG = 0x1  # the watchdog stopped the car since the last command
@@ -103,7 +105,7 @@ FRAME_FIELDS: dict[int, tuple[str, ...]] = {
 # error codes; the fatal ones close the connection after the error frame
 FATAL_CODES = frozenset(
     {"bad_magic", "bad_version", "oversized", "sequence", "bad_hello", "bad_token", "busy",
-     "too_many_clients", "timeout", "shutting_down"}
+     "too_many_clients", "timeout", "shutting_down", "control_lost"}
 )
 ERROR_CODES = FATAL_CODES | {
     "unknown_type", "bad_payload", "bad_value", "read_only", "not_lockstep", "unsupported",
@@ -200,9 +202,18 @@ class FrameReader:
     ``read_frame`` returns None at a clean end of stream (between frames). A socket timeout while
     waiting raises ``TimeoutError``; ``mid_frame`` then says whether a frame was under way (the
     reader stays usable either way: nothing is consumed before a whole frame is in).
+
+    Deadlines (the server's; a client leaves them unset and the socket's own timeout applies):
+
+    - ``frame_timeout``: a frame's bytes must all arrive within this many seconds of its first
+      byte, however they trickle in (a byte every second does not keep a frame open);
+    - ``deadline``: an absolute ``time.monotonic()`` that caps every wait (the whole HELLO);
+    - ``idle_timeout``: how long to wait for the first byte of a frame (TimeoutError between
+      frames, ``mid_frame`` False); None waits as long as the other deadlines allow.
     """
 
-    def __init__(self, sock: socket.socket, max_payload: int, bufsize: int = 256 * 1024):
+    def __init__(self, sock: socket.socket, max_payload: int, bufsize: int = 256 * 1024,
+                 frame_timeout: float | None = None):
         self.sock = sock
         self.max_payload = max_payload
         self.buf = bytearray(bufsize)
@@ -211,6 +222,11 @@ class FrameReader:
         self.end = 0
         self.broken = False
         self.bytes_in = 0
+        self.frame_timeout = frame_timeout
+        self.deadline: float | None = None
+        self.idle_timeout: float | None = None
+        self.first_byte_at = 0.0  # time.monotonic() when the frame under way began
+        self.eof = False  # poll() saw the end of the stream
 
     @property
     def buffered(self) -> int:
@@ -218,24 +234,76 @@ class FrameReader:
 
     @property
     def mid_frame(self) -> bool:
-        return self.end > self.start
+        return self.end > self.start or self.broken
 
     def peek(self) -> bytes:
         return bytes(self.buf[self.start : self.end])
 
+    def _arm(self) -> None:
+        """Set the socket's timeout to what the deadlines leave (no-op when none is set)."""
+        if self.frame_timeout is None and self.deadline is None:
+            return
+        now = time.monotonic()
+        limit = self.deadline
+        if self.frame_timeout is not None and self.mid_frame:
+            own = self.first_byte_at + self.frame_timeout
+            limit = own if limit is None else min(limit, own)
+        elif self.idle_timeout is not None:
+            own = now + self.idle_timeout
+            limit = own if limit is None else min(limit, own)
+        if limit is None:
+            self.sock.settimeout(None)
+            return
+        left = limit - now
+        if left <= 0.0:
+            raise TimeoutError("deadline passed")
+        self.sock.settimeout(left)
+
+    def _recv_into(self, view: memoryview) -> int:
+        self._arm()
+        fresh = not self.mid_frame
+        got = self.sock.recv_into(view)
+        if got and fresh:
+            self.first_byte_at = time.monotonic()
+        self.bytes_in += got
+        return got
+
+    def poll(self) -> int:
+        """Take whatever bytes are already there without waiting (the socket must be non-blocking:
+        ``settimeout(0)``); returns the count, 0 when nothing is there. End of stream is left for
+        ``read_frame`` to find."""
+        if self.end == len(self.buf):
+            return 0
+        if self.start == self.end:
+            self.start = self.end = 0
+        fresh = not self.mid_frame
+        try:
+            got = self.sock.recv_into(self.view[self.end :])
+        except (BlockingIOError, InterruptedError):
+            return 0
+        if got == 0:
+            self.eof = True
+            return 0
+        if fresh:
+            self.first_byte_at = time.monotonic()
+        self.end += got
+        self.bytes_in += got
+        return got
+
     def _fill(self) -> bool:
         """Receive more bytes into the buffer; False at end of stream."""
+        if self.eof:
+            return False
         if self.end == len(self.buf):
             if self.start == 0:  # cannot happen for frames that fit, kept for safety
                 raise ProtocolError("oversized", "frame larger than the receive buffer")
             n = self.end - self.start
             self.buf[:n] = self.buf[self.start : self.end]
             self.start, self.end = 0, n
-        got = self.sock.recv_into(self.view[self.end :])
+        got = self._recv_into(self.view[self.end :])
         if got == 0:
             return False
         self.end += got
-        self.bytes_in += got
         return True
 
     def _ensure(self, n: int) -> bool:
@@ -275,6 +343,8 @@ class FrameReader:
             self.start += total
             if self.start == self.end:
                 self.start = self.end = 0
+            else:  # the next frame's first bytes came with this one: its clock starts now
+                self.first_byte_at = time.monotonic()
             return Frame(mtype, seq, ref, payload)
         # a large payload: copy what is buffered, receive the rest in place
         payload = bytearray(length)
@@ -285,11 +355,10 @@ class FrameReader:
         view = memoryview(payload)
         self.broken = True  # until the payload is complete
         while have < length:
-            got = self.sock.recv_into(view[have:])
+            got = self._recv_into(view[have:])
             if got == 0:
                 raise IncompleteFrame(have)
             have += got
-            self.bytes_in += got
         self.broken = False
         return Frame(mtype, seq, ref, payload)
 
