@@ -144,7 +144,7 @@ class RefusalLog:
                 self._counts[code] = self._counts.get(code, 0) + 1
                 self._last_peer = str(args[0]) if args else ""
         if first:
-            self.log.warning(line, *args)
+            self._emit(line, *args)
 
     def flush(self, now: float | None = None) -> None:
         """End the interval if it is over: log the summary of what was counted, start a new one."""
@@ -159,5 +159,11 @@ class RefusalLog:
         if counts:
             n = sum(counts.values())
             kinds = ", ".join(f"{code} {k:,}" for code, k in sorted(counts.items(), key=lambda kv: -kv[1]))
-            self.log.warning("refused %s more connection%s in the last %.0f s (%s); the last from %s",
+            self._emit("refused %s more connection%s in the last %.0f s (%s); the last from %s",
                              f"{n:,}", "" if n == 1 else "s", span, kinds, last)
+
+    def _emit(self, line: str, *args: object) -> None:
+        try:
+            self.log.warning(line, *args)
+        except Exception:  # a failing handler (terminal gone) must not end a server thread
+            pass

@@ -206,7 +206,8 @@ class FrameReader:
     Deadlines (the server's; a client leaves them unset and the socket's own timeout applies):
 
     - ``frame_timeout``: a frame's bytes must all arrive within this many seconds of its first
-      byte, however they trickle in (a byte every second does not keep a frame open);
+      byte (or, when it came with the previous frame, of the moment reading it began), however
+      they trickle in (a byte every second does not keep a frame open);
     - ``deadline``: an absolute ``time.monotonic()`` that caps every wait (the whole HELLO);
     - ``idle_timeout``: how long to wait for the first byte of a frame (TimeoutError between
       frames, ``mid_frame`` False); None waits as long as the other deadlines allow.
@@ -227,6 +228,7 @@ class FrameReader:
         self.idle_timeout: float | None = None
         self.first_byte_at = 0.0  # time.monotonic() when the frame under way began
         self.eof = False  # poll() saw the end of the stream
+        self._resume = False  # a partial frame was left behind by the last frame returned
 
     @property
     def buffered(self) -> int:
@@ -319,6 +321,9 @@ class FrameReader:
     def read_frame(self) -> Frame | None:
         if self.broken:
             raise ProtocolError("incomplete", "the connection's stream is out of step")
+        if self._resume:  # time spent between two calls (serving the last frame) is not the peer's
+            self._resume = False
+            self.first_byte_at = time.monotonic()
         if not self._ensure(2):
             if self.buffered:
                 raise IncompleteFrame(self.buffered)
@@ -343,8 +348,8 @@ class FrameReader:
             self.start += total
             if self.start == self.end:
                 self.start = self.end = 0
-            else:  # the next frame's first bytes came with this one: its clock starts now
-                self.first_byte_at = time.monotonic()
+            else:  # the next frame's first bytes came with this one: its clock starts when it is read
+                self._resume = True
             return Frame(mtype, seq, ref, payload)
         # a large payload: copy what is buffered, receive the rest in place
         payload = bytearray(length)

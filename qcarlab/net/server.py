@@ -56,6 +56,15 @@ from qcarlab.net.sensors import SENSORS, NoData, SensorHub
 
 log = logging.getLogger("qcarlab.net")
 
+
+def _log(level: int, msg: str, *args: Any) -> None:
+    """Log a line; a handler that fails (a terminal gone after SIGHUP, a closed pipe) never takes a
+    server thread down with it."""
+    try:
+        log.log(level, msg, *args)
+    except Exception:
+        pass
+
 WATCHDOG_LAMPS = parse_lamps(["hazard", "brake"])
 CONTROL_ONLY = frozenset({M.COMMAND, M.STOP, M.ADVANCE})
 MAX_LOGGED_ERRORS = 5  # per connection; further ones are counted and summed up at disconnect
@@ -255,7 +264,7 @@ class CarServer:
             try:
                 self.car.prepare_sensors()
             except Exception as exc:  # a sensor that cannot be built fails its requests later, not the server
-                log.warning("could not prepare the sensors: %s", _one_line(str(exc)))
+                _log(logging.WARNING, "could not prepare the sensors: %s", _one_line(str(exc)))
         self._listener = listener
         self._bound = (bound[0], bound[1])
         self._wake_r, self._wake_w = socket.socketpair()
@@ -348,7 +357,7 @@ class CarServer:
                 self.car.stop()
             return True
         except Exception as exc:  # the backend failed to stop: say so loudly
-            log.error("could not stop the car (%s): %s", why, exc)
+            _log(logging.ERROR, "could not stop the car (%s): %s", why, exc)
             return False
 
     def feed(self) -> None:
@@ -374,7 +383,7 @@ class CarServer:
     def _flush_notes(self) -> None:
         while self._notes:
             level, msg, args = self._notes.popleft()
-            log.log(level, msg, *args)
+            _log(level, msg, *args)
 
     # --- the watchdog: its own thread, the deadline and the drive lock only ------------------------
     def _watchdog_loop(self) -> None:
@@ -507,7 +516,7 @@ class CarServer:
                 f"control passed to {session.peer}: nothing was heard from this connection for "
                 f"{time.monotonic() - revoke.last_frame:.2g} s after the watchdog stopped the car"
             )
-            log.warning("%s (control) was silent for %.2g s after the watchdog stopped the car; control passed to %s",
+            _log(logging.WARNING, "%s (control) was silent for %.2g s after the watchdog stopped the car; control passed to %s",
                         revoke.peer, time.monotonic() - revoke.last_frame, session.peer)
         return None
 
@@ -621,9 +630,9 @@ class _Session:
             return
         self.errors += 1
         if self.errors <= MAX_LOGGED_ERRORS:
-            log.warning("%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
+            _log(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
             if self.errors == MAX_LOGGED_ERRORS:
-                log.warning("%s: further errors from this client are counted, not logged", self.peer)
+                _log(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
 
     def fatal(self, code: str, message: str, ref: int = 0, extra: dict[str, Any] | None = None) -> _End:
         payload = {"code": code, "message": message, "fatal": True, **(extra or {})}
@@ -704,9 +713,9 @@ class _Session:
             line = "%s (%s) disconnected: %s%s"
             args = (self.peer, self.role, _one_line(reason), stopped)
             if reason.startswith(("internal", "connection error", "not reading", "control_lost")) or "STOPPING" in stopped:
-                log.warning(line, *args)
+                _log(logging.WARNING, line, *args)
             else:
-                log.info(line, *args)
+                _log(logging.INFO, line, *args)
         if self.bye_ref is not None:
             try:
                 self.send(M.BYE, self.bye_ref)
@@ -853,7 +862,7 @@ class _Session:
         self.reader.deadline = None
         self.reader.idle_timeout = server.io_timeout
         welcome = dict(server.welcome_base, role=role)
-        log.info("%s connected as %s (%s)", self.peer, role, self.client)
+        _log(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
         self.send(M.WELCOME, frame.seq, P.encode_json(welcome))
 
     # --- requests ---------------------------------------------------------------------------------
