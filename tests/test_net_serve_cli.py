@@ -68,7 +68,7 @@ def test_serve_lockstep_then_io_test_and_ping(cli):
 
 def test_every_stop_signal_stops_the_car_and_says_so():
     """SIGHUP is what serve gets when the ssh session that started it on the car closes; SIGQUIT is
-    Ctrl-\\. Each one stops the car (a controller is driving), says so, and exits 0."""
+    Ctrl-backslash. Each one stops the car (a controller is driving), says so, and exits 0."""
     from qcarlab.car.tcp import TcpCar
 
     names = ("SIGHUP", "SIGQUIT", "SIGTERM", "SIGINT")

@@ -28,7 +28,7 @@ TokenOpt = Annotated[
 ]
 
 
-STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT")  # Ctrl-C, kill, the ssh session closing, Ctrl-\\
+STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT")  # Ctrl-C, kill, the ssh session closing, Ctrl-backslash
 
 
 @app.command("serve")
