@@ -16,7 +16,8 @@ Targets (issues 5, 12 and 16):
 - 16 sockets reconnecting without a hello: a real client gets in every time, the log stays short;
 - >= 10,000 malformed frames (hypothesis) leave the server serving with the car stopped.
 The server runs in its own process (as ``qcarlab serve`` does, with its settings); each client is
-its own process where timing matters.
+its own process where timing matters. Monitor processes run at nice 10: in a lab they are laptops
+elsewhere on the network, here they share the server's two cores.
 """
 
 from __future__ import annotations
@@ -275,8 +276,18 @@ def bench_load(duration: float, monitors: int = 8) -> dict:
 
 
 # --- 4. watchdog and dropped connection, with and without sensor load ---------------------------------
+def _as_remote() -> None:
+    """A monitor process stands in for a laptop elsewhere on the network: it runs at nice 10, so that
+    the server's load is the monitors' requests, not their own CPU on the server's two cores."""
+    try:
+        os.nice(10)
+    except OSError:
+        pass
+
+
 def _sensor_puller(port: int, kinds: tuple[str, ...], start, stop) -> None:
     """A monitor pulling sensor frames flat out (the server paces it)."""
+    _as_remote()
     car = _car(port, "monitor")
     start.wait(60)
     while not stop.is_set():
@@ -357,6 +368,7 @@ def bench_watchdog(repeats: int, pullers: int = 8) -> dict:
 
 # --- 4b. the controller's round trip with camera monitors ------------------------------------------------
 def _camera_monitor(port: int, rate: float | None, start, stop, results) -> None:
+    _as_remote()
     car = _car(port, "monitor")
     start.wait(60)
     n, t0 = 0, time.perf_counter()

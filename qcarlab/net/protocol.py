@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+import select
 import socket
 import struct
 import time
@@ -167,11 +168,19 @@ def pack_header(mtype: int, seq: int, ref: int, length: int) -> bytes:
     return HEADER.pack(MAGIC, VERSION, mtype, seq & 0xFFFFFFFF, ref & 0xFFFFFFFF, length)
 
 
-def send_frame(sock: socket.socket, mtype: int, seq: int, ref: int, *parts: Any) -> None:
-    """Send one frame; ``parts`` are bytes-like objects (numpy arrays included) sent without copies."""
+def send_frame(sock: socket.socket, mtype: int, seq: int, ref: int, *parts: Any,
+               waiter: Waiter | None = None, timeout: float | None = None) -> None:
+    """Send one frame; ``parts`` are bytes-like objects (numpy arrays included) sent without copies.
+
+    With a ``waiter`` the socket is non-blocking and the frame must make progress at least every
+    ``timeout`` seconds (TimeoutError otherwise); without one the socket's own timeout applies."""
     views = [memoryview(p).cast("B") if not isinstance(p, (bytes, bytearray)) else p for p in parts]
     length = sum(len(v) for v in views)
     header = pack_header(mtype, seq, ref, length)
+    if waiter is not None:
+        data = [header + b"".join(views)] if length <= 65536 else [header, *views]
+        _send_nonblocking(sock, data, waiter, timeout)
+        return
     if length <= 65536:
         sock.sendall(header + b"".join(views))
         return
@@ -186,14 +195,57 @@ def _send_all_parts(sock: socket.socket, parts: list[Any]) -> None:
         return
     while views:
         sent = sock.sendmsg(views[:64])
-        while sent and views:
-            first = len(views[0])
-            if sent >= first:
-                sent -= first
-                views.pop(0)
-            else:
-                views[0] = views[0][sent:]
-                sent = 0
+        _consume(views, sent)
+
+
+def _consume(views: list[memoryview], sent: int) -> None:
+    while sent and views:
+        first = len(views[0])
+        if sent >= first:
+            sent -= first
+            views.pop(0)
+        else:
+            views[0] = views[0][sent:]
+            sent = 0
+
+
+def _send_nonblocking(sock: socket.socket, parts: list[Any], waiter: Waiter, timeout: float | None) -> None:
+    views = [memoryview(p) for p in parts if len(p)]
+    gather = hasattr(sock, "sendmsg")
+    while views:
+        try:
+            sent = sock.sendmsg(views[:64]) if gather and len(views) > 1 else sock.send(views[0])
+        except (BlockingIOError, InterruptedError):
+            if not waiter.writable(timeout):
+                raise TimeoutError(f"no progress sending for {timeout} s") from None
+            continue
+        _consume(views, sent)
+
+
+class Waiter:
+    """Waits until a non-blocking socket can be read or written (poll; select where there is none)."""
+
+    def __init__(self, sock: socket.socket):
+        self.sock = sock
+        if hasattr(select, "poll"):
+            fd = sock.fileno()
+            self._r = select.poll()
+            self._r.register(fd, select.POLLIN)
+            self._w = select.poll()
+            self._w.register(fd, select.POLLOUT)
+        else:  # pragma: no cover (Windows)
+            self._r = self._w = None
+
+    def readable(self, timeout: float | None) -> bool:
+        """True when the socket has data (or its end); False after ``timeout`` s (None: no limit)."""
+        if self._r is not None:
+            return bool(self._r.poll(None if timeout is None else max(0.0, timeout) * 1000.0))
+        return bool(select.select([self.sock], [], [], timeout)[0])
+
+    def writable(self, timeout: float | None) -> bool:
+        if self._w is not None:
+            return bool(self._w.poll(None if timeout is None else max(0.0, timeout) * 1000.0))
+        return bool(select.select([], [self.sock], [], timeout)[1])
 
 
 class FrameReader:
@@ -211,11 +263,17 @@ class FrameReader:
     - ``deadline``: an absolute ``time.monotonic()`` that caps every wait (the whole HELLO);
     - ``idle_timeout``: how long to wait for the first byte of a frame (TimeoutError between
       frames, ``mid_frame`` False); None waits as long as the other deadlines allow.
+
+    With a ``waiter`` the socket is non-blocking (``settimeout(0)``): a read that finds bytes costs
+    one system call, and ``recv_timeout`` bounds each wait where no deadline does (a client's "no
+    reply within 5 s").
     """
 
     def __init__(self, sock: socket.socket, max_payload: int, bufsize: int = 256 * 1024,
-                 frame_timeout: float | None = None):
+                 frame_timeout: float | None = None, waiter: Waiter | None = None):
         self.sock = sock
+        self.waiter = waiter  # set: the socket is non-blocking and waits go through it
+        self.recv_timeout: float | None = None  # with a waiter: the longest wait for more bytes
         self.max_payload = max_payload
         self.buf = bytearray(bufsize)
         self.view = memoryview(self.buf)
@@ -241,18 +299,27 @@ class FrameReader:
     def peek(self) -> bytes:
         return bytes(self.buf[self.start : self.end])
 
+    def _limit(self, now: float) -> float | None:
+        """The time.monotonic() by which more bytes must come (None: no limit)."""
+        limit = self.deadline
+        if self.frame_timeout is not None and self.mid_frame:
+            own: float | None = self.first_byte_at + self.frame_timeout
+        elif self.idle_timeout is not None:
+            own = now + self.idle_timeout
+        elif self.waiter is not None and self.recv_timeout is not None:
+            own = now + self.recv_timeout
+        else:
+            own = None
+        if own is not None:
+            limit = own if limit is None else min(limit, own)
+        return limit
+
     def _arm(self) -> None:
         """Set the socket's timeout to what the deadlines leave (no-op when none is set)."""
         if self.frame_timeout is None and self.deadline is None:
             return
         now = time.monotonic()
-        limit = self.deadline
-        if self.frame_timeout is not None and self.mid_frame:
-            own = self.first_byte_at + self.frame_timeout
-            limit = own if limit is None else min(limit, own)
-        elif self.idle_timeout is not None:
-            own = now + self.idle_timeout
-            limit = own if limit is None else min(limit, own)
+        limit = self._limit(now)
         if limit is None:
             self.sock.settimeout(None)
             return
@@ -262,9 +329,23 @@ class FrameReader:
         self.sock.settimeout(left)
 
     def _recv_into(self, view: memoryview) -> int:
-        self._arm()
         fresh = not self.mid_frame
-        got = self.sock.recv_into(view)
+        if self.waiter is None:
+            self._arm()
+            got = self.sock.recv_into(view)
+        else:
+            limit: float | None = -1.0  # fixed at the first wait: a wait is not extended by waking up
+            while True:
+                try:
+                    got = self.sock.recv_into(view)
+                    break
+                except (BlockingIOError, InterruptedError):
+                    now = time.monotonic()
+                    if limit == -1.0:
+                        limit = self._limit(now)
+                    if limit is not None and limit <= now:
+                        raise TimeoutError("deadline passed") from None
+                    self.waiter.readable(None if limit is None else limit - now)
         if got and fresh:
             self.first_byte_at = time.monotonic()
         self.bytes_in += got
@@ -272,8 +353,8 @@ class FrameReader:
 
     def poll(self) -> int:
         """Take whatever bytes are already there without waiting (the socket must be non-blocking:
-        ``settimeout(0)``); returns the count, 0 when nothing is there. End of stream is left for
-        ``read_frame`` to find."""
+        ``settimeout(0)``, as it is with a waiter); returns the count, 0 when nothing is there. End
+        of stream is left for ``read_frame`` to find."""
         if self.end == len(self.buf):
             return 0
         if self.start == self.end:

@@ -584,6 +584,7 @@ class _End(Exception):
         self.code = code
 
 
+_yield = getattr(os, "sched_yield", lambda: None)
 _POLL_GONE = getattr(select, "POLLRDHUP", 0) | select.POLLHUP | select.POLLERR if hasattr(select, "poll") else 0
 
 
@@ -612,8 +613,10 @@ class _Session:
         self.refusal: str | None = None  # the error code this connection was refused with
         self.pace: dict[int, float] = {}  # a monitor's next sensor slots
         self.send_timeout = server.io_timeout
+        sock.settimeout(0.0)  # non-blocking: every wait goes through the waiter, with its deadline
+        self.waiter = P.Waiter(sock)
         self.reader = P.FrameReader(sock, P.MAX_REQUEST, bufsize=P.MAX_REQUEST + P.HEADER_SIZE + 4096,
-                                    frame_timeout=server.io_timeout)
+                                    frame_timeout=server.io_timeout, waiter=self.waiter)
         self.reader.deadline = self.accepted + server.hello_timeout
         self.handlers = {
             M.COMMAND: self._command,
@@ -635,9 +638,8 @@ class _Session:
     # --- sending ----------------------------------------------------------------------------------
     def send(self, mtype: int, ref: int, *parts: Any) -> None:
         self.tx_seq += 1
-        self.sock.settimeout(self.send_timeout)
         try:
-            P.send_frame(self.sock, mtype, self.tx_seq, ref, *parts)
+            P.send_frame(self.sock, mtype, self.tx_seq, ref, *parts, waiter=self.waiter, timeout=self.send_timeout)
         except TimeoutError:
             raise _End(f"not reading its replies: a reply could not be sent for {self.send_timeout:g} s") from None
         except OSError as exc:
@@ -751,7 +753,6 @@ class _Session:
         reader = self.reader
         if reader.buffered or reader.eof:
             return
-        self.sock.settimeout(0.0)
         end = time.perf_counter() + self.server.spin
         while True:
             try:
@@ -761,6 +762,7 @@ class _Session:
                 return
             if time.perf_counter() >= end:
                 return
+            _yield()  # a thread that needs this core (the client on a busy machine) gets it
 
     def _loop(self) -> str:
         server = self.server
@@ -825,8 +827,7 @@ class _Session:
 
     def _http(self) -> str:
         try:
-            self.sock.settimeout(1.0)
-            self.sock.sendall(P.HTTP_REPLY)
+            P._send_nonblocking(self.sock, [P.HTTP_REPLY], self.waiter, 1.0)
         except OSError:
             pass
         return "spoke HTTP; answered 400 and closed"
