@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 import types
 
 import numpy as np
@@ -87,10 +88,14 @@ class RangingMeasurements:
 
 
 class RPLIDAR:
+    delay = 0.0  # s a read takes (the device waits for a full turn)
+
     def open(self, url, mode):
         self.url = url
 
     def read(self, mode, max_distance, max_angle, measurements):
+        if RPLIDAR.delay:
+            time.sleep(RPLIDAR.delay)
         n = HEADINGS.size
         measurements.heading[:n] = HEADINGS
         measurements.distance[:n] = DISTANCES
@@ -173,6 +178,7 @@ def fake_quanser(monkeypatch):
     global FAIL_OPEN
     FAIL_OPEN = False
     Video3D.fail = False
+    RPLIDAR.delay = 0.0
     pkg = types.ModuleType("quanser")
     hw = types.ModuleType("quanser.hardware")
     hw.HIL, hw.HILError, hw.MAX_STRING_LENGTH = FakeHIL, HILError, 2048
@@ -318,3 +324,26 @@ def test_the_physical_car_served_over_tcp(qcar):
         assert np.allclose(remote.read_lidar().angles, [0.0, math.pi / 2, math.pi, 3 * math.pi / 2])
         assert remote.truth() is None  # a real car has no ground truth
     assert hil.writes[-1]["pwm"] == {0: 0.0}  # the controller left: stopped
+
+
+def test_a_slow_lidar_holds_up_neither_commands_nor_the_watchdog(qcar):
+    """Was: the LIDAR and cameras were read under the lock the HIL board's writes need."""
+    from qcarlab.net.protocol import MsgType as M
+    from qcarlab.net.testing import RawClient
+
+    hil = FakeHIL.last
+    RPLIDAR.delay = 1.0
+    with CarServer(qcar, "127.0.0.1", 0, watchdog=0.1) as server, TcpCar(*server.address) as ctl, \
+            RawClient(server.address, timeout=5.0) as mon:
+        mon.hello("monitor")
+        ctl.write(0.2, 0.0)
+        mon.send(M.GET_LIDAR)  # a 1 s reading starts
+        time.sleep(0.02)
+        t0 = time.monotonic()
+        ctl.write(0.15, 0.0)
+        assert time.monotonic() - t0 < 0.5 and hil.writes[-1]["pwm"] == {0: -0.15}
+        sent = time.monotonic()
+        while hil.writes[-1]["pwm"] != {0: 0.0} and time.monotonic() - sent < 1.0:
+            time.sleep(0.002)
+        assert hil.writes[-1]["pwm"] == {0: 0.0} and time.monotonic() - sent < 0.1 + 0.2  # the watchdog
+        assert mon.recv().type == M.LIDAR
