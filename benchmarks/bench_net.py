@@ -404,13 +404,13 @@ def _ticking_controller(port: int, hz: float, ticks: int, start, results) -> Non
     car.close()
 
 
-def bench_camera(seconds: float, monitors: int = 8) -> dict:
+def bench_camera(seconds: float, monitors: int = 8, kind: str = "sim") -> dict:
     """A controller at 100 Hz (write_read each tick) with ``monitors`` monitor processes pulling
     RGBD pairs at 10 Hz, then flat out (the server paces them at its monitor rate, 10 Hz)."""
     ctx = mp.get_context("spawn")
     out = {}
     ticks = int(seconds * 100)
-    with Served("sim", watchdog=0.25) as port:
+    with Served(kind, watchdog=0.25) as port:
         for label, rate in (("none", None), ("10 Hz", 10.0), ("flat out", None)):
             start, stop, res_m, res_c = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
             n_mon = 0 if label == "none" else monitors

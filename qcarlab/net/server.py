@@ -81,16 +81,17 @@ def tune_process() -> None:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
 
 
-def raise_thread_priority() -> str:
+def raise_thread_priority(realtime: bool = True) -> str:
     """Give the calling thread the scheduler's attention where the system allows it (Linux, root or
-    CAP_SYS_NICE): real-time round-robin, else a negative nice value; returns what was set. Other
-    processes' load then cannot make the watchdog late; without the privilege nothing changes."""
+    CAP_SYS_NICE): real-time round-robin (``realtime``), else a negative nice value; returns what
+    was set. Other processes' load then delays it less; without the privilege nothing changes."""
     tid = threading.get_native_id()
-    try:
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(10))  # 0: this thread, on Linux
-        return "real-time (SCHED_RR 10)"
-    except (AttributeError, OSError):
-        pass
+    if realtime:
+        try:
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(10))  # 0: this thread, on Linux
+            return "real-time (SCHED_RR 10)"
+        except (AttributeError, OSError):
+            pass
     try:
         os.setpriority(os.PRIO_PROCESS, tid, -10)
         return "nice -10"
@@ -879,6 +880,7 @@ class _Session:
             refusal = server.claim_control(self)
             if refusal is not None:
                 raise self.fatal("busy", refusal, frame.seq)
+            raise_thread_priority(realtime=False)  # this thread serves the controller from now on
         self.role = role
         self.reader.deadline = None
         self.reader.idle_timeout = server.io_timeout
