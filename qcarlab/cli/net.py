@@ -96,6 +96,7 @@ def serve_cmd(
             f"refusing to serve on {host or 'all interfaces'} without a token: it is not a loopback address, anyone "
             "on that network could drive the car; set QCARLAB_TOKEN (qcarlab serve --new-token makes one), or bind to 127.0.0.1"
         )
+    tune_process()  # before any thread starts: they inherit its priority
     caught: list[str] = []
     servers: list[CarServer] = []
     previous = _catch_stop_signals(caught, servers)
@@ -104,7 +105,6 @@ def serve_cmd(
         with car:
             server = CarServer(car, host, port, token=token, watchdog=watchdog, controller_timeout=controller_timeout,
                                lockstep=lockstep, max_clients=max_clients, monitor_rate=monitor_rate, prepare=True)
-            tune_process()
             server.start()
             servers.append(server)
             try:
