@@ -510,3 +510,28 @@ def test_welcome_states_the_servers_limits(served):
     assert w["watchdog_s"] == 0.2 and w["controller_timeout_s"] == pytest.approx(0.8)
     assert w["monitor_rate_hz"] == 5.0 and w["max_clients"] == 8
     assert w["hello_timeout_s"] == 2.0 and w["frame_timeout_s"] == 5.0
+
+
+# --- the simulator's frames are drawn in a process of their own ------------------------------------------
+def test_a_served_simulator_draws_its_frames_in_a_process_of_its_own(served, netlog):
+    """Drawing holds the interpreter lock in places; in its own process it cannot hold up the
+    controller's or the watchdog's thread. Same seed, same frames as drawn in-process."""
+    import numpy as np
+
+    from qcarlab.car.sim import START_POSE
+
+    car = SimCar(seed=5, realtime=True, on_stand=True)
+    server, _ = served(car=car, render_process=True)
+    assert server.worker is not None and server.worker.proc.is_alive()
+    with TcpCar(*server.address, role="monitor", timeout=10.0) as mon:
+        scan, rgbd = mon.read_lidar(), mon.read_rgbd()
+        assert not car._sensors  # the server's own process never built a sensor
+        ref = SimCar(seed=5)
+        assert np.array_equal(ref.draw_frame("lidar", START_POSE, scan.t).ranges, scan.ranges)
+        ref_rgbd = ref.draw_frame("rgbd", START_POSE, rgbd.t)
+        assert np.array_equal(ref_rgbd.color, rgbd.color) and np.array_equal(ref_rgbd.depth, rgbd.depth)
+        server.worker.proc.kill()  # the worker dies: frames keep coming, drawn in the server's process
+        server.worker.proc.join(5)
+        time.sleep(0.15)
+        assert mon.read_lidar().ranges.shape == scan.ranges.shape
+        assert wait_for(lambda: any("own process from now on" in line for line in netlog))

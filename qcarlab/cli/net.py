@@ -104,7 +104,8 @@ def serve_cmd(
         car, what = _open_served_car(backend, lockstep, world, seed, on_stand, params, throttle_limit)
         with car:
             server = CarServer(car, host, port, token=token, watchdog=watchdog, controller_timeout=controller_timeout,
-                               lockstep=lockstep, max_clients=max_clients, monitor_rate=monitor_rate, prepare=True)
+                               lockstep=lockstep, max_clients=max_clients, monitor_rate=monitor_rate, prepare=True,
+                               render_process=True)
             server.start()
             servers.append(server)
             try:

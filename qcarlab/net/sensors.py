@@ -3,7 +3,9 @@ for monitors.
 
 - The frame's time and pose are fixed under the drive lock (``Car.sensor_job``: microseconds);
   the reading or rendering runs under a lock of its own sensor, so a slow sensor never delays a
-  command or the watchdog, and two sensors never wait for each other.
+  command or the watchdog, and two sensors never wait for each other. A served real-time
+  simulator draws its frames in a process of its own (:mod:`qcarlab.net.render_worker`), so that
+  drawing does not even hold the interpreter lock the controller's thread needs.
 - One packed copy of the newest frame of each sensor is kept; every client asking for it gets the
   same bytes (no copy per client).
 - A monitor gets at most ``monitor_rate`` frames per second of each sensor: a request that comes
@@ -18,6 +20,7 @@ for monitors.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from typing import Any
@@ -25,6 +28,9 @@ from typing import Any
 from qcarlab.net import protocol as P
 from qcarlab.net.frames import frame_arrays
 from qcarlab.net.protocol import MsgType as M
+from qcarlab.net.render_worker import WorkerGone
+
+log = logging.getLogger("qcarlab.net")
 
 # request type -> (reply type, capability / kind)
 SENSORS = {M.GET_LIDAR: (M.LIDAR, "lidar"), M.GET_RGBD: (M.RGBD, "rgbd"), M.GET_CSI: (M.CSI, "csi")}
@@ -37,8 +43,10 @@ class NoData(Exception):
 class SensorHub:
     """The newest packed frame of each sensor of ``car``, shared by all sessions of one server."""
 
-    def __init__(self, car: Any, drive_lock: Any, *, lockstep: bool, monitor_rate: float, stop_event: threading.Event):
+    def __init__(self, car: Any, drive_lock: Any, *, lockstep: bool, monitor_rate: float, stop_event: threading.Event,
+                 worker: Any = None):
         self.car = car
+        self.worker = worker  # a RenderWorker that draws the frames in a process of its own, or None
         self.drive_lock = drive_lock
         self.lockstep = lockstep
         self.period = 1.0 / monitor_rate
@@ -47,6 +55,7 @@ class SensorHub:
         self.first_lock = threading.Lock()  # a sensor's first reading (it may build the world) runs alone
         self.started: set[int] = set()
         self.latest: dict[int, tuple[float, list[Any]]] = {}  # reply -> (time.monotonic() taken, parts)
+        self.keys: dict[int, Any] = {}  # reply -> the backend's key of the latest frame (the simulator's frame index)
         self.readings = {reply: 0 for reply, _ in SENSORS.values()}
 
     def frame(self, request: int, *, controller: bool, pace: dict[int, float] | None) -> tuple[int, list[Any]]:
@@ -86,14 +95,28 @@ class SensorHub:
         with self.drive_lock:
             job = self.car.sensor_job(kind)
             t_now = self.car.time
-        if reply in self.started:
-            obj = job()
-        else:
-            with self.first_lock:
+        key = getattr(job, "key", None)
+        if key is not None and key == self.keys.get(reply) and reply in self.latest:
+            return self.latest[reply][1]  # the same frame as last time: no new reading
+        arrays = None
+        worker = self.worker
+        if worker is not None and worker.draws(kind) and getattr(job, "pose", None) is not None:
+            try:
+                arrays = worker.draw(kind, job.pose, job.t)
+                t = job.t
+            except WorkerGone as exc:
+                log.warning("%s; drawing sensor frames in the server's own process from now on", exc)
+                self.worker = None
+        if arrays is None:
+            if reply in self.started:
                 obj = job()
-                self.started.add(reply)
-        t, arrays = frame_arrays(reply, obj, t_now)
+            else:
+                with self.first_lock:
+                    obj = job()
+                    self.started.add(reply)
+            t, arrays = frame_arrays(reply, obj, t_now)
         parts = P.pack_arrays(t, arrays)
         self.latest[reply] = (time.monotonic(), parts)
+        self.keys[reply] = key
         self.readings[reply] += 1
         return parts

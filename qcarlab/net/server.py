@@ -157,6 +157,7 @@ class CarServer:
         monitor_rate: float = 10.0,
         spin: float = 0.0002,
         prepare: bool = False,
+        render_process: bool = False,
     ):
         if not (isinstance(port, int) and 0 <= port < 65536):
             raise InputError(f"--port must be in 0-65535, got {port!r}")
@@ -194,6 +195,8 @@ class CarServer:
         self.monitor_rate = float(monitor_rate)
         self.spin = max(0.0, float(spin))
         self.prepare = prepare
+        self.render_process = render_process
+        self.worker: Any = None  # the RenderWorker drawing a real-time simulator's frames, once started
 
         # the drive lock: held only around one quick backend call (write, read, stop, time, truth,
         # advance, fixing a sensor frame's pose); never around a sensor reading or a socket call
@@ -290,7 +293,9 @@ class CarServer:
                 f"refusing to serve on {shown} without a token: that address is not loopback, anyone on its "
                 "network could drive the car; set QCARLAB_TOKEN (qcarlab serve --new-token makes one), or bind to 127.0.0.1"
             )
-        if self.prepare:
+        if self.render_process and not self.lockstep and hasattr(self.car, "sensor_recipe"):
+            self._start_worker()
+        if self.prepare and self.worker is None:
             try:
                 self.car.prepare_sensors()
             except Exception as exc:  # a sensor that cannot be built fails its requests later, not the server
@@ -303,6 +308,19 @@ class CarServer:
         self._spawn(self._housekeeping_loop, "qcarlab-housekeeping")
         self._spawn(self._accept_loop, "qcarlab-accept")
         return self
+
+    def _start_worker(self) -> None:
+        from qcarlab.net.render_worker import KINDS, RenderWorker, WorkerGone
+
+        kinds = tuple(k for k in KINDS if k in self.capabilities)
+        if not kinds:
+            return
+        try:
+            self.worker = RenderWorker(self.car.sensor_recipe(), kinds, build=self.prepare)
+        except (WorkerGone, OSError, Exception) as exc:  # serving goes on, drawing in this process
+            _log(logging.WARNING, "sensor frames are drawn in the server's own process: %s", _one_line(str(exc)))
+            return
+        self.sensors.worker = self.worker
 
     def _bind(self) -> socket.socket:
         where = f"{self.host or '*'}:{self.port}"
@@ -370,6 +388,8 @@ class CarServer:
                 except OSError:
                     pass
         self.safe_stop("server stopped")
+        if self.worker is not None:
+            self.worker.close()
         self._flush_notes()
         self.refusals.flush(math.inf)
 
@@ -891,7 +911,7 @@ class _Session:
             refusal = server.claim_control(self)
             if refusal is not None:
                 raise self.fatal("busy", refusal, frame.seq)
-            raise_thread_priority(realtime=False)  # this thread serves the controller from now on
+            raise_thread_priority()  # this thread serves the controller from now on
         self.role = role
         self.reader.deadline = None
         self.reader.idle_timeout = server.io_timeout
