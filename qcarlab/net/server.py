@@ -73,7 +73,7 @@ HOUSEKEEPING_S = 0.05  # period of the housekeeping thread (log lines, the real-
 SWITCH_INTERVAL_S = 0.0005  # the interpreter's thread switch interval in a serving process
 
 
-def tune_process() -> str:
+def tune_process(priority: bool = True) -> str:
     """Settings for a process that serves a car (``qcarlab serve``; call it before any thread is
     started): a short thread switch interval, so that a busy thread (a monitor's frame, a render)
     hands over to the controller's or the watchdog's thread within half a millisecond instead of
@@ -82,6 +82,8 @@ def tune_process() -> str:
     interpreter waiting for a CPU while the watchdog waits for it. Returns the priority set."""
     if sys.getswitchinterval() > SWITCH_INTERVAL_S:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
+    if not priority:
+        return "normal"
     try:
         if os.getpriority(os.PRIO_PROCESS, 0) > -10:
             os.setpriority(os.PRIO_PROCESS, 0, -10)  # Linux: this thread, inherited by new ones
@@ -158,6 +160,7 @@ class CarServer:
         spin: float = 0.0002,
         prepare: bool = False,
         render_process: bool = False,
+        priority: bool = True,
     ):
         if not (isinstance(port, int) and 0 <= port < 65536):
             raise InputError(f"--port must be in 0-65535, got {port!r}")
@@ -196,6 +199,7 @@ class CarServer:
         self.spin = max(0.0, float(spin))
         self.prepare = prepare
         self.render_process = render_process
+        self.priority = priority  # ask for real-time priority for the watchdog's and the controller's threads
         self.worker: Any = None  # the RenderWorker drawing a real-time simulator's frames, once started
 
         # the drive lock: held only around one quick backend call (write, read, stop, time, truth,
@@ -437,7 +441,7 @@ class CarServer:
 
     # --- the watchdog: its own thread, the deadline and the drive lock only ------------------------
     def _watchdog_loop(self) -> None:
-        self.watchdog_priority = raise_thread_priority()
+        self.watchdog_priority = raise_thread_priority() if self.priority else "normal"
         while not self.stopping:
             self._kick.clear()
             ctl = self.controller
@@ -911,7 +915,8 @@ class _Session:
             refusal = server.claim_control(self)
             if refusal is not None:
                 raise self.fatal("busy", refusal, frame.seq)
-            raise_thread_priority()  # this thread serves the controller from now on
+            if server.priority:
+                raise_thread_priority()  # this thread serves the controller from now on
         self.role = role
         self.reader.deadline = None
         self.reader.idle_timeout = server.io_timeout
