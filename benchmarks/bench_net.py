@@ -72,7 +72,7 @@ def _serve(kind: str, conn, watchdog: float, hello_timeout: float, options: dict
     options = dict(options)
     options.setdefault("max_clients", 64)
     options.setdefault("prepare", not kind.endswith("-cold"))  # as qcarlab serve does; -cold: sensors built on demand
-    options.setdefault("render_process", not kind.endswith("-cold"))  # as qcarlab serve does
+    options.setdefault("render_process", True)  # as qcarlab serve does
     tune_process(options.get("priority", True))  # as qcarlab serve does, before any thread starts
     server = CarServer(car, "127.0.0.1", 0, watchdog=watchdog, hello_timeout=hello_timeout, **options).start()
     conn.send(server.address[1])
@@ -219,8 +219,8 @@ def bench_rtt(n: int, batches: int = 10, privileged: bool = True) -> dict:
 def bench_rgbd(seconds: float) -> dict:
     out = {}
     for kind in ("sim-camera", "sim-lockstep-camera", "synthetic"):
-        try:
-            served = Served(kind)
+        try:  # transport: monitors unpaced here (the server's monitor rate is 10 frames/s by default)
+            served = Served(kind, monitor_rate=1000.0)
             port = served.__enter__()
         except RuntimeError as exc:
             out[kind] = {"error": str(exc)}

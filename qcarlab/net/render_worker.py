@@ -52,8 +52,12 @@ def _serve_kind(conn: Any, car: Any, kind: str) -> None:
 def _main(recipe: dict[str, Any], conns: dict[str, Any], ready: Any, build: bool) -> None:
     import os
 
+    try:  # below the server's threads (whose real-time priority a child inherits): drawing yields to them
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (AttributeError, OSError):
+        pass
     try:
-        os.nice(5)  # below the server's threads: drawing yields the CPU to commands and the watchdog
+        os.nice(5)
     except (AttributeError, OSError):
         pass
     try:

@@ -75,39 +75,65 @@ SWITCH_INTERVAL_S = 0.0005  # the interpreter's thread switch interval in a serv
 
 def tune_process(priority: bool = True) -> str:
     """Settings for a process that serves a car (``qcarlab serve``; call it before any thread is
-    started): a short thread switch interval, so that a busy thread (a monitor's frame, a render)
-    hands over to the controller's or the watchdog's thread within half a millisecond instead of
-    five; and, where the system allows it (root, CAP_SYS_NICE), nice -10 for this thread and every
-    thread it starts, so that other processes' load does not leave a thread that holds the
-    interpreter waiting for a CPU while the watchdog waits for it. Returns the priority set."""
+    started): a short thread switch interval, so that a busy thread (a monitor's frame) hands over
+    to the controller's or the watchdog's thread within half a millisecond instead of five; and,
+    where the system allows it (root, CAP_SYS_NICE), real-time round-robin priority 5 for this
+    thread and every thread it starts (else nice -10), so that other processes' load cannot leave a
+    thread that holds the interpreter lock waiting for a CPU while the watchdog (priority 12) or the
+    controller's thread (10) waits for that lock. Connections without a hello are served at the
+    ordinary priority, monitors' requests are rate-limited: no client can take the machine's CPUs
+    from its other programs. Returns the priority set."""
     if sys.getswitchinterval() > SWITCH_INTERVAL_S:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
     if not priority:
         return "normal"
     try:
-        if os.getpriority(os.PRIO_PROCESS, 0) > -10:
-            os.setpriority(os.PRIO_PROCESS, 0, -10)  # Linux: this thread, inherited by new ones
-        return "nice -10"
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(PRIORITY_CLIENT))  # Linux: inherited by new threads
+        return f"real-time (SCHED_RR {PRIORITY_CLIENT})"
     except (AttributeError, OSError):
-        return "normal"
-
-
-def raise_thread_priority(realtime: bool = True) -> str:
-    """Give the calling thread the scheduler's attention where the system allows it (Linux, root or
-    CAP_SYS_NICE): real-time round-robin (``realtime``), else a negative nice value; returns what
-    was set. Other processes' load then delays it less; without the privilege nothing changes."""
-    tid = threading.get_native_id()
-    if realtime:
-        try:
-            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(10))  # 0: this thread, on Linux
-            return "real-time (SCHED_RR 10)"
-        except (AttributeError, OSError):
-            pass
+        pass
     try:
-        os.setpriority(os.PRIO_PROCESS, tid, -10)
+        if os.getpriority(os.PRIO_PROCESS, 0) > -10:
+            os.setpriority(os.PRIO_PROCESS, 0, -10)
         return "nice -10"
     except (AttributeError, OSError):
         return "normal"
+
+
+# real-time priorities of the server's threads, where the system allows them (see tune_process)
+PRIORITY_WATCHDOG = 12
+PRIORITY_CONTROLLER = 10
+PRIORITY_CLIENT = 5  # monitors, housekeeping, the main thread
+MONITOR_REQUESTS_PER_S = 1000.0  # a monitor's requests are served at most this often
+MONITOR_BURST = 20.0  # ... after a burst of this many
+
+
+def raise_thread_priority(level: int = PRIORITY_WATCHDOG) -> str:
+    """Give the calling thread real-time round-robin priority ``level`` where the system allows it
+    (Linux, root or CAP_SYS_NICE), else nice -10; returns what was set. Other processes' load then
+    delays it less; without the privilege nothing changes."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(level))  # 0: this thread, on Linux
+        return f"real-time (SCHED_RR {level})"
+    except (AttributeError, OSError):
+        pass
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), -10)
+        return "nice -10"
+    except (AttributeError, OSError):
+        return "normal"
+
+
+def ordinary_thread_priority() -> None:
+    """The ordinary scheduler for the calling thread (nice -10 where allowed): for the thread that
+    accepts connections, and the threads of connections that have not said hello, so that a flood
+    of connections cannot take the machine's CPUs from its other programs."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), -10)
+    except (AttributeError, OSError):
+        pass
 
 
 def _addresses(host: str) -> list[str]:
@@ -200,6 +226,7 @@ class CarServer:
         self.prepare = prepare
         self.render_process = render_process
         self.priority = priority  # ask for real-time priority for the watchdog's and the controller's threads
+        self.tuned = False  # tune_process() ran: every thread is real-time, monitors stay so after their hello
         self.worker: Any = None  # the RenderWorker drawing a real-time simulator's frames, once started
 
         # the drive lock: held only around one quick backend call (write, read, stop, time, truth,
@@ -308,6 +335,10 @@ class CarServer:
         self._bound = (bound[0], bound[1])
         self._wake_r, self._wake_w = socket.socketpair()
         self._started = True
+        try:
+            self.tuned = os.sched_getscheduler(0) != os.SCHED_OTHER
+        except (AttributeError, OSError):
+            self.tuned = False
         self._spawn(self._watchdog_loop, "qcarlab-watchdog")
         self._spawn(self._housekeeping_loop, "qcarlab-housekeeping")
         self._spawn(self._accept_loop, "qcarlab-accept")
@@ -441,7 +472,7 @@ class CarServer:
 
     # --- the watchdog: its own thread, the deadline and the drive lock only ------------------------
     def _watchdog_loop(self) -> None:
-        self.watchdog_priority = raise_thread_priority() if self.priority else "normal"
+        self.watchdog_priority = raise_thread_priority(PRIORITY_WATCHDOG) if self.priority else "normal"
         while not self.stopping:
             self._kick.clear()
             ctl = self.controller
@@ -504,6 +535,7 @@ class CarServer:
     # --- connections ------------------------------------------------------------------------------
     def _accept_loop(self) -> None:
         assert self._listener is not None and self._wake_r is not None
+        ordinary_thread_priority()  # and so are the connections it starts, until they say hello
         while not self.stopping:
             try:
                 ready, _, _ = select.select([self._listener, self._wake_r], [], [], 1.0)
@@ -648,6 +680,8 @@ class _Session:
         self.revoked: str | None = None
         self.refusal: str | None = None  # the error code this connection was refused with
         self.pace: dict[int, float] = {}  # a monitor's next sensor slots
+        self.tokens = MONITOR_BURST  # a monitor's request budget (token bucket)
+        self.tokens_at = self.accepted
         self.send_timeout = server.io_timeout
         sock.settimeout(0.0)  # non-blocking: every wait goes through the waiter, with its deadline
         self.waiter = P.Waiter(sock)
@@ -855,11 +889,26 @@ class _Session:
             if frame.type == M.BYE:
                 self.bye_ref = frame.seq  # answered once the car is stopped and the line logged
                 return "said bye"
+            if self.role == "monitor":
+                self._throttle()
             self.busy = True
             try:
                 self._dispatch(frame)
             finally:
                 self.busy = False
+
+    def _throttle(self) -> None:
+        """A monitor's requests are served at most MONITOR_REQUESTS_PER_S, in bursts of MONITOR_BURST:
+        a request over the budget waits for it (the client sees a slower reply, never an error)."""
+        now = time.monotonic()
+        self.tokens = min(MONITOR_BURST, self.tokens + (now - self.tokens_at) * MONITOR_REQUESTS_PER_S)
+        self.tokens_at = now
+        if self.tokens < 1.0:
+            self.server._stop_evt.wait((1.0 - self.tokens) / MONITOR_REQUESTS_PER_S)
+            now = time.monotonic()
+            self.tokens = min(MONITOR_BURST, self.tokens + (now - self.tokens_at) * MONITOR_REQUESTS_PER_S)
+            self.tokens_at = now
+        self.tokens = max(0.0, self.tokens - 1.0)
 
     def _http(self) -> str:
         try:
@@ -916,7 +965,9 @@ class _Session:
             if refusal is not None:
                 raise self.fatal("busy", refusal, frame.seq)
             if server.priority:
-                raise_thread_priority()  # this thread serves the controller from now on
+                raise_thread_priority(PRIORITY_CONTROLLER)  # this thread serves the controller from now on
+        elif server.priority and server.tuned:
+            raise_thread_priority(PRIORITY_CLIENT)
         self.role = role
         self.reader.deadline = None
         self.reader.idle_timeout = server.io_timeout
