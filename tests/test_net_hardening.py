@@ -551,3 +551,19 @@ def test_a_monitors_requests_are_rate_limited(served):
             n += 1
         took = time.monotonic() - t0
     assert n <= MONITOR_REQUESTS_PER_S * took + MONITOR_BURST + 5
+
+
+def test_tuning_a_serving_process_can_be_undone():
+    """serve tunes its process (switch interval, priorities) and gives the settings back when it
+    stops, so that an in-process caller (a test, a notebook) is left as it was."""
+    import sys
+
+    from qcarlab.net.server import process_settings, restore_process, tune_process
+
+    saved = process_settings()
+    try:
+        tune_process()
+        assert sys.getswitchinterval() <= 0.0005
+    finally:
+        restore_process(saved)
+    assert process_settings() == saved

@@ -78,7 +78,7 @@ def serve_cmd(
     """
     from qcarlab.net.guard import new_token as make_token
     from qcarlab.net.guard import token_problem
-    from qcarlab.net.server import CarServer, is_loopback, tune_process
+    from qcarlab.net.server import CarServer, is_loopback, process_settings, restore_process, tune_process
 
     if new_token:
         print(make_token(), flush=True)
@@ -96,7 +96,6 @@ def serve_cmd(
             f"refusing to serve on {host or 'all interfaces'} without a token: it is not a loopback address, anyone "
             "on that network could drive the car; set QCARLAB_TOKEN (qcarlab serve --new-token makes one), or bind to 127.0.0.1"
         )
-    tune_process()  # before any thread starts: they inherit its priority
     caught: list[str] = []
     servers: list[CarServer] = []
     previous = _catch_stop_signals(caught, servers)
@@ -106,7 +105,13 @@ def serve_cmd(
             server = CarServer(car, host, port, token=token, watchdog=watchdog, controller_timeout=controller_timeout,
                                lockstep=lockstep, max_clients=max_clients, monitor_rate=monitor_rate, prepare=True,
                                render_process=True)
-            server.start()
+            saved = process_settings()
+            tune_process()  # before the server's threads start: they inherit its priority
+            try:
+                server.start()
+            except BaseException:
+                restore_process(saved)
+                raise
             servers.append(server)
             try:
                 if caught:  # a signal came while the car was being opened
@@ -120,6 +125,7 @@ def serve_cmd(
                 server.serve_forever()
             finally:
                 server.stop()  # the car first, then every client is told bye
+                restore_process(saved)
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)

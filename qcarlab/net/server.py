@@ -73,6 +73,26 @@ HOUSEKEEPING_S = 0.05  # period of the housekeeping thread (log lines, the real-
 SWITCH_INTERVAL_S = 0.0005  # the interpreter's thread switch interval in a serving process
 
 
+def process_settings() -> tuple[Any, ...]:
+    """What :func:`tune_process` changes, to give back with :func:`restore_process`."""
+    try:
+        sched = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.getpriority(os.PRIO_PROCESS, 0))
+    except (AttributeError, OSError):
+        sched = None
+    return sys.getswitchinterval(), sched
+
+
+def restore_process(saved: tuple[Any, ...]) -> None:
+    interval, sched = saved
+    sys.setswitchinterval(interval)
+    if sched is not None:
+        try:
+            os.sched_setscheduler(0, sched[0], os.sched_param(sched[1]))
+            os.setpriority(os.PRIO_PROCESS, 0, sched[2])
+        except (AttributeError, OSError):
+            pass
+
+
 def tune_process(priority: bool = True) -> str:
     """Settings for a process that serves a car (``qcarlab serve``; call it before any thread is
     started): a short thread switch interval, so that a busy thread (a monitor's frame) hands over
