@@ -37,11 +37,12 @@ from qcarlab.car.base import Car, Command, Readout
 from qcarlab.car.lamps import parse_lamps
 from qcarlab.constants import QCarParams
 from qcarlab.control.lidar_avoid import LidarAvoid, forward_range, lidar_steer, lidar_stop
-from qcarlab.control.speed import SpeedController, basic_speed_estimation
+from qcarlab.control.speed import KFF, KI, KP, SpeedController, basic_speed_estimation
 from qcarlab.errors import InputError
 from qcarlab.experiments.lidar_scan import lidar_world_pose
 from qcarlab.experiments.loop import STOP, check_rate, run_loop
 from qcarlab.experiments.result import Result
+from qcarlab.experiments.safety import Clearance
 
 STRATEGIES = ("stop", "steer", "combined")
 REST_SPEED = 0.01  # m/s: below this the car counts as at rest
@@ -57,9 +58,9 @@ class AvoidConfig:
     half_width: float = 0.15  # m, the stop window's half width (car half width 0.096 + 5 cm)
     duration: float = 20.0  # s
     rate: float = 100.0  # Hz
-    kp: float = 0.3
-    ki: float = 1.0
-    kff: float = 0.1
+    kp: float = KP
+    ki: float = KI
+    kff: float = KFF
 
     def check(self, params: QCarParams) -> None:
         if self.strategy not in STRATEGIES:
@@ -75,87 +76,6 @@ class AvoidConfig:
         if not (math.isfinite(self.duration) and 0.0 < self.duration <= 3600.0):
             raise InputError(f"--duration must be in (0, 3600] s, got {self.duration}")
         check_rate(self.rate)
-
-
-# --------------------------------------------------------------------------------------------
-# collisions: the footprint against the world, from the true pose
-# --------------------------------------------------------------------------------------------
-class Clearance:
-    """Distance (m) from the car's footprint rectangle to the nearest solid or ball of ``world``.
-
-    ``clearance(x, y, yaw, t)`` -> (distance, (x, y) of the nearest obstacle point's piece centre);
-    0 when they touch or overlap. Static geometry is flattened into edge arrays once.
-    """
-
-    def __init__(self, world: Any, params: QCarParams):
-        self.a, self.b = params.length / 2.0, params.width / 2.0
-        starts, ends, owner, circles = [], [], [], []
-        self.pieces: list[tuple[float, float]] = []  # centre of each polygon / circle (reporting)
-        for s in world.static_solids():
-            if s.z0 >= params.height:  # entirely above the car's roof
-                continue
-            if s.kind == "polygon" and s.points is not None:
-                p = np.asarray(s.points, dtype=float)
-                k = len(self.pieces)
-                starts.append(p)
-                ends.append(np.roll(p, -1, axis=0))
-                owner.append(np.full(len(p), k))
-                self.pieces.append((float(p[:, 0].mean()), float(p[:, 1].mean())))
-            elif s.center is not None:
-                circles.append((s.center[0], s.center[1], s.radius))
-        self.p0 = np.vstack(starts) if starts else np.zeros((0, 2))
-        self.p1 = np.vstack(ends) if ends else np.zeros((0, 2))
-        self.owner = np.concatenate(owner) if owner else np.zeros(0, int)
-        self.n_poly = len(self.pieces)
-        self.circles = np.asarray(circles, dtype=float).reshape(-1, 3)
-        self.world = world
-
-    def _to_body(self, pts: np.ndarray, x: float, y: float, c: float, s: float) -> np.ndarray:
-        dx, dy = pts[:, 0] - x, pts[:, 1] - y
-        return np.column_stack((c * dx + s * dy, -s * dx + c * dy))
-
-    def _point_rect(self, q: np.ndarray) -> np.ndarray:
-        return np.hypot(np.maximum(np.abs(q[:, 0]) - self.a, 0.0), np.maximum(np.abs(q[:, 1]) - self.b, 0.0))
-
-    def __call__(self, x: float, y: float, yaw: float, t: float = 0.0) -> tuple[float, tuple[float, float] | None]:
-        c, s = math.cos(yaw), math.sin(yaw)
-        best, where = math.inf, None
-        if len(self.p0):
-            A = self._to_body(self.p0, x, y, c, s)
-            B = self._to_body(self.p1, x, y, c, s)
-            m, h = (A + B) / 2.0, (B - A) / 2.0
-            # separating axes of a segment against the rectangle: x, y and the segment's normal
-            sep = (np.abs(m[:, 0]) > self.a + np.abs(h[:, 0])) | (np.abs(m[:, 1]) > self.b + np.abs(h[:, 1])) \
-                | (np.abs(h[:, 0] * m[:, 1] - h[:, 1] * m[:, 0]) > self.a * np.abs(h[:, 1]) + self.b * np.abs(h[:, 0]))
-            d = np.minimum(self._point_rect(A), self._point_rect(B))
-            corners = np.array([[self.a, self.b], [-self.a, self.b], [-self.a, -self.b], [self.a, -self.b]])
-            ab = B - A
-            L2 = np.maximum((ab * ab).sum(axis=1), 1e-18)
-            for q in corners:
-                u = np.clip(((q - A) * ab).sum(axis=1) / L2, 0.0, 1.0)
-                d = np.minimum(d, np.hypot(A[:, 0] + u * ab[:, 0] - q[0], A[:, 1] + u * ab[:, 1] - q[1]))
-            d = np.where(sep, d, 0.0)
-            # the car's centre inside a polygon (no edge crossing it): even-odd rule per polygon
-            crosses = ((A[:, 1] > 0.0) != (B[:, 1] > 0.0))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                xint = A[:, 0] + (0.0 - A[:, 1]) * ab[:, 0] / ab[:, 1]
-            hits = np.bincount(self.owner[crosses & (xint > 0.0)], minlength=self.n_poly)
-            per_poly = np.full(self.n_poly, math.inf)
-            np.minimum.at(per_poly, self.owner, d)
-            per_poly[hits % 2 == 1] = 0.0
-            k = int(np.argmin(per_poly))
-            best, where = float(per_poly[k]), self.pieces[k]
-        circles = self.circles
-        balls = self.world.obstacles_at(t)
-        if balls:
-            circles = np.vstack([circles, [(b.x, b.y, b.radius) for b in balls]])
-        if len(circles):
-            q = self._to_body(circles[:, :2], x, y, c, s)
-            d = np.maximum(self._point_rect(q) - circles[:, 2], 0.0)
-            k = int(np.argmin(d))
-            if d[k] < best:
-                best, where = float(d[k]), (float(circles[k, 0]), float(circles[k, 1]))
-        return best, where
 
 
 # --------------------------------------------------------------------------------------------

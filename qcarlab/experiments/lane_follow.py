@@ -41,6 +41,7 @@ from qcarlab.control.lane import (
     line_offset,
     steering_calculation,
 )
+from qcarlab.control.speed import KFF, KI, KP
 from qcarlab.control.speed import (
     SpeedController,
     basic_speed_estimation,
@@ -86,9 +87,9 @@ class LaneFollowConfig:
     turn_speed: bool = True
     stop_distance: float = 0.6  # m
     hold_lost: float = 1.0  # s the last steering is kept when the line is lost
-    kp: float = 0.3
-    ki: float = 1.0
-    kff: float = 0.1
+    kp: float = KP
+    ki: float = KI
+    kff: float = KFF
     rate: float = 100.0
 
     def check(self) -> None:
