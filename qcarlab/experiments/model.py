@@ -62,3 +62,21 @@ class LabModel:
     def block_report(self) -> dict[str, dict[str, Any]]:
         """The student's blocks of this run: source file, calls, worst and mean time, over budget."""
         return {name: block.timing() for name, block in self.student.items()}
+
+
+def finish(metrics: dict, log: Any, lab: LabModel, watch: Any, goal: bool, goal_text: str) -> None:
+    """The parts of ``metrics`` every lab run has: the goal, why it was missed, the student's
+    blocks and their timing, the loop's overruns, and whether Ctrl-C cut the run short."""
+    reasons = []
+    if watch is not None and watch.event is not None:
+        reasons.append(watch.event["what"])
+        metrics[watch.event["kind"]] = watch.event
+    if log.interrupted:
+        reasons.append("interrupted (Ctrl-C)")
+    elif not goal and not reasons:
+        reasons.append(goal_text)
+    metrics["goal_reached"] = not reasons
+    metrics["failure"] = "; ".join(reasons) if reasons else None
+    metrics["interrupted"] = log.interrupted
+    metrics["student_blocks"] = lab.block_report()
+    metrics["loop"] = {"ticks": log.ticks, "overruns": log.overruns, "worst_tick_s": log.worst_tick_s}

@@ -38,7 +38,7 @@ from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pu
 from qcarlab.control.tracking import Polyline, cross_track_errors, progress_along
 from qcarlab.errors import InputError
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
-from qcarlab.experiments.model import LabModel
+from qcarlab.experiments.model import LabModel, finish
 from qcarlab.experiments.result import Result
 from qcarlab.experiments.safety import WorldWatch
 
@@ -230,24 +230,6 @@ def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
     finish(metrics, log, lab, watch, goal=metrics["completion"] >= 0.999 or metrics["stopped_at_goal"],
            goal_text="the car did not reach the end of the path")
     return Result("path-follow", metrics, logs={"log.csv": _log_columns(cols)}, figures={})
-
-
-def finish(metrics: dict, log, lab: LabModel, watch: WorldWatch | None, goal: bool, goal_text: str) -> None:
-    """The parts of ``metrics`` every lab run has: the goal, why it was missed, the student's
-    blocks and their timing, the loop's overruns, and whether Ctrl-C cut the run short."""
-    reasons = []
-    if watch is not None and watch.event is not None:
-        reasons.append(watch.event["what"])
-        metrics[watch.event["kind"]] = watch.event
-    if log.interrupted:
-        reasons.append("interrupted (Ctrl-C)")
-    elif not goal and not reasons:
-        reasons.append(goal_text)
-    metrics["goal_reached"] = not reasons
-    metrics["failure"] = "; ".join(reasons) if reasons else None
-    metrics["interrupted"] = log.interrupted
-    metrics["student_blocks"] = lab.block_report()
-    metrics["loop"] = {"ticks": log.ticks, "overruns": log.overruns, "worst_tick_s": log.worst_tick_s}
 
 
 def _heading(path: np.ndarray) -> float:

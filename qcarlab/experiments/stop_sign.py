@@ -54,8 +54,7 @@ from qcarlab.control.stop_sign import (
 )
 from qcarlab.errors import InputError
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
-from qcarlab.experiments.model import LabModel
-from qcarlab.experiments.path_follow import finish
+from qcarlab.experiments.model import LabModel, finish
 from qcarlab.experiments.result import Result
 from qcarlab.experiments.safety import WorldWatch
 from qcarlab.perception.stop_sign import (
