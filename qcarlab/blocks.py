@@ -287,6 +287,17 @@ def _unfilled(path: Path, name: str) -> bool:
     return False
 
 
+def _defined_names(path: Path) -> set[str]:
+    """The top-level function and class names of a Python file (without running it)."""
+    try:
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+    except SyntaxError as exc:
+        raise InputError(f"{path} line {exc.lineno}: syntax error: {exc.msg}") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read it ({exc})") from None
+    return {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))}
+
+
 def _make(spec: BlockSpec, target: Any, path: Path, func: str) -> StudentBlock:
     if not callable(target):
         raise InputError(f"{path}: {func} is not a function or class")
@@ -335,7 +346,19 @@ def resolve_student_blocks(
     (later options win); unknown block names are refused with the lab's list."""
     out: dict[str, StudentBlock] = {}
     for file in use:
-        out.update(load_block_file(file, specs, lab))
+        folder = Path(file)
+        if folder.is_dir():  # a workspace: every .py file in it that defines blocks of this lab
+            found: dict[str, StudentBlock] = {}
+            for path in sorted(folder.glob("*.py")):
+                names = _defined_names(path) & set(specs)
+                if names:
+                    found.update(load_block_file(path, {n: specs[n] for n in names}, lab))
+            if not found:
+                raise InputError(f"--use {folder}: no .py file there defines one of the {lab} blocks "
+                                 f"({', '.join(specs)}); see: qcarlab blocks {lab}")
+            out.update(found)
+        else:
+            out.update(load_block_file(file, specs, lab))
     for text in block:
         name, file, func = parse_block_option(text)
         if name not in specs:

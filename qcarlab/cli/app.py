@@ -71,7 +71,10 @@ def main(argv: list[str] | None = None) -> None:
     except QcarlabError as exc:
         if debug:
             raise
-        stderr.print(f"{name}: error: {exc}", markup=False)
+        from qcarlab.blocks import StudentBlockError
+
+        tail = "\n(the run ended there; the car was stopped)" if isinstance(exc, StudentBlockError) else ""
+        stderr.print(f"{name}: error: {exc}{tail}", markup=False)
         sys.exit(exc.exit_code)
     except Exception as exc:
         # typer's parser errors (click's, vendored or not), recognised by their class names

@@ -215,7 +215,7 @@ def sim_world(car: str, world: str | None, start: str | None, default: str, para
         if world is not None or pose is not None:
             raise InputError("--world and --start apply to the simulator only; a remote car is where it is")
         return None, None
-    from qcarlab.sim.world import load_world
+    from qcarlab.experiments.worlds import load_world
 
     return load_world(world or default, load_params(params)), pose
 

@@ -30,7 +30,7 @@ SECTORS = ("ahead", "ahead-left", "left", "behind-left", "behind", "behind-right
 
 
 def _list_worlds() -> None:
-    from qcarlab.sim.world import list_worlds
+    from qcarlab.experiments.worlds import list_worlds
 
     table = Table(title="shipped worlds", title_justify="left")
     table.add_column("name")
@@ -121,7 +121,7 @@ def lidar_scan_cmd(
             result = capture(qcar, scans, drive, target)
         result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
         if world_obj is not None:
-            from qcarlab.sim.render import render_topdown
+            from qcarlab.experiments.worlds import render_topdown
 
             ppm = 50.0
             top = render_topdown(world_obj, px_per_m=ppm)
@@ -184,7 +184,7 @@ def camera_cmd(
         result.figures["color.png"] = lambda f: cv2.imwrite(str(f), frame.color)
         result.figures["depth.png"] = lambda f: plots.plot_depth(frame.depth, f)
     if csi:
-        from qcarlab.sim.camera import stitch_panorama
+        from qcarlab.experiments.worlds import stitch_panorama
 
         frames = result.data["csi"]
         for name, img in zip(("right", "rear", "left", "front"), frames.as_list()):

@@ -231,6 +231,7 @@ def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
     ``world`` (the simulator's, when local) enables the collision check and the drive figure.
     ``blocks`` replaces any block of :data:`BLOCKS` by name.
     """
+    world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     p = car.params
     cfg.check(p)
     truth0 = car.truth()

@@ -337,6 +337,7 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
 
     ``blocks`` replaces any block of :data:`BLOCKS` by name.
     """
+    world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     cfg.check()
     p = car.params
     dt = 1.0 / cfg.rate

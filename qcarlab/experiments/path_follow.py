@@ -212,6 +212,7 @@ def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
     ``blocks`` replaces any block of :data:`BLOCKS` by name (a function or class);
     ``world`` (a simulated car's, when local) ends the run when the car hits a wall or leaves it.
     """
+    world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     cfg.check()
     route = repeat_laps(np.asarray(path, dtype=float), cfg.laps)
     truth0 = car.truth()

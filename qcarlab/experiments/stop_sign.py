@@ -277,6 +277,7 @@ def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None, *, blocks: Mapping[s
     stop distance); without it (a real car) the true-distance metrics are None. ``blocks``
     replaces any block of :data:`BLOCKS` by name.
     """
+    world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     cfg.check()
     p = car.params
     dt = 1.0 / cfg.rate
