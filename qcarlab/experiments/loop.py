@@ -85,13 +85,17 @@ def run_loop(
     rate: float = 100.0,
     on_tick: Callable[[float, Readout, Command], None] | None = None,
     record_truth: bool = True,
+    pace: bool = False,
+    keep_rows: bool = True,
 ) -> LoopLog:
     """Run the model at ``rate`` Hz for ``duration`` s (or until its step returns STOP).
 
     Each tick logs: t, the applied throttle and steering, encoder counts, tach (counts/s), motor
     current, battery voltage, gyro z, on a simulator the true pose and speed, and the step's own
     values (``Step.log``). ``model`` is a lab model (``step(t, readout, dt)``, with optional
-    ``start(car, dt)``) or a function ``(t, readout) -> Command | Step | STOP``.
+    ``start(car, dt)``) or a function ``(t, readout) -> Command | Step | STOP``. ``pace`` paces
+    even a stepped simulator against the wall clock (keyboard drive: a person is in the loop);
+    ``keep_rows=False`` keeps only the counts (a drive of hours needs no per-tick log).
     """
     if not (math.isfinite(duration) and duration > 0.0):
         raise InputError(f"duration must be a positive number of seconds, got {duration}")
@@ -108,10 +112,10 @@ def run_loop(
     truth = car.truth
     base = ("t", "throttle", "steering", "encoder_counts", "tach", "motor_current", "battery_voltage", "gyro_z")
     tcols = ("true_x", "true_y", "true_yaw", "true_speed", "true_steering") if has_truth else ()
-    for key in base + tcols:
+    for key in (base + tcols) if keep_rows else ():
         cols[key] = []
-    c_t, c_th, c_st, c_enc, c_tach, c_cur, c_bat, c_gz = (cols[k] for k in base)
-    if has_truth:
+    c_t, c_th, c_st, c_enc, c_tach, c_cur, c_bat, c_gz = (cols.get(k) for k in base)
+    if has_truth and keep_rows:
         c_x, c_y, c_yaw, c_v, c_d = (cols[k] for k in tcols)
     t0 = car.time
     dt = period
@@ -130,53 +134,68 @@ def run_loop(
             else:
                 values = None
             cmd = car.write(out.throttle, out.steering, out.leds)
-            c_t.append(t)
-            c_th.append(cmd.throttle)
-            c_st.append(cmd.steering)
-            c_enc.append(readout.encoder_counts)
-            c_tach.append(readout.tach)
-            c_cur.append(readout.motor_current)
-            c_bat.append(readout.battery_voltage)
-            c_gz.append(float(readout.gyro[2]))
-            if has_truth:
-                tr = truth()
-                c_x.append(tr.x)
-                c_y.append(tr.y)
-                c_yaw.append(tr.yaw)
-                c_v.append(tr.speed)
-                c_d.append(tr.steering)
-            if values:
-                for key, value in values.items():
-                    column = cols.get(key)
-                    if column is None:
-                        column = cols[key] = [None] * log.ticks  # a value first logged late
-                    column.append(value)
+            if keep_rows:
+                c_t.append(t)
+                c_th.append(cmd.throttle)
+                c_st.append(cmd.steering)
+                c_enc.append(readout.encoder_counts)
+                c_tach.append(readout.tach)
+                c_cur.append(readout.motor_current)
+                c_bat.append(readout.battery_voltage)
+                c_gz.append(float(readout.gyro[2]))
+                if has_truth:
+                    tr = truth()
+                    c_x.append(tr.x)
+                    c_y.append(tr.y)
+                    c_yaw.append(tr.yaw)
+                    c_v.append(tr.speed)
+                    c_d.append(tr.steering)
+                if values:
+                    for key, value in values.items():
+                        column = cols.get(key)
+                        if column is None:
+                            column = cols[key] = [None] * log.ticks  # a value first logged late
+                        column.append(value)
             log.ticks += 1
-            if values is not None and len(values) != len(cols) - len(base) - len(tcols):
+            if values is not None and keep_rows and len(values) != len(cols) - len(base) - len(tcols):
                 _pad(cols, log.ticks)
             if on_tick is not None:
                 on_tick(t, readout, cmd)
             if stepped:
                 car.advance(period)
-            else:
+            if pace or not stepped:
                 next_wall += period
                 now = time.monotonic()
                 if now < next_wall:
                     time.sleep(next_wall - now)
                 now = time.monotonic()
-                dt = now - last_wall
+                if not stepped:  # a stepped car's time moved by exactly one period
+                    dt = now - last_wall
+                gap = now - last_wall
                 last_wall = now
-                if dt > log.worst_tick_s:
-                    log.worst_tick_s = dt
+                if gap > log.worst_tick_s:
+                    log.worst_tick_s = gap
                 if now - next_wall > period:  # more than a period late: no burst of catch-up ticks
                     log.overruns += 1
                     next_wall = now
     except KeyboardInterrupt:
         log.interrupted = True
-    finally:
-        car.stop()
-    _pad(cols, log.ticks)
+    except BaseException:
+        _stop_quietly(car)  # the error in flight is the one to report, not a failing stop
+        raise
+    car.stop()
+    if keep_rows:
+        _pad(cols, log.ticks)
     return log
+
+
+def _stop_quietly(car: Car) -> None:
+    """Stop the car after an error; when that fails too (the connection is gone), a served car's
+    watchdog or the server's drop detection stops it."""
+    try:
+        car.stop()
+    except Exception:  # noqa: BLE001
+        pass
 
 
 def _pad(cols: dict[str, list[Any]], n: int) -> None:
