@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from typing import Annotated
 
 import typer
 
 from qcarlab import plots
-from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app
 from qcarlab.cli.common import (
     StartOpt, WorldOpt, sim_world, parse_hsv, UseOpt, BlockOpt, student_blocks, apply_tunables,
@@ -27,8 +25,8 @@ from qcarlab.cli.common import (
 )
 from qcarlab.errors import InputError
 from qcarlab.experiments.lane_follow import (
-    LANE_HALF_WIDTH,
     LaneFollowingLab,
+    start_in_lane,
     LaneFollowConfig,
     hsv_tune,
     lane_centre,
@@ -109,14 +107,12 @@ def lane_follow_cmd(
     cfg.check()
     mine = student_blocks(LaneFollowingLab, use, block)
     world_obj, pose = sim_world(car, world, start, "track", params)
-    if world_obj is not None and pose is None and lane == "left":
-        x, y, yaw = getattr(world_obj, "start", None) or START_POSE  # the start is in the right lane
-        d = 2.0 * LANE_HALF_WIDTH
-        pose = (x - d * math.sin(yaw), y + d * math.cos(yaw), yaw)
+    if world_obj is not None:
+        pose = start_in_lane(world_obj, lane, pose)
     if hsv_tune_:
         if world_obj is None:
             raise InputError("--hsv-tune places the car at spots of the track: simulator only")
-        s0 = pose or getattr(world_obj, "start", None) or START_POSE
+        s0 = pose or world_obj.start
         frames = []
         for spot in tune_spots(lane_centre(world_obj, s0), s0):
             with open_from_options(car, world_obj, seed, realtime, params, start=spot) as qcar:

@@ -7,7 +7,6 @@ from typing import Annotated
 import typer
 
 from qcarlab import plots
-from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import (
     StartOpt, WorldOpt, sim_world, parse_hsv, KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
@@ -115,7 +114,7 @@ def stop_sign_cmd(
     world_obj, pose = sim_world(car, world, start, "stop-sign", params)
     sign = None
     if world_obj is not None:
-        sign = sign_ahead(world_obj, pose or getattr(world_obj, "start", None) or START_POSE)
+        sign = sign_ahead(world_obj, pose or world_obj.start)
         if sign is None:
             stderr.print("warning: no stop sign ahead of the car in this world; the true stop distance is not "
                           "measured", markup=False)

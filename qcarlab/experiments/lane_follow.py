@@ -148,6 +148,16 @@ def _yellow_line(world) -> np.ndarray | None:
     return pts
 
 
+def start_in_lane(world, lane: str, pose: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+    """The start pose for ``lane``: ``pose`` when given; in the left lane, the world's start (which
+    is in the right lane) moved one lane width (0.4 m) to the car's left; else None (the world's)."""
+    if pose is not None or lane != "left":
+        return pose
+    x, y, yaw = world.start
+    d = 2.0 * LANE_HALF_WIDTH
+    return (x - d * math.sin(yaw), y + d * math.cos(yaw), yaw)
+
+
 def lane_centre(world, start: tuple[float, float, float], half_width: float = LANE_HALF_WIDTH) -> np.ndarray | None:
     """The centre polyline of the lane the car at ``start`` is in: the world's yellow centre line
     offset by ``half_width`` to the side of ``start``; None when the world has no yellow line."""

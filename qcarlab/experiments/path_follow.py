@@ -233,6 +233,24 @@ def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
     return Result("path-follow", metrics, logs={"log.csv": _log_columns(cols)}, figures={})
 
 
+def lookahead_sweep(runs: list[Result], label: str) -> Result:
+    """The runs of a look-ahead sweep (sheet 4.2.2 Tasks 3-4) ranked: the ones that completed the
+    path first, then by RMS cross-track error; ``best`` is the first. Its goal: the best completed."""
+    ranked = sorted(runs, key=lambda r: (r.metrics["completion"] < 0.99, r.metrics["rms_cross_track_m"]))
+    summaries = []
+    for r in ranked:
+        m = {k: v for k, v in r.metrics.items() if k != "config"}
+        m["lookahead"] = r.metrics["config"]["lookahead"]
+        summaries.append(m)
+    best = summaries[0]
+    metrics = {"experiment": "path-follow", "path": label, "sweep": "lookahead", "runs": summaries, "best": best,
+               "goal_reached": bool(best.get("goal_reached", True)),
+               "failure": None if best.get("goal_reached", True) else "no look-ahead of the sweep reached the goal"}
+    sweep = Result("path-follow sweep", metrics, data={"ranked": ranked})
+    sweep.logs = {f"log_lookahead_{r.metrics['config']['lookahead']:g}.csv": r.logs["log.csv"] for r in runs}
+    return sweep
+
+
 def _heading(path: np.ndarray) -> float:
     d = path[1] - path[0]
     return math.atan2(d[1], d[0])
