@@ -368,3 +368,21 @@ def test_run_without_student_blocks_is_unchanged_by_the_redesign(cli_json):
     m = cli_json("stop-sign")
     assert m["student_blocks"] == {} and m["goal_reached"] and 0.25 <= m["stop_distance_m"] <= 0.35
     assert math.isclose(m["stop_distance_m"], 0.315, abs_tol=0.01)
+
+
+def test_a_block_slower_than_the_tick_on_a_real_time_car_is_reported(cli, tmp_path):
+    path = write(tmp_path, "slow.py", """
+        import time
+
+        def basic_speed_estimation(counts_per_s):
+            time.sleep(0.015)          # longer than the 10 ms tick at 100 Hz
+            return counts_per_s * 6.866e-6
+    """)
+    code, out, err = cli("io-test", "--use", path, "--realtime", "--duration", "0.3", "--json")
+    assert code == 0, err
+    timing = json.loads(out)["student_blocks"]["basic_speed_estimation"]
+    assert timing["over_budget"] >= 10 and timing["worst_s"] >= 0.015 and timing["budget_s"] == 0.01
+    assert "your basic_speed_estimation took longer than the 10.0 ms tick" in err
+    # on the stepped simulator (as fast as it can) there is no tick budget to miss
+    code, out, err = cli("io-test", "--use", path, "--duration", "0.1", "--json")
+    assert code == 0 and json.loads(out)["student_blocks"]["basic_speed_estimation"]["over_budget"] == 0
