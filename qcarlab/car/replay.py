@@ -220,7 +220,7 @@ class ReplayCar(Car):
             "ticks_differing": differ,
             "recorded_only": missing,
             "replayed_only": extra,
-            "identical": differ == 0 and paired > 0,
+            "identical": differ == 0,
             "max_throttle_difference": d_thr,
             "max_steering_difference_rad": d_ste,
             "first_differences": listed,

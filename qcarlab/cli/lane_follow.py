@@ -10,6 +10,7 @@ import typer
 from qcarlab import plots
 from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
     StartOpt, WorldOpt, sim_world, parse_hsv,
     CarOpt,
@@ -65,6 +66,7 @@ def _summary(result: Result) -> None:
 
 
 @app.command("lane-follow")
+@recordable
 def lane_follow_cmd(
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
     lane: Annotated[str, typer.Option(help="Lane to drive in: right (yellow line on the car's left) or left.")] = "right",

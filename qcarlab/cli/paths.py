@@ -12,6 +12,7 @@ from rich.table import Table
 
 from qcarlab import paths, plots
 from qcarlab.cli.app import app, stderr
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
     KpOpt, KiOpt, KffOpt,
     check_out,
@@ -190,6 +191,7 @@ def _step_summary(result: Result) -> None:
 
 
 @app.command("path-follow")
+@recordable
 def path_follow_cmd(
     path_spec: Annotated[str, typer.Argument(metavar="PATH", help=f"A built-in path ({SHAPES}) or a CSV/npy/YAML path file.")],
     length: LengthOpt = None,
@@ -248,7 +250,7 @@ def path_follow_cmd(
     ref, label = _load_path(path_spec, options)
 
     def open_car():
-        return open_from_options(car, world, seed, realtime, params)
+        return open_from_options(car, world, seed, realtime, params, path=ref)
 
     if step_response_:
         cfg = FollowConfig(speed=speed, kp=kp, ki=ki, kff=kff, rate=rate)

@@ -9,6 +9,7 @@ import typer
 from qcarlab import plots
 from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app, stderr
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
     StartOpt, WorldOpt, sim_world, parse_hsv, KpOpt, KiOpt, KffOpt,
     CarOpt,
@@ -66,6 +67,7 @@ def _summary(result: Result) -> None:
 
 
 @app.command("stop-sign")
+@recordable
 def stop_sign_cmd(
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
     behaviour: Annotated[str, typer.Option(help="sheet: the sheet's stopSign block (stop while 0.05 < d < 0.40 m); "
