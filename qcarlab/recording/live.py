@@ -61,13 +61,24 @@ class LiveView:
         self.server = None
         self.proxy: _TokenProxy | None = None
 
-    def attach(self, context: Any) -> None:
+    def attach(self, context: Any, on_subscribe=None) -> None:
+        """Serve ``context``'s channels; ``on_subscribe(topic)`` is called (from the server's thread)
+        when a client subscribes to a topic."""
         import foxglove
+
+        class Listener:  # the callbacks the server calls; only a subscription matters here
+            def on_subscribe(self, client, channel) -> None:
+                if on_subscribe is not None:
+                    on_subscribe(channel.topic)
+
+            def on_unsubscribe(self, client, channel) -> None:
+                pass
 
         behind = self.proxy_needed
         try:
             self.server = foxglove.start_server(name="qcarlab", host="127.0.0.1" if behind else self.host,
-                                                port=0 if behind else self.port, context=context)
+                                                port=0 if behind else self.port, context=context,
+                                                server_listener=Listener())
         except Exception as exc:  # the SDK's error: the port is taken, the address is not ours
             raise InputError(f"--live: cannot listen on {self.host}:{self.port} ({exc})") from None
         if behind:

@@ -78,8 +78,10 @@ class Recorder:
             except Exception as exc:  # the SDK's own error type: a path we cannot write
                 raise InputError(f"--record {self.path}: cannot write ({exc})") from None
         self.live = live
+        self._scene: dict[str, Any] = {}  # the scene's entities by id, sent again to a live viewer who joins later
+        self._scene_due = False
         if live is not None:
-            live.attach(self.ctx)
+            live.attach(self.ctx, on_subscribe=self._subscribed)
         self._channels: dict[str, Any] = {}
         self._angles: np.ndarray | None = None
         self._rgbd_count = 0
@@ -138,10 +140,23 @@ class Recorder:
         if self.writer is not None:
             self.writer.write_metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in values.items()})
 
+    def _subscribed(self, topic: str) -> None:
+        if topic == C.SCENE:  # a viewer joined: the static scene was logged before they came
+            self._scene_due = True
+
+    def _resend_scene(self, ns: int) -> None:
+        from qcarlab.recording import messages as M
+
+        self._scene_due = False
+        if self._scene:
+            self._log(C.SCENE, "SceneUpdate", M.scene_update(list(self._scene.values())), ns)
+
     # --- what the car says ---------------------------------------------------------------------
     def readout(self, r: Any) -> None:
         """A basic-sensor readout; also advances the dead-reckoning pose estimate."""
         ns = self.ns(r.t)
+        if self._scene_due:
+            self._resend_scene(ns)
         self._log(C.READOUT, None, C.readout_json(r), ns)
         est = self._estimate(r)
         if not self._has_truth:
@@ -152,6 +167,8 @@ class Recorder:
 
     def truth(self, tr: Any) -> None:
         ns = self.ns(tr.t)
+        if self._scene_due:
+            self._resend_scene(ns)
         self._has_truth = True
         self._log(C.TRUTH, None, C.truth_json(tr), ns)
         self._truth_pose = (tr.x, tr.y, tr.yaw)
@@ -257,14 +274,15 @@ class Recorder:
         from qcarlab.recording import messages as M
 
         ns = self.ns(t)
-        entities = []
+        entities = {}
         if world is not None:
             self._world = world
-            entities.append(M.world_entity(world, ns))
+            entities["world"] = M.world_entity(world, ns)
         if path is not None and len(path):
-            entities.append(M.path_entity(np.asarray(path, dtype=float), ns))
+            entities["path"] = M.path_entity(np.asarray(path, dtype=float), ns)
         if entities:
-            self._log(C.SCENE, "SceneUpdate", M.scene_update(entities), ns)
+            self._scene.update(entities)
+            self._log(C.SCENE, "SceneUpdate", M.scene_update(list(entities.values())), ns)
 
     # --- the end --------------------------------------------------------------------------------
     def close(self) -> None:
