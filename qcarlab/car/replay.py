@@ -83,8 +83,9 @@ class ReplayCar(Car):
 
     @property
     def ended(self) -> bool:
-        """True once the clock has passed the recording's last instant."""
-        return self._clock > self.tape.end + EPS
+        """True once the clock has passed the recording's last readout (its last instant without any)."""
+        last = self._readout_t[-1] if self._readout_t and self.tape.span is None else self.tape.end
+        return self._clock > last + EPS
 
     def advance(self, dt: float) -> None:
         if not (math.isfinite(dt) and dt >= 0.0):
@@ -120,7 +121,7 @@ class ReplayCar(Car):
         group = bisect.bisect_left(self._readout_t, self._readout_t[i])
         r = readouts[min(group + self._reads, i)]
         self._reads += 1
-        self._tick_t = r.t
+        self._tick_t = r.t if abs(r.t - self._clock) <= EPS else self._clock  # a held readout: this tick
         return r
 
     def truth(self) -> Truth | None:
@@ -212,8 +213,15 @@ class ReplayCar(Car):
                 rows[f"{name}_steering"].append(pair[1].steering if pair else math.nan)
                 rows[f"{name}_leds"].append(_lamps(pair[1].leds) if pair else "")
             rows["same"].append(int(same))
+        changes, last = [], None  # the lamps the lab switched (its decisions: brake, indicators)
+        for t, c in replayed:
+            if c.leds != last:
+                if len(changes) < MAX_LISTED * 2:
+                    changes.append({"t": t, "lamps": _lamps(c.leds)})
+                last = c.leds
         summary = {
             "source": self.source,
+            "replayed_lamp_changes": changes,
             "recorded_ticks": len(recorded),
             "replayed_ticks": len(replayed),
             "ticks_compared": paired,

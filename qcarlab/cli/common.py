@@ -164,13 +164,16 @@ def sim_world(car: str, world: str | None, start: str | None, default: str, para
     """Load the world for a simulated car; refuse simulator-only options for a remote car."""
     pose = parse_start(start)
     scheme, where, _ = parse_car_uri(car)
+    if scheme == "replay":  # the world and start the lab scores against: given, else the recording's
+        from qcarlab.cli import recording
+
+        recorded, recorded_pose = recording.recorded_world(where, params) if world is None else (None, None)
+        from qcarlab.sim.world import load_world
+
+        return (load_world(world, load_params(params)) if world is not None else recorded), pose or recorded_pose
     if scheme != "sim":
         if world is not None or pose is not None:
             raise InputError("--world and --start apply to the simulator only; a remote car is where it is")
-        if scheme == "replay":  # the recorded world and start, for the lab's scoring
-            from qcarlab.cli import recording
-
-            return recording.recorded_world(where, params)
         return None, None
     from qcarlab.sim.world import load_world
 

@@ -123,10 +123,7 @@ def make_recorder(qcar: Car, record: Path | None, exact: bool, live_port: str | 
     meta["world_source"] = getattr(world, "source", None) if world is not None and not isinstance(world, str) else None
     ident = qcar.identity()
     meta["identity"] = {"name": ident.name, "backend": ident.backend, "capabilities": ident.capabilities}
-    rec = Recorder(record, profile="exact" if exact else "compact", live=live, params=qcar.params, metadata=meta)
-    rec.metadata("qcarlab.car", {"name": ident.name, "backend": ident.backend, "throttle_limit": qcar.throttle_limit,
-                                 "stepped": qcar.stepped})
-    return rec
+    return Recorder(record, profile="exact" if exact else "compact", live=live, params=qcar.params, metadata=meta)
 
 
 def _announce(line: str) -> None:
@@ -206,7 +203,8 @@ def print_after(info: dict[str, Any], console) -> None:
     if rec is not None:
         size = f"{rec['bytes'] / 1e6:.1f} MB" if rec["bytes"] is not None else "?"
         console.print(f"recorded {rec['messages']} messages ({size}, {rec['profile']}) to {rec['file']}: open it in "
-                      f"Foxglove, or replay it with --car replay:{rec['file']}", markup=False, highlight=False)
+                      f"Foxglove, or replay it with --car replay:{rec['file']}", markup=False, highlight=False,
+                      soft_wrap=True)
     if info.get("replay") is not None:
         _print_replay(info["replay"], console)
 
@@ -223,6 +221,15 @@ def _print_replay(comparison: dict[str, Any], console) -> None:
                   f"replayed {s['replayed_ticks']})")
     if s["recorded_ticks"] == 0 and s["replayed_ticks"] == 0:
         table.add_row("commands", "none recorded, none replayed (the lab only reads sensors)")
+    elif s["recorded_ticks"] == 0:
+        table.add_row("commands", f"{s['replayed_ticks']} replayed, none recorded to compare with "
+                      "(per tick in replay.csv with --out)")
+        for c in s["replayed_lamp_changes"]:
+            table.add_row(f"t = {c['t']:.3f} s", f"lamps: {c['lamps'] or 'off'}")
+        console.print(table)
+        for note in s["notes"]:
+            console.print(f"note: {note}", markup=False, soft_wrap=True)
+        return
     else:
         table.add_row("commands identical", "yes, every tick" if s["identical"] else
                       f"NO: {s['ticks_differing']} tick(s) differ")
@@ -233,7 +240,7 @@ def _print_replay(comparison: dict[str, Any], console) -> None:
             table.add_row(f"t = {d['t']:.3f} s", f"recorded {_fmt(d['recorded'])} | replayed {_fmt(d['replayed'])}")
     console.print(table)
     for note in s["notes"]:
-        console.print(f"note: {note}", markup=False)
+        console.print(f"note: {note}", markup=False, soft_wrap=True)
 
 
 def _fmt(cmd: dict[str, Any] | None) -> str:

@@ -30,6 +30,9 @@ class RecordingCar(Car):
         object.__setattr__(self, "closed", False)
         object.__setattr__(self, "_t", None)  # time of the latest readout: the tick commands belong to
         object.__setattr__(self, "_last", {})  # sensor -> the latest recorded frame
+        ident = car.identity()
+        recorder.metadata("qcarlab.car", {"name": ident.name, "backend": ident.backend,
+                                          "throttle_limit": car.throttle_limit, "stepped": car.stepped})
         truth = car.truth()
         if truth is not None:
             recorder.start_pose((truth.x, truth.y, truth.yaw))

@@ -56,16 +56,21 @@ class Tape:
     rgbd: Callable[[], Iterator[tuple[float, Callable[[], RGBDFrame]]]] | None = None
     csi: Callable[[], Iterator[tuple[float, Callable[[], CSIFrames]]]] | None = None
     notes: list[str] = field(default_factory=list)  # what the replay should know (lossy frames, ...)
+    span: tuple[float, float] | None = None  # (start, end) when the source knows it (a rosbag2)
 
     @property
     def start(self) -> float:
         """The first instant of the tape (s, car time)."""
+        if self.span is not None:
+            return self.span[0]
         times = [s[0].t for s in (self.readouts, self.scans, self.truths) if s]
         times += [self.commands[0][0]] if self.commands else []
         return min(times) if times else 0.0
 
     @property
     def end(self) -> float:
+        if self.span is not None:
+            return self.span[1]
         times = [s[-1].t for s in (self.readouts, self.scans, self.truths) if s]
         times += [self.commands[-1][0]] if self.commands else []
         return max(times) if times else 0.0
