@@ -173,10 +173,32 @@ class Recording:
         self.complete = self._has_summary()
         self.metadata = self._metadata()
 
-    def _open(self, f):
-        from mcap.reader import NonSeekingReader, make_reader
+    def _records(self, f, topics: list[str] | None = None):
+        """(schema, channel, message) of every message, in log-time order from a complete file, in
+        file order, record by record, from a cut-off one (up to its partial last chunk)."""
+        if self.complete:
+            from mcap.reader import make_reader
 
-        return make_reader(f) if self.complete else NonSeekingReader(f)
+            yield from make_reader(f).iter_messages(topics=topics)
+            return
+        from mcap.records import Channel, Message, Schema
+        from mcap.stream_reader import StreamReader
+
+        wanted = set(topics) if topics is not None else None
+        schemas: dict[int, Any] = {}
+        channels: dict[int, Any] = {}
+        try:
+            for rec in StreamReader(f, skip_magic=False).records:
+                if isinstance(rec, Message):
+                    ch = channels.get(rec.channel_id)
+                    if ch is not None and (wanted is None or ch.topic in wanted):
+                        yield schemas.get(ch.schema_id), ch, rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+        except Exception:  # the partial record where the writer was killed: the end of what there is
+            return
 
     def _has_summary(self) -> bool:
         from mcap.reader import make_reader
@@ -188,19 +210,31 @@ class Recording:
             return False
 
     def _metadata(self) -> dict[str, dict[str, Any]]:
+        from mcap.records import Metadata
+        from mcap.stream_reader import StreamReader
+
         out: dict[str, dict[str, Any]] = {}
-        try:
-            with self.path.open("rb") as f:
-                for m in self._open(f).iter_metadata():
-                    values = {}
-                    for k, v in m.metadata.items():
-                        try:
-                            values[k] = json.loads(v)
-                        except ValueError:
-                            values[k] = v
-                    out[m.name] = values
-        except Exception:  # a cut-off file: what was read before the cut
-            pass
+        records: list[Any] = []
+        with self.path.open("rb") as f:
+            try:
+                if self.complete:
+                    from mcap.reader import make_reader
+
+                    records = list(make_reader(f).iter_metadata())
+                else:
+                    for rec in StreamReader(f, skip_magic=False).records:
+                        if isinstance(rec, Metadata):
+                            records.append(rec)
+            except Exception:  # a cut-off file: what was read before the cut
+                pass
+        for m in records:
+            values = {}
+            for k, v in m.metadata.items():
+                try:
+                    values[k] = json.loads(v)
+                except ValueError:
+                    values[k] = v
+            out[m.name] = values
         return out
 
     # --- messages -------------------------------------------------------------------------------
@@ -213,7 +247,7 @@ class Recording:
         factory = None
         with self.path.open("rb") as f:
             try:
-                for schema, channel, message in self._open(f).iter_messages(topics=topics):
+                for schema, channel, message in self._records(f, topics):
                     name = schema.name if schema is not None else None
                     payload: Any = message.data
                     if decode is True or (decode and channel.topic in decode):
@@ -245,12 +279,9 @@ class Recording:
         """Topics (schema, encoding, count, first/last time, rate), duration, metadata."""
         topics: dict[str, dict[str, Any]] = {}
         schemas: dict[str, tuple[str | None, str]] = {}
-        from mcap.reader import NonSeekingReader, make_reader
-
         with self.path.open("rb") as f:
-            reader = make_reader(f) if self.complete else NonSeekingReader(f)
             try:
-                for schema, channel, message in reader.iter_messages():
+                for schema, channel, message in self._records(f):
                     entry = topics.get(channel.topic)
                     if entry is None:
                         entry = topics[channel.topic] = {"count": 0, "first_ns": message.log_time, "last_ns": message.log_time}

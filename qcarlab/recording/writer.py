@@ -77,12 +77,22 @@ class Recorder:
                                                     profile=""))
             except Exception as exc:  # the SDK's own error type: a path we cannot write
                 raise InputError(f"--record {self.path}: cannot write ({exc})") from None
+        self._channels: dict[str, Any] = {}
         self.live = live
         self._scene: dict[str, Any] = {}  # the scene's entities by id, sent again to a live viewer who joins later
         self._scene_due = False
         if live is not None:
+            # every channel exists before a viewer connects: it gets them in its first advertisement
+            # (a channel advertised while a client is connected can refuse a subscription that comes
+            # within milliseconds, foxglove-sdk 0.30)
+            image = "RawImage" if self.exact else "CompressedImage"
+            for topic, kind in ((C.READOUT, None), (C.COMMAND, None), (C.TRUTH, None), (C.LAB, None),
+                                (C.LIDAR, "LaserScan"), (C.COLOR, image), (C.DEPTH, "RawImage"),
+                                (C.CALIBRATION, "CameraCalibration"), (C.POSE_TRUE, "PoseInFrame"),
+                                (C.POSE_ESTIMATE, "PoseInFrame"), (C.TF, "FrameTransforms"),
+                                (C.SCENE, "SceneUpdate"), *((C.CSI[v], image) for v in C.CSI_VIEWS)):
+                self._channel(topic, kind)
             live.attach(self.ctx, on_subscribe=self._subscribed)
-        self._channels: dict[str, Any] = {}
         self._angles: np.ndarray | None = None
         self._rgbd_count = 0
         self._estimator = None
