@@ -34,7 +34,7 @@ def parse_car_uri(uri: str) -> tuple[str, str | None, int | None]:
         if not sep or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
             raise InputError(f"car address {uri!r}: expected tcp://HOST:PORT with a port in 1-65535")
         return "tcp", host.strip("[]"), int(port_text)
-    raise InputError(f"car address {uri!r}: expected 'sim', 'tcp://HOST:PORT' or 'replay:FILE'")
+    raise InputError(f"car address {uri!r}: expected 'sim' or 'tcp://HOST:PORT' (or 'replay:FILE', a recording)")
 
 
 def open_car(

@@ -70,7 +70,7 @@ def run_loop(
     stepped = car.stepped
     t0 = car.time
     wall0 = time.monotonic()
-    recorder = getattr(car, "recorder", None)  # --record/--live (qcarlab.recording): each tick's values too
+    recorder = getattr(car, "recorder", None)  # --record/--live (qcarlab.recording): the lab's values too
     try:
         for k in range(n_ticks):
             if getattr(car, "ended", False):  # --car replay: the recording has run out
@@ -97,8 +97,8 @@ def run_loop(
                 tr = car.truth()
                 row.update(true_x=tr.x, true_y=tr.y, true_yaw=tr.yaw, true_speed=tr.speed, true_steering=tr.steering)
             log.add(**row)
-            if recorder is not None:  # the loop's row and the lab's own values (a step's ``log``, if any)
-                recorder.log_values(readout.t, {**row, **(getattr(out, "log", None) or {})})
+            if recorder is not None and getattr(out, "log", None):  # the lab's own values (a step's ``log``)
+                recorder.log_values(readout.t, {"t": t, **out.log})
             log.ticks += 1
             if on_tick is not None:
                 on_tick(t, readout, cmd)

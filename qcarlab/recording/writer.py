@@ -36,8 +36,11 @@ from qcarlab.recording import channels as C
 from qcarlab.recording import require
 
 VERSION = 1
+COMPRESSION_THREADS = 1  # zstd compresses the chunks on a thread of its own, beside the run
 CALIBRATION_EVERY = 30  # RGBD frames between two camera calibration messages
 BALLS_PERIOD = 0.1  # s between two updates of the moving balls in the scene
+MOUNTS_PERIOD_NS = 1_000_000_000  # the static sensor transforms are repeated once a second
+POSE_PERIOD_NS = 20_000_000  # poses and transforms: 50 Hz (the readouts and the truth: every one)
 
 
 class Recorder:
@@ -73,7 +76,7 @@ class Recorder:
             try:
                 self.writer = foxglove.open_mcap(
                     self.path, allow_overwrite=True, context=self.ctx,
-                    writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd, compression_threads=0,
+                    writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd, compression_threads=COMPRESSION_THREADS,
                                                     profile=""))
             except Exception as exc:  # the SDK's own error type: a path we cannot write
                 raise InputError(f"--record {self.path}: cannot write ({exc})") from None
@@ -101,6 +104,8 @@ class Recorder:
         self._has_truth = False
         self._world = None
         self._balls_t = -math.inf
+        self._mounts_ns = -MOUNTS_PERIOD_NS
+        self._pose_ns = -POSE_PERIOD_NS
         self.counts: dict[str, int] = {}
         self.closed = False
         meta = {"version": VERSION, "profile": profile, "t0_ns": self.t0_ns, "argv": sys.argv[1:]}
@@ -213,9 +218,17 @@ class Recorder:
     def _poses(self, ns: int, true_pose, estimate) -> None:
         from qcarlab.recording import messages as M
 
+        if ns - self._pose_ns < POSE_PERIOD_NS:  # poses and transforms at most at 50 Hz
+            return
+        self._pose_ns = ns
+
         tf = self._wanted(C.TF, "FrameTransforms")
-        if tf is not None:
-            tf.log(M.transforms(ns, true_pose, estimate, M.mounts(self.params, ns)), log_time=ns)
+        if tf is not None:  # the sensor mounts (static) once a second, the car's pose every time
+            mounts = None
+            if ns - self._mounts_ns >= MOUNTS_PERIOD_NS:
+                self._mounts_ns = ns
+                mounts = M.mounts(self.params, ns)
+            tf.log(M.transforms(ns, true_pose, estimate, mounts), log_time=ns)
             self.counts[C.TF] = self.counts.get(C.TF, 0) + 1
         if true_pose is not None:
             self._log(C.POSE_TRUE, "PoseInFrame", M.pose_in_frame(true_pose, ns), ns)
