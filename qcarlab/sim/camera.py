@@ -371,7 +371,7 @@ class _ColumnView:
         _kernels.render_columns(
             self.color_t, self.depth_t, self.floor_depth, self.bg_packed, self.r0, self.pinhole is not None,
             cx_w, cy_w, self.cam_z, yaw, self.cos_c, self.sin_c, self.k, self.fy, self.cy, MAX_VIEW_DIST,
-            r.x0, r.y0, r.res, r.label, r.dt, r.kinds, r.heights, r.colors, r.poly_start, r.poly_count,
+            r.x0, r.y0, r.res, r.cells, r.kinds, r.heights, r.colors, r.poly_start, r.poly_count,
             r.verts, r.circles, g.gain, g.x0, g.y0, g.res, b, LIGHT_DIR[0], LIGHT_DIR[1],
         )
         for sign in self.world.signs:

@@ -9,7 +9,9 @@
 
 The model (DESIGN.md section 3): ``beams`` samples per turn (800 by default, the device at
 10 Hz), equally spaced counter-clockwise from the car's forward direction (beam ``i`` at
-``2 pi i / beams`` in the body frame, REP-103). The beams sweep the horizontal plane at the
+``2 pi i / beams`` in the body frame, REP-103). ``fov`` (rad, < 2 pi) makes it a sector
+scanner instead (F1TENTH's Hokuyo: 1080 beams over 4.7 rad): beam ``i`` at
+``-fov/2 + i fov / (beams - 1)``. The beams sweep the horizontal plane at the
 mount height ``lidar_z`` (0.20 m): walls, obstacles, sign posts and plates and the moving balls
 cut by that plane reflect; shapes lower than the mount are not seen, as on the real car.
 
@@ -20,8 +22,10 @@ nothing is within the maximum range and also when the object is closer than the 
 (the RPLidar reports no valid distance then; set :data:`CLOSE_READS_MIN` to clamp instead).
 
 Speed: the static world is drawn once into a raster with a distance transform (see
-:mod:`qcarlab.sim.raster`); a scan marches every beam through it with precomputed sin/cos tables
-(compiled with numba when available) and intersects the few moving balls analytically.
+:mod:`qcarlab.sim.raster`, one uint16 a cell); a scan marches every beam through it with
+precomputed sin/cos tables (compiled with numba when available) and intersects the few moving
+balls analytically. ``last_cell_steps`` tells how many cells the last scan looked at: about 3
+per cell of a beam's length at most, whatever the pose (a beam along a cell boundary included).
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ class Lidar:
         params: QCarParams = DEFAULT_PARAMS,
         beams: int | None = None,
         rng: np.random.Generator | None = None,
+        fov: float | None = None,
     ):
         self.world = world if isinstance(world, World) else load_world(world, params)
         self.params = params
@@ -59,13 +64,20 @@ class Lidar:
             raise InputError(f"LIDAR beams must be a positive integer, got {beams!r}")
         self.beams = int(n)
         self.rng = rng
-        self.angles = np.arange(self.beams, dtype=np.float64) * (2.0 * math.pi / self.beams)
+        if fov is None or fov >= 2.0 * math.pi:
+            self.angles = np.arange(self.beams, dtype=np.float64) * (2.0 * math.pi / self.beams)
+        elif math.isfinite(fov) and fov > 0.0 and self.beams >= 2:
+            # a sector centred on forward, both ends included (as a Hokuyo or F1TENTH's scans)
+            self.angles = -fov / 2.0 + np.arange(self.beams, dtype=np.float64) * (fov / (self.beams - 1))
+        else:
+            raise InputError(f"LIDAR fov must be a positive angle (rad) with at least 2 beams, got {fov!r}")
         self.angles.setflags(write=False)
         self._cos = np.cos(self.angles)
         self._sin = np.sin(self.angles)
         self._raster = build_raster(self.world, z=params.lidar_z)
         self._no_balls = np.zeros((0, 3), np.float64)
         self._no_noise = np.zeros(0, np.float64)
+        self.last_cell_steps = 0  # cells the last scan looked at (all beams): the work it took
 
     @property
     def rate(self) -> float:
@@ -93,9 +105,9 @@ class Lidar:
         sx, sy, syaw = self.sensor_pose(pose)
         r, p = self._raster, self.params
         out = np.empty(self.beams, np.float64)
-        _kernels.lidar_scan(
+        self.last_cell_steps = _kernels.lidar_scan(
             sx, sy, syaw, self._cos, self._sin, float(p.lidar_max_range),
-            r.x0, r.y0, r.res, r.label, r.dt, r.kinds, r.poly_start, r.poly_count, r.verts, r.circles,
+            r.x0, r.y0, r.res, r.cells, r.kinds, r.poly_start, r.poly_count, r.verts, r.circles,
             self._balls(t), noise, float(p.lidar_min_range), near_mode, out,
         )
         return out

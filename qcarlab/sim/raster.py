@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from qcarlab.errors import InputError
+from qcarlab.sim import _kernels
 from qcarlab.sim.world import Solid, World
 
 RASTER_RES = 0.005  # m, cell size of vector worlds' rasters (coarsened to stay under MAX_RASTER_CELLS)
@@ -160,7 +162,7 @@ class Raster:
     y0: float
     res: float
     label: np.ndarray  # int32 (ny, nx), -1 = free, else index into the tables
-    dt: np.ndarray  # float32 (ny, nx), cells from a free cell's centre to the nearest occupied one
+    cells: np.ndarray  # uint16 (ny, nx), what the kernels read: see cell_map()
     kinds: np.ndarray  # int32 (L,): KIND_GRID, KIND_POLYGON, KIND_CIRCLE
     heights: np.ndarray  # float64 (L,) top of each shape above the floor
     colors: np.ndarray  # float32 (L, 3) BGR
@@ -172,6 +174,21 @@ class Raster:
     @property
     def shape(self) -> tuple[int, int]:
         return self.label.shape  # type: ignore[return-value]
+
+
+def cell_map(label: np.ndarray) -> np.ndarray:
+    """The kernels' uint16 cell map of a label grid (-1 = free): an occupied cell holds
+    ``OCC + label``; a free cell the distance from its centre to the nearest occupied cell's
+    centre (the exact Euclidean distance transform) in units of ``DT_UNIT`` cells, rounded down
+    and capped at ``OCC - 1`` (about 4,096 cells), so that a ray's jump is never longer than
+    the true distance allows. One array of 2 bytes a cell (was two of 4): the map stays in the
+    cache while a simulation also renders camera frames."""
+    free = (label < 0).astype(np.uint8)
+    if free.all():
+        return np.full(label.shape, _kernels.OCC - 1, np.uint16)
+    dt = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    q = np.floor(np.minimum(dt, (_kernels.OCC - 1) * _kernels.DT_UNIT) / _kernels.DT_UNIT).astype(np.uint16)
+    return np.where(label >= 0, (label + _kernels.OCC).astype(np.uint16), q)
 
 
 def build_raster(world: World, z: float | None = None, res: float | None = None) -> Raster:
@@ -252,17 +269,15 @@ def build_raster(world: World, z: float | None = None, res: float | None = None)
             rad = max(1, int(round(s.radius / r * _ONE)))
             cv2.circle(label, (int(c[0]), int(c[1])), rad, idx, -1, cv2.LINE_8, _SHIFT)
 
-    free = (label < 0).astype(np.uint8)
-    if free.all():
-        dt = np.full(label.shape, 1e9, np.float32)
-    else:
-        dt = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    if len(kinds) > _kernels.MAX_LABELS:
+        raise InputError(f"world {world.name!r}: {len(kinds)} shapes, more than the sensors' raster holds "
+                         f"({_kernels.MAX_LABELS})")
     out = Raster(
         x0=float(x0),
         y0=float(y0),
         res=float(r),
         label=label,
-        dt=dt,
+        cells=cell_map(label),
         kinds=np.array(kinds, np.int32),
         heights=np.array(heights, np.float64),
         colors=np.array(colors, np.float32).reshape(-1, 3),
