@@ -64,7 +64,6 @@ class SimCar(Car):
         self._gyro_bias = self._imu_rng.normal(0.0, params.gyro_bias_sd, 3)
         self._noise_i = NOISE_BLOCK  # the first read draws the first block
         self._counts_per_rad = params.encoder_cpr / (2.0 * math.pi)
-        self._gravity = params.gravity
         self._cmd = Command()
         self._realtime = bool(realtime)
         self._t0_wall = time.monotonic()
@@ -133,6 +132,7 @@ class SimCar(Car):
         imu = self._imu_rng.normal(0.0, 1.0, (n, 6))
         self._gyro_rows = self._gyro_bias + p.gyro_noise * imu[:, :3]
         self._accel_rows = p.accel_noise * imu[:, 3:]
+        self._accel_rows[:, 2] += p.gravity  # the same sums as noise + g per read
         an = self._analog_rng.normal(0.0, 1.0, (n, 2))
         self._current_noise = (p.current_noise * an[:, 0]).tolist()
         self._voltage_noise = (p.voltage_noise * an[:, 1]).tolist()
@@ -152,8 +152,7 @@ class SimCar(Car):
         gyro[2] += yaw_rate
         accel = self._accel_rows[i]
         accel[0] += accel_x
-        accel[1] += v * yaw_rate  # centripetal
-        accel[2] += self._gravity
+        accel[1] += v * yaw_rate  # centripetal (accel[2] holds g already)
         cmd = self._cmd
         return Readout(
             t,

@@ -349,9 +349,10 @@ def render_columns(
     """Draw the walls, obstacles and balls of every column of a level camera over the floor.
 
     ``color`` (W, H) uint32 (packed BGRA pixels, see :func:`pack_bgr`) and ``depth`` (W, H)
-    float32 are *transposed* images (one row per image column). With ``markers`` each column is
-    first cleared to colour 0 and depth 0, "nothing drawn here" (every drawn pixel has alpha 255
-    and a depth > 0): :func:`finish_frame` puts the background and the floor there later.
+    float32 are *transposed* images (one row per image column). With ``markers`` each column's
+    colour is first cleared to 0, "nothing drawn here" (every drawn pixel has alpha 255, and a
+    depth), and its depth left as it was: :func:`finish_frame` puts the background and the floor
+    there later.
     Otherwise ``color`` already holds the floor below row ``sky_rows``, and each column first
     gets the background ``sky`` (a packed pixel) above that row and the depth of the floor
     (``floor_depth``, same shape, inf above the horizon). Then this paints, far to near, each
@@ -378,8 +379,7 @@ def render_columns(
     hny = np.empty(KMAX + 8)
     for u in range(W):
         if markers:
-            color[u, :] = 0
-            depth[u, :] = 0.0
+            color[u, :] = 0  # (the depth of undrawn pixels is left as it was: colour 0 tells)
         else:
             color[u, :sky_rows] = sky
             drow = depth[u]
@@ -519,8 +519,7 @@ def render_columns(
                 ct = _pack(colors[lab, 0] * 1.12 * g, colors[lab, 1] * 1.12 * g, colors[lab, 2] * 1.12 * g)
                 for v in range(r0, r1 + 1):
                     color[u, v] = ct
-                    if v > cy:
-                        depth[u, v] = (cam_z - h) * fy / (v - cy)
+                    depth[u, v] = (cam_z - h) * fy / (v - cy) if v > cy else 0.0
 
 
 @njit(**_JIT)
@@ -557,37 +556,41 @@ def finish_depth(depth, noise, na, nb, coef, dmin, dmax):
 
 
 @njit(**_JIT)
-def finish_frame(color, depth, v0, r0, bg, floor, floor_depth, finish, noise, na, nb, coef, dmin, dmax):
+def finish_frame(color, depth, v0, r0, bg, floor, row_depth, finish, noise, na, nb, coef, dmin, dmax):
     """Rows v0.. of an upright frame drawn with markers (see :func:`render_columns`), in place.
 
-    ``color`` (n, W) uint32 and ``depth`` (n, W) float32: where nothing was drawn (0) the
-    background ``bg`` above row ``r0`` (depth left 0, no data), the floor below it (``floor``
-    uint32 and ``floor_depth`` float32, (H - r0, W), upright, row 0 = image row r0). Then, if
-    ``finish``, the depth as the D435 reports it, as :func:`finish_depth` (noise window rows
-    from ``na + v0``, columns from ``nb``). Row by row, each row finished while in cache; each
-    loop tests the array it writes, the form LLVM vectorises.
+    ``color`` (n, W) uint32 and ``depth`` (n, W) float32: where nothing was drawn (colour 0; the
+    depth there is whatever the buffer held) the background ``bg`` with no depth (0) above row
+    ``r0``, the floor below it: colour from ``floor`` (uint32, (H - r0, W), upright, row 0 =
+    image row r0) and depth ``row_depth[v]`` (float32 (H,): a level pinhole sees the floor at
+    one z-depth along each row). Then, if ``finish``, the depth as the D435 reports it, as
+    :func:`finish_depth` (noise window rows from ``na + v0``, columns from ``nb``). Row by row,
+    each row finished while in cache; each loop tests the array it writes, the form LLVM
+    vectorises.
     """
     n, W = color.shape
     noisy = noise.shape[0] > 0
     c = np.float32(coef)
     lo = np.float32(dmin)
     hi = np.float32(dmax)
+    zero = np.float32(0.0)
     for i in range(n):
         v = v0 + i
         crow = color[i]
         drow = depth[i]
         if v < r0:
             for u in range(W):
+                drow[u] = zero if crow[u] == 0 else drow[u]
+            for u in range(W):
                 x = crow[u]
                 crow[u] = bg if x == 0 else x
         else:
+            fz = row_depth[v]
             frow = floor[v - r0]
-            fdrow = floor_depth[v - r0]
+            for u in range(W):
+                drow[u] = fz if crow[u] == 0 else drow[u]
             for u in range(W):
                 x = crow[u]
                 crow[u] = frow[u] if x == 0 else x
-            for u in range(W):
-                d = drow[u]
-                drow[u] = fdrow[u] if d == 0.0 else d
         if finish:
             _finish_depth_row(drow, noise, na + v, nb, noisy, c, lo, hi)
