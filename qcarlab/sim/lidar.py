@@ -16,7 +16,8 @@ mount height ``lidar_z`` (0.20 m): walls, obstacles, sign posts and plates and t
 cut by that plane reflect; shapes lower than the mount are not seen, as on the real car.
 
 A range is the distance from the LIDAR's centre plus Gaussian noise (``lidar_noise``, 5 mm,
-drawn from the ``rng`` given; ``rng=None`` gives exact ranges), kept within
+drawn from the ``rng`` given, the LIDAR's own: it draws the noise of 16 scans at a time;
+``rng=None`` gives exact ranges), kept within
 [``lidar_min_range``, ``lidar_max_range``] (0.15-12 m). As the device, a beam reads **0** when
 nothing is within the maximum range and also when the object is closer than the minimum range
 (the RPLidar reports no valid distance then; set :data:`CLOSE_READS_MIN` to clamp instead).
@@ -44,6 +45,7 @@ from qcarlab.sim.world import World, load_world
 __all__ = ["CLOSE_READS_MIN", "Lidar"]
 
 CLOSE_READS_MIN = False  # True: an object nearer than the minimum range reads the minimum, not 0
+NOISE_SCANS = 16  # scans whose range noise is drawn from the rng in one go
 
 
 class Lidar:
@@ -78,6 +80,8 @@ class Lidar:
         self._no_balls = np.zeros((0, 3), np.float64)
         self._no_noise = np.zeros(0, np.float64)
         self.last_cell_steps = 0  # cells the last scan looked at (all beams): the work it took
+        self._noise_rows = np.zeros((0, self.beams))
+        self._noise_i = 0
 
     @property
     def rate(self) -> float:
@@ -120,8 +124,14 @@ class Lidar:
         """One turn from the car pose (x, y, yaw of its centre) at time ``t`` (moving balls)."""
         p = self.params
         if self.rng is not None and p.lidar_noise > 0.0:
-            noise = self.rng.standard_normal(self.beams)
-            noise *= p.lidar_noise
+            if self._noise_i >= len(self._noise_rows):
+                # the noise of NOISE_SCANS scans drawn at once: the generator's draws come in
+                # sequence, so these are the numbers one draw per scan would give
+                self._noise_rows = self.rng.standard_normal((NOISE_SCANS, self.beams))
+                self._noise_rows *= p.lidar_noise
+                self._noise_i = 0
+            noise = self._noise_rows[self._noise_i]
+            self._noise_i += 1
         else:
             noise = self._no_noise
         ranges = self._cast(pose, t, noise, 1 if CLOSE_READS_MIN else 0)
