@@ -193,7 +193,7 @@ def test_compiled_and_python_kernels_agree():
     r = lidar._raster
     out_c = np.empty(90)
     out_p = np.empty(90)
-    args = (0.0, -1.0, -1.2, lidar._cos, lidar._sin, 12.0, r.x0, r.y0, r.res, r.cells, r.kinds,
+    args = (0.0, -1.0, -1.2, lidar._cos, lidar._sin, 12.0, r.x0, r.y0, r.res, r.cells, r.tiles, r.tiles_x, r.kinds,
             r.poly_start, r.poly_count, r.verts, r.circles, np.zeros((0, 3)), np.zeros(0), 0.15, 0)
     _kernels.lidar_scan(*args, out_c)
     _kernels.lidar_scan.py_func(*args, out_p)
@@ -237,3 +237,53 @@ def test_sector_scanner_angles():
         Lidar(room(), beams=1, fov=1.0)
     with pytest.raises(InputError):
         Lidar(room(), beams=10, fov=float("nan"))
+
+
+def test_tiled_map_gives_the_same_ranges_as_the_cell_map():
+    """A ROS map's LIDAR raster is marched in its one-byte tiled form: the same ranges (to 1e-9 m)
+    as the two-byte cell map, from poses all over berlin."""
+    if not BERLIN.is_file():
+        pytest.skip("shared/data/maps/berlin.yaml not available")
+    w = load_world(BERLIN)
+    lidar = Lidar(w, beams=360)
+    r = lidar._raster
+    assert r.tiles.size > 0 and r.tiles.size >= r.cells.size
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        g = w.grid
+        while True:
+            row, col = rng.integers(0, 600, 2)
+            if not g.occupied[row, col]:
+                break
+        pose = (g.origin[0] + (col + 0.5) * g.resolution, g.origin[1] + (row + 0.5) * g.resolution, rng.uniform(-3, 3))
+        tiled = lidar.true_ranges(pose)
+        out = np.empty(360)
+        sx, sy, syaw = lidar.sensor_pose(pose)
+        _kernels.lidar_scan(sx, sy, syaw, lidar._cos, lidar._sin, 12.0, r.x0, r.y0, r.res, r.cells, np.zeros(0, np.uint8), 0,
+                            r.kinds, r.poly_start, r.poly_count, r.verts, r.circles, np.zeros((0, 3)), np.zeros(0), 0.15, -1, out)
+        fin = np.isfinite(out)
+        assert np.array_equal(np.isfinite(tiled), fin) and np.allclose(tiled[fin], out[fin], rtol=0, atol=1e-9)
+
+
+def test_a_beam_along_a_cell_boundary_of_a_ros_map_costs_steps_in_proportion(tmp_path):
+    """The same bound on a ROS map, marched in its tiled form: a 10 x 10 m map of 5 cm cells, the
+    pose on a cell corner, beam 600 running down the boundary x = 5.0 past a box corner two cells
+    to its side."""
+    img = np.full((200, 200), 254, np.uint8)
+    img[[0, -1], :] = 0
+    img[:, [0, -1]] = 0
+    img[200 - 80 : 200 - 20, 102:150] = 0  # grid rows 20..79 (image row 0 is the top), cols 102..149
+    cv2.imwrite(str(tmp_path / "box.pgm"), img)
+    (tmp_path / "box.yaml").write_text(yaml.safe_dump({"image": "box.pgm", "resolution": 0.05, "origin": [0.0, 0.0, 0.0],
+                                                       "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.196}))
+    w = load_world(tmp_path / "box.yaml")
+    lidar = Lidar(w, beams=800)
+    r = lidar._raster
+    assert r.tiles.size > 0
+    assert (5.0 - r.x0) / r.res == pytest.approx(round((5.0 - r.x0) / r.res), abs=1e-9)  # on a boundary
+    ranges = lidar.true_ranges((5.0, 7.5, 0.0))
+    on_boundary = lidar.last_cell_steps
+    assert ranges[600] == pytest.approx(7.5 - 0.05, abs=1e-9)  # down to the bottom wall's top face
+    lidar.true_ranges((5.013, 7.513, 0.0))
+    assert on_boundary <= 1.5 * lidar.last_cell_steps
+    assert on_boundary <= 3 * np.sum(np.minimum(ranges, 12.0)) / r.res + 10 * lidar.beams

@@ -111,7 +111,7 @@ class Lidar:
         out = np.empty(self.beams, np.float64)
         self.last_cell_steps = _kernels.lidar_scan(
             sx, sy, syaw, self._cos, self._sin, float(p.lidar_max_range),
-            r.x0, r.y0, r.res, r.cells, r.kinds, r.poly_start, r.poly_count, r.verts, r.circles,
+            r.x0, r.y0, r.res, r.cells, r.tiles, r.tiles_x, r.kinds, r.poly_start, r.poly_count, r.verts, r.circles,
             self._balls(t), noise, float(p.lidar_min_range), near_mode, out,
         )
         return out

@@ -163,6 +163,8 @@ class Raster:
     res: float
     label: np.ndarray  # int32 (ny, nx), -1 = free, else index into the tables
     cells: np.ndarray  # uint16 (ny, nx), what the kernels read: see cell_map()
+    tiles: np.ndarray  # uint8 (8 x 8-cell tiles, flat) of a ROS map's walls alone for the LIDAR, else empty: see tile_map()
+    tiles_x: int  # tiles a row
     kinds: np.ndarray  # int32 (L,): KIND_GRID, KIND_POLYGON, KIND_CIRCLE
     heights: np.ndarray  # float64 (L,) top of each shape above the floor
     colors: np.ndarray  # float32 (L, 3) BGR
@@ -189,6 +191,23 @@ def cell_map(label: np.ndarray) -> np.ndarray:
     dt = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     q = np.floor(np.minimum(dt, (_kernels.OCC - 1) * _kernels.DT_UNIT) / _kernels.DT_UNIT).astype(np.uint16)
     return np.where(label >= 0, (label + _kernels.OCC).astype(np.uint16), q)
+
+
+def tile_map(cells: np.ndarray) -> tuple[np.ndarray, int]:
+    """The one-byte tiled form of a one-shape raster's cell map (the kernels' ``march_tiles``):
+    8 x 8-cell tiles, row-major tiles of row-major cells, 64 bytes each (one cache line); an
+    occupied cell is ``TILE_OCC``, a free cell its distance value in units of ``TILE_UNIT`` cells
+    (rounded down from the cell map's, capped at 254); the edge tiles are padded with occupied
+    cells that no ray reaches (it leaves the grid first). Returns (tiles, tiles a row)."""
+    k = _kernels
+    ny, nx = cells.shape
+    occ = cells >= k.OCC
+    q = np.minimum((cells.astype(np.int64) * k.DT_UNIT / k.TILE_UNIT).astype(np.int64), k.TILE_OCC - 1)
+    c8 = np.where(occ, k.TILE_OCC, q).astype(np.uint8)
+    ty, tx = (ny + 7) // 8, (nx + 7) // 8
+    pad = np.full((ty * 8, tx * 8), k.TILE_OCC, np.uint8)
+    pad[:ny, :nx] = c8
+    return np.ascontiguousarray(pad.reshape(ty, 8, tx, 8).transpose(0, 2, 1, 3)).reshape(-1), tx
 
 
 def build_raster(world: World, z: float | None = None, res: float | None = None) -> Raster:
@@ -272,12 +291,18 @@ def build_raster(world: World, z: float | None = None, res: float | None = None)
     if len(kinds) > _kernels.MAX_LABELS:
         raise InputError(f"world {world.name!r}: {len(kinds)} shapes, more than the sensors' raster holds "
                          f"({_kernels.MAX_LABELS})")
+    cells = cell_map(label)
+    # a ROS map alone (coarse cells, where a 63.5-cell cap on the jumps costs nothing): tiles too
+    one_grid = len(kinds) == 1 and kinds[0] == KIND_GRID
+    tiles, tiles_x = tile_map(cells) if one_grid else (np.zeros(0, np.uint8), 0)
     out = Raster(
         x0=float(x0),
         y0=float(y0),
         res=float(r),
         label=label,
-        cells=cell_map(label),
+        cells=cells,
+        tiles=tiles,
+        tiles_x=tiles_x,
         kinds=np.array(kinds, np.int32),
         heights=np.array(heights, np.float64),
         colors=np.array(colors, np.float32).reshape(-1, 3),
