@@ -39,6 +39,19 @@ def run(path, on_tick=None, **cfg):
         return m, time.perf_counter() - t0
 
 
+def bare_loop(ticks: int) -> float:
+    """Wall seconds of the control loop itself (run_loop: read, write, the log row, truth,
+    advance) around a step function that only returns a fixed command."""
+    from qcarlab.car.base import Command
+    from qcarlab.experiments.loop import run_loop
+
+    cmd = Command(0.05, 0.1)
+    with qcarlab.open_car("sim", seed=0) as car:
+        t0 = time.perf_counter()
+        run_loop(car, lambda t, r: cmd, ticks / 100.0, 100.0)
+        return time.perf_counter() - t0
+
+
 def replay(cmds) -> float:
     """Wall seconds of the car's own calls for the recorded ticks (read, write, truth, advance)."""
     with qcarlab.open_car("sim", seed=0) as car:
@@ -83,16 +96,19 @@ def main() -> int:
     # speed: a 30 s run at 100 Hz (the circle, repeated laps, capped at 30 s of simulated time)
     cmds = []
     run(paths.circle(), on_tick=lambda t, r, c: cmds.append((c.throttle, c.steering, c.leds)), laps=3, max_time=30.0)
-    walls, cars = [], []
+    walls, cars, loops = [], [], []
+    ticks = len(cmds)
     for _ in range(args.repeat):
         m, wall = run(paths.circle(), laps=3, max_time=30.0)
         walls.append(wall)
         cars.append(replay(cmds))
-    wall, car = statistics.median(walls), statistics.median(cars)
-    ticks = len(cmds)
+        loops.append(bare_loop(ticks))
+    wall, car, loop = statistics.median(walls), statistics.median(cars), statistics.median(loops)
+    us = 1e6 / ticks
     print(f"30 s simulated at 100 Hz: median {wall:.3f} s wall = {30.0 / wall:.0f}x real time (target >= 600x)")
-    print(f"  per tick: {wall / ticks * 1e6:.1f} us = car {car / ticks * 1e6:.1f} us (read + write + truth + "
-          f"advance, replayed) + loop and experiment {(wall - car) / ticks * 1e6:.1f} us")
+    print(f"  per tick: {wall * us:.1f} us = car {car * us:.1f} us (read + write + truth + advance, replayed)"
+          f" + loop {(loop - car) * us:.1f} us (run_loop around a fixed command, less the car)"
+          f" + experiment {(wall - loop) * us:.1f} us (the lab's step: estimator, look-ahead, controller, records)")
     print(f"  the car alone would run at {30.0 / car:.0f}x real time; 600x needs {1e6 / 60000:.1f} us a tick in all")
     ok &= 30.0 / wall >= 600.0
     print(f"load after: {load_note()}")

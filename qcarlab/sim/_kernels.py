@@ -357,13 +357,29 @@ def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, cells, tiles, ntx, 
     total = 0
     tiled = tiles.shape[0] > 0
     ny, nx = cells.shape
+    # every beam's first look is at the LIDAR's own cell: when that is clear of the shapes, its
+    # jump is the same for all beams (the same arithmetic as march's first step): take it once
+    t0 = 0.0
+    if 0.0 <= px < nx and 0.0 <= py < ny:
+        ix0 = int(math.floor(px))
+        iy0 = int(math.floor(py))
+        if tiled:
+            c0 = _tile_at(tiles, ix0, iy0, ntx)
+            if c0 != TILE_OCC and c0 > TILE_SKIP_FROM:
+                t0 = 0.0 + (c0 * TILE_UNIT - 1.4143)
+                total += 1
+        else:
+            c0 = int(cells[iy0, ix0])
+            if c0 < OCC and c0 > SKIP_FROM:
+                t0 = 0.0 + (c0 * DT_UNIT - 1.4143)
+                total += 1
     for i in range(cos_b.shape[0]):
         dx = cos_b[i] * cyaw - sin_b[i] * syaw
         dy = sin_b[i] * cyaw + cos_b[i] * syaw
         if tiled:
-            t, lab, steps = march_tiles(px, py, dx, dy, 0.0, tmax, tiles, nx, ny, ntx)
+            t, lab, steps = march_tiles(px, py, dx, dy, t0, tmax, tiles, nx, ny, ntx)
         else:
-            t, lab, side, steps = march(px, py, dx, dy, 0.0, tmax, cells)
+            t, lab, side, steps = march(px, py, dx, dy, t0, tmax, cells)
         total += steps
         r = BIG
         if lab >= 0:

@@ -23,7 +23,8 @@ nothing is within the maximum range and also when the object is closer than the 
 (the RPLidar reports no valid distance then; set :data:`CLOSE_READS_MIN` to clamp instead).
 
 Speed: the static world is drawn once into a raster with a distance transform (see
-:mod:`qcarlab.sim.raster`, one uint16 a cell); a scan marches every beam through it with
+:mod:`qcarlab.sim.raster`, one uint16 a cell; a ROS map's walls also as 8 x 8-cell tiles of one
+byte a cell, which stay in the cache between scans); a scan marches every beam through it with
 precomputed sin/cos tables (compiled with numba when available) and intersects the few moving
 balls analytically. ``last_cell_steps`` tells how many cells the last scan looked at: about 3
 per cell of a beam's length at most, whatever the pose (a beam along a cell boundary included).

@@ -4,8 +4,10 @@
   the cameras sample it, the top-down render starts from it.
 - :func:`build_raster`: the static shapes as a label grid (cell -> index of the shape covering it,
   -1 = free) with a distance transform (distance in cells from each free cell to the nearest
-  occupied one) so a ray can skip empty space, plus per-shape tables (kind, height, colour,
-  polygon vertices or circle) so a hit can be refined to the exact surface.
+  occupied one) so a ray can skip empty space, both in one uint16 a cell for the kernels
+  (:func:`cell_map`; a ROS map's walls alone also as one-byte 8 x 8 tiles, :func:`tile_map`),
+  plus per-shape tables (kind, height, colour, polygon vertices or circle) so a hit can be
+  refined to the exact surface.
 
 Raster cells: cell (row, col) covers x in [x0 + col res, x0 + (col + 1) res) and
 y in [y0 + row res, y0 + (row + 1) res): row 0 is the *bottom* (y grows with the row), unlike
