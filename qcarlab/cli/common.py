@@ -225,6 +225,9 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
     if m.get("interrupted"):
         stderr.print(f"qcarlab {name}: interrupted; the car was stopped"
                      + (f"; the run so far was saved to {out}" if written else ""), markup=False)
+        from qcarlab.cli import app as _app
+
+        _app.interrupt_reported = True
         raise typer.Exit(130)
     if m.get("goal_reached") is False and "replay" not in m:  # a replay's car did what was recorded
         stderr.print(f"qcarlab {name}: goal missed: {m.get('failure') or 'see the results'}", markup=False)
