@@ -135,7 +135,7 @@ def test_throttle_limit_is_enforced_by_the_server(served):
     with RawClient(server.address) as raw:  # a client that ignores every limit
         raw.hello("control")
         thr, ste, _ = P.unpack_applied(raw.request(M.COMMAND, P.pack_command(0.9, 2.0, (0.0,) * 12)).payload)
-        assert (thr, ste) == (0.2, pytest.approx(0.5236))
+        assert (thr, ste) == (0.2, pytest.approx(0.5))  # the car's steering limit, +-0.5 rad
         thr, _, _ = P.unpack_applied(raw.request(M.COMMAND, P.pack_command(-5.0, 0.0, (0.0,) * 12)).payload)
         assert thr == -0.2 and car.cmd.throttle == -0.2
     with connect(server, throttle_limit=0.3) as ctl:

@@ -3,14 +3,14 @@
 All angles in rad, positions in m, world frame X right / Y up, yaw counter-clockwise from +X,
 positive steering = turn left. ``pose`` is ``(x, y, yaw)`` of the car's CENTRE (the point the
 sheet's bicycle model and the simulator report). Each controller returns the steering angle at
-the wheels ``delta``; pass ``max_steering`` (e.g. ``DEFAULT_PARAMS.max_steering`` = 0.5236) to clip
+the wheels ``delta``; pass ``max_steering`` (e.g. ``DEFAULT_PARAMS.max_steering`` = 0.5) to clip
 it to ``[-max_steering, max_steering]``, otherwise it is returned unclipped (the car clips too).
 
 A tick of the sheet's PathFollowing model::
 
     search = LookaheadTarget(path, lookahead=0.5)
     target, index, progress = search(pose[:2])
-    delta = pure_pursuit(pose, target, wheelbase=0.256, max_steering=0.5236)
+    delta = pure_pursuit(pose, target, wheelbase=0.256, max_steering=0.5)
 """
 
 from __future__ import annotations

@@ -790,7 +790,20 @@ class QuanserCar(object):
         return {"caps": caps, "bufs": {v: np.zeros((h, w, 3), dtype=np.uint8) for v in caps}, "t": {v: None for v in caps}}
 
     def read_lidar(self):
-        """The latest turn; a read with no new data (0, or error -34) keeps the previous turn and its time."""
+        t, angles, ranges = self.lidar_arrays()
+        return t, [numpy_part(angles), numpy_part(ranges)]
+
+    def read_rgbd(self):
+        t, color, depth = self.rgbd_arrays()
+        return t, [numpy_part(color), numpy_part(depth)]
+
+    def read_csi(self):
+        t, views = self.csi_arrays()
+        return t, [numpy_part(v) for v in views]
+
+    def lidar_arrays(self):
+        """(t, angles, ranges): the latest turn; a read with no new data (0, or error -34) keeps
+        the previous turn and its time."""
         s = self.sensors["lidar"]
         np = self.np
         try:
@@ -808,11 +821,10 @@ class QuanserCar(object):
             s["last"] = (self.time, angles, ranges)
         elif s["last"] is None:  # no turn yet (the RPLidar spins up for a second or two)
             s["last"] = (0.0, np.zeros(0), np.zeros(0))
-        t, angles, ranges = s["last"]
-        return t, [numpy_part(angles), numpy_part(ranges)]
+        return s["last"]
 
-    def read_rgbd(self):
-        """The latest colour and depth (depth is NOT aligned to colour: the D435 streams them from
+    def rgbd_arrays(self):
+        """(t, color, depth): the latest colour and depth (depth is NOT aligned to colour: the D435 streams them from
         two cameras; Quanser's examples crop it; see the README)."""
         s = self.sensors["rgbd"]
         try:
@@ -826,10 +838,10 @@ class QuanserCar(object):
             if _error_code(exc) != WOULD_BLOCK:
                 raise CarError("RGBD read failed: " + _error_text(exc))
         t = min(s["t_color"] or 0.0, s["t_depth"] or 0.0)  # the older image's time; 0 before both came
-        return t, [numpy_part(s["color"]), numpy_part(s["depth"][:, :, 0])]
+        return t, s["color"], s["depth"][:, :, 0]
 
-    def read_csi(self):
-        """The four views; a camera whose read reports no new frame keeps its old frame, and the
+    def csi_arrays(self):
+        """(t, [right, rear, left, front]): the four views; a camera whose read reports no new frame keeps its old frame, and the
         frame's time is the oldest of the four."""
         s = self.sensors["csi"]
         try:
@@ -839,7 +851,7 @@ class QuanserCar(object):
         except Exception as exc:
             raise CarError("CSI read failed: " + _error_text(exc))
         t = min(v or 0.0 for v in s["t"].values())  # the oldest view's time; 0 until all four came
-        return t, [numpy_part(s["bufs"][v]) for v in ("right", "rear", "left", "front")]
+        return t, [s["bufs"][v] for v in ("right", "rear", "left", "front")]
 
     def close(self):
         with self.lock:

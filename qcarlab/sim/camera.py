@@ -23,7 +23,8 @@ ahead of the car's centre reads ``2 - rgbd_x`` = 1.81 m in the middle of the ima
 +-:data:`COLOR_NOISE_SD` levels per channel, depth sigma = :data:`DEPTH_NOISE` * z^2.
 
 **CSI.** Four 160 deg equidistant fisheye cameras (r = f theta), 820 x 410, on the roof
-``csi_x`` from the centre facing right, rear, left and front, ``csi_z`` above the floor.
+``csi_front_x``/``csi_rear_x`` on the axis and ``csi_side_y`` to the sides, facing front, rear, left
+and right, ``csi_z`` above the floor.
 
 How it is drawn: the floor is a top-down texture (markings, brightness regions) warped into the
 image (a homography per texture level for the pinhole; a precomputed per-pixel ray map for the
@@ -635,12 +636,12 @@ class CSICameras:
         half_az = float(np.abs(az).max()) + 0.02
         half_tan = float(np.abs(tan_el).max()) + 0.02
         fc = self.f * CSI_OVERSAMPLE
-        m = p.csi_x
+        side = p.csi_side_y
         mounts = {
-            "right": (0.0, -m, p.csi_z, -math.pi / 2.0),
-            "rear": (-m, 0.0, p.csi_z, math.pi),
-            "left": (0.0, m, p.csi_z, math.pi / 2.0),
-            "front": (m, 0.0, p.csi_z, 0.0),
+            "right": (0.0, -side, p.csi_z, -math.pi / 2.0),
+            "rear": (p.csi_rear_x, 0.0, p.csi_z, math.pi),
+            "left": (0.0, side, p.csi_z, math.pi / 2.0),
+            "front": (p.csi_front_x, 0.0, p.csi_z, 0.0),
         }
         self._views = {name: _CylinderView(self.world, mounts[name], half_az, half_tan, fc) for name in CSI_ORDER}
         v0 = self._views["front"]
