@@ -11,6 +11,7 @@ import select
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -92,11 +93,14 @@ def need_python(version: str, numpy: bool = False) -> str:
 class Served:
     """``python car_server.py ARGS`` in a subprocess; ``uri`` from its "serving ... on tcp://" line."""
 
-    def __init__(self, python: str, *args: str, env: dict | None = None, script: Path = SERVER, cwd: Path | None = None):
+    def __init__(self, python: str, *args: str, env: dict | None = None, script: Path | None = SERVER,
+                 cwd: Path | None = None):
         full_env = dict(os.environ)
         full_env.pop("QCARLAB_TOKEN", None)
         full_env.update(env or {})
-        self.proc = subprocess.Popen([python, str(script), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        argv = [python, str(script), *args] if script is not None else [python, *args]
+        self._err = tempfile.TemporaryFile(mode="w+")  # a file, not a pipe: a chatty server never blocks on it
+        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self._err,
                                      text=True, env=full_env, cwd=str(cwd or REPO))
         self.line = ""
         deadline = time.monotonic() + 20.0
@@ -125,11 +129,17 @@ class Served:
         if self.proc.poll() is None:
             self.proc.send_signal(sig or signal.SIGTERM)
         try:
-            out, err = self.proc.communicate(timeout=timeout)
+            out, _ = self.proc.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
             self.proc.kill()
-            out, err = self.proc.communicate()
-        return self.proc.returncode, out, err
+            out, _ = self.proc.communicate()
+        return self.proc.returncode, out, self.stderr
+
+    @property
+    def stderr(self) -> str:
+        self._err.flush()
+        self._err.seek(0)
+        return self._err.read()
 
     def __enter__(self) -> Served:
         return self

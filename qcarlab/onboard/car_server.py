@@ -608,13 +608,13 @@ class QuanserCar(object):
                         "loss of the computer) the motor keeps its last PWM; signals (Ctrl-C, SIGTERM, SIGHUP, "
                         "SIGQUIT) still stop it", _error_text(exc))
 
-    def kick(self):
-        """Reload the board's watchdog (at most every watchdog/5 s). Returns False when it had
-        expired (the board stopped the motor by itself); it is then cleared and restarted."""
+    def kick(self, force=False):
+        """Reload the board's watchdog (at most every watchdog/5 s unless ``force``). Returns False
+        when it had expired (the board stopped the motor by itself); it is then cleared and restarted."""
         if not self.hardware_watchdog or self.card is None:
             return True
         now = time.monotonic()
-        if now - self._last_reload < self.watchdog_s / 5.0:
+        if not force and now - self._last_reload < self.watchdog_s / 5.0:
             return True
         self._last_reload = now
         with self.lock:
@@ -854,6 +854,7 @@ class QuanserCar(object):
         return t, [s["bufs"][v] for v in ("right", "rear", "left", "front")]
 
     def close(self):
+        self.kick(force=True)  # an expired board watchdog (nobody reloaded it during shutdown) is cleared first
         with self.lock:
             if self.card is not None:
                 try:
@@ -1011,6 +1012,7 @@ class CarServer(object):
         self.sensor_cache = {}  # reply type -> (monotonic time read, payload parts)
         self.sensor_locks = {LIDAR: threading.Lock(), RGBD: threading.Lock(), CSI: threading.Lock()}
         self._stop_evt = threading.Event()
+        self._watchdog_off = threading.Event()  # set last, when every client is gone
         self._listener = None
         self._threads = []
         self.bound = None
@@ -1105,6 +1107,8 @@ class CarServer(object):
         for s in sessions:
             if s.thread is not None:
                 s.thread.join(3.0)
+        self.safe_stop(why)
+        self._watchdog_off.set()
         for t in self._threads:
             if t is not threading.current_thread():
                 t.join(3.0)
@@ -1143,7 +1147,7 @@ class CarServer(object):
     def _watchdog_loop(self):
         """Its own thread: trips the watchdog, reloads the board's watchdog, ends silent
         controllers. The only lock it takes is the drive lock, held for one HIL call at a time."""
-        while not self._stop_evt.wait(0.005):
+        while not self._watchdog_off.wait(0.005):
             try:
                 self._watchdog_tick()
             except Exception as exc:  # never let the watchdog die
