@@ -39,7 +39,8 @@ PROBE = (  # no single quotes: it travels inside one
     "try:\n    import quanser.hardware\n    info[\"quanser\"] = True\nexcept Exception:\n    pass\n"
     "print(json.dumps(info))\n"
 )
-_TARGET = re.compile(r"^(?P<user>[A-Za-z0-9._-]+)@(?P<host>[A-Za-z0-9.-]+|\[[0-9A-Fa-f:.%]+\])$")
+# neither part may start with "-" (ssh would read it as an option)
+_TARGET = re.compile(r"^(?P<user>[A-Za-z0-9._][A-Za-z0-9._-]*)@(?P<host>[A-Za-z0-9.][A-Za-z0-9.-]*|\[[0-9A-Fa-f:.%]+\])$")
 
 Runner = Callable[..., Any]
 
