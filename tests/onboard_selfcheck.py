@@ -134,8 +134,8 @@ class Raw(object):
 @check
 def serving_a_fake_qcar2_over_tcp():
     st = _fake.reset(car=2, sensors=["lidar"], lidar_script=["scan"], journal="")
-    car = cs.QuanserCar("auto", watchdog=0.1)
-    server = cs.CarServer(car, "127.0.0.1", 0, watchdog=0.1).start()
+    car = cs.QuanserCar("auto", watchdog=0.25)
+    server = cs.CarServer(car, "127.0.0.1", 0, watchdog=0.25).start()
     try:
         raw = Raw(server.bound[1])
         rtype, ref, body = raw.request(cs.HELLO, json.dumps({"protocol": 1, "role": "control"}).encode())
@@ -149,7 +149,7 @@ def serving_a_fake_qcar2_over_tcp():
         assert rtype == cs.READOUT and len(body) == 204 and struct.unpack_from("<d", body, 32)[0] == 15.2
         rtype, ref, body = raw.request(cs.GET_LIDAR)
         assert rtype == cs.LIDAR and struct.unpack_from("<I", body, 8)[0] == 2
-        time.sleep(0.3)  # silent: the watchdog stops the car with hazard lamps
+        time.sleep(0.6)  # silent: the watchdog stops the car with hazard lamps
         assert st.outputs[("other", 11000)] == 0.0
         assert [st.outputs[("digital", c)] for c in (17, 18, 25, 26)] == [1.0] * 4
         raw.sock.close()

@@ -117,9 +117,9 @@ def test_close_stops_and_releases_the_board(fake_quanser):
 def test_the_adapter_keeps_the_boards_watchdog_reloaded(fake_quanser):
     from qcarlab.car.quanser import QuanserCar
 
-    with QuanserCar(watchdog=0.05) as car:
+    with QuanserCar(watchdog=0.2) as car:
         car.write(0.2, 0.0)
-        time.sleep(0.3)  # six watchdog periods with no command: the adapter's thread reloads it
+        time.sleep(1.0)  # five watchdog periods with no command: the adapter's thread reloads it
         fake_quanser.STATE.expire_watchdog_if_due()
         assert not fake_quanser.STATE.watchdog["expired"] and fake_quanser.STATE.outputs[("pwm", 0)] == -0.2
 
