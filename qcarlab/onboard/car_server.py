@@ -1165,8 +1165,10 @@ class CarServer(object):
         now = time.monotonic()
         if not self.tripped and now - self.last_feed > self.watchdog:
             with self.drive_lock:  # re-check under the lock: a command may have just arrived
-                if self.controller is ctl and not self.tripped and time.monotonic() - self.last_feed > self.watchdog:
-                    self._trip(ctl, "no command from {} for {:g} s".format(ctl.peer, self.watchdog))
+                silent = time.monotonic() - self.last_feed
+                if self.controller is ctl and not self.tripped and silent > self.watchdog:
+                    self._trip(ctl, "no command from {} for {:g} s (stopped {:.1f} ms after the last)".format(
+                        ctl.peer, self.watchdog, silent * 1e3))
         elif self.tripped and now - max(ctl.last_rx, self.tripped_at) > self.controller_timeout:
             with self.drive_lock:
                 if self.controller is not ctl:
@@ -1737,8 +1739,11 @@ def main(argv=None):
             server.request_stop()
 
         for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT"):
-            if hasattr(signal, name):
-                signal.signal(getattr(signal, name), on_signal)
+            if not hasattr(signal, name):
+                continue
+            if name == "SIGHUP" and signal.getsignal(signal.SIGHUP) == signal.SIG_IGN:
+                continue  # started under nohup: the user asked to outlive the terminal
+            signal.signal(getattr(signal, name), on_signal)
         server.start()
         missing = "; ".join("{}: {}".format(k, v) for k, v in sorted(car.missing.items()))
         _say("serving {} on {} (protocol v{}, watchdog {:g} s, throttle limit {:g}{}; board watchdog: {}){}; "
