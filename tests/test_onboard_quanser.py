@@ -149,13 +149,17 @@ def test_start_up_is_quansers(fake_quanser):
                                                                     "encoder_counts"]
 
 
-def test_a_failed_start_closes_the_card(fake_quanser, monkeypatch):
+@pytest.mark.parametrize("what", ["configuration", "first write"])
+def test_a_failed_start_closes_the_card(fake_quanser, monkeypatch, what):
     from quanser.hardware import HIL, HILError
 
     def broken(self, *args):
         raise HILError(-1004, "encoder filter")
 
-    monkeypatch.setattr(HIL, "set_encoder_filter_frequency", broken)
+    if what == "configuration":
+        monkeypatch.setattr(HIL, "set_encoder_filter_frequency", broken)
+    else:
+        fake_quanser.reset(car=1, fail_write_after=0)  # the very first write (the start-up stop) fails
     with pytest.raises(cs.CarError, match="could not be set up.*it was closed"):
         cs.QuanserCar(1)
     assert fake_quanser.STATE.open_handles == 0 and events(fake_quanser, "close")
