@@ -91,8 +91,10 @@ def client(srv, role="control", token=None, timeout=3.0):
 
 # --- the watchdog ---------------------------------------------------------------------------------
 def test_the_watchdog_trips_on_time_while_monitors_pull_frames_from_a_slow_camera(make_server):
-    car = RecordingCar(sensor_delay=0.4)  # a camera read that takes 0.4 s, longer than the watchdog
-    srv = make_server(car, watchdog=0.1, sensor_period=0.0)
+    # a camera read that takes 1 s, ten watchdog periods: a watchdog that waited for the sensors
+    # would be 0.5 s late on average; the exact figure (+20 ms) is benchmarks/bench_onboard.py's
+    car = RecordingCar(sensor_delay=1.0)
+    srv = make_server(car, watchdog=0.1, controller_timeout=30.0, sensor_period=0.0)
     stop = threading.Event()
 
     def monitor():
@@ -111,11 +113,11 @@ def test_the_watchdog_trips_on_time_while_monitors_pull_frames_from_a_slow_camer
                     assert ctl.request(M.COMMAND, P.pack_command(0.2, 0.0, OFF)).type == M.APPLIED
                     time.sleep(0.02)
                 last = time.monotonic()
-                time.sleep(0.35)
+                time.sleep(0.8)
                 after = car.tripped_after(last)
                 assert after is not None, "the watchdog did not stop the car"
                 lateness.append(after)
-        assert max(lateness) < 0.1 + 0.1, lateness  # the watchdog time plus a margin for a loaded machine
+        assert 0.05 < min(lateness) and max(lateness) < 0.1 + 0.3, lateness  # (from the reply: a round trip late)
     finally:
         stop.set()
         for t in pullers:
@@ -213,7 +215,7 @@ def test_a_silent_controller_loses_control_after_the_watchdog(make_server, carlo
                 break
         assert time.monotonic() - last < 2.0, "control was never released"
         time.sleep(0.02)
-    assert 0.35 <= takeover < 0.8, takeover
+    assert 0.35 <= takeover < 1.5, takeover  # watchdog + controller timeout, plus a loaded machine's delays
     err = error_of(old.recv())
     assert err["code"] == "timeout" and "control was released" in err["message"] and old.closed_by_peer()
     old.close()
@@ -221,12 +223,13 @@ def test_a_silent_controller_loses_control_after_the_watchdog(make_server, carlo
 
 
 def test_a_controller_that_keeps_talking_keeps_control(make_server):
-    srv = make_server(watchdog=0.1, controller_timeout=0.3)
+    srv = make_server(watchdog=0.1, controller_timeout=1.0)
     with client(srv) as ctl:
         ctl.request(M.COMMAND, P.pack_command(0.2, 0.0, OFF))
-        for _ in range(8):  # no commands (the watchdog trips), but alive: pings
+        for _ in range(15):  # no commands for 1.5 s (the watchdog trips), but alive: pings
             time.sleep(0.1)
             assert ctl.request(M.PING, b"").type == M.PONG
+        assert srv.tripped
         with RawClient(srv.bound) as other:
             assert error_of(other.hello("control"))["code"] == "busy"
         frame = ctl.request(M.COMMAND, P.pack_command(0.1, 0.0, OFF, P.FLAG_READ_BACK))
