@@ -7,7 +7,7 @@ Run: python benchmarks/bench_onboard.py [--python /path/to/python3.8] [--trips 2
 - controller: command + readout round trips at 100 Hz with 8 monitors pulling RGBD at 10 Hz;
   p50/p99 and ticks missed (round trip over 10 ms); target p99 < 2 ms.
 - takeover: a silent controller, a new one asking for control every 10 ms: the time from the
-  last command to the new controller's WELCOME (watchdog + controller timeout by design).
+  last command to the new controller's WELCOME (max(watchdog, controller timeout) by design).
 
 The server runs in its own process (the cars' Python 3.8 when found); every monitor is its own
 process. Prints one line per figure with the machine and its load.
@@ -172,7 +172,7 @@ def main():
                   f"{statistics.median(server_side) * 1e3:.1f} ms, max {max(server_side) * 1e3:.1f} ms")
         take = bench_takeover(srv.address, args.takeovers)
         print(f"takeover ({args.takeovers} times): a new controller gets control {statistics.median(take):.3f} s "
-              f"(median; max {max(take):.3f} s) after the old one's last command (watchdog 0.25 + timeout 1.0 s)")
+              f"(median; max {max(take):.3f} s) after the old one's last command (by design: max(watchdog 0.25 s, controller timeout 1.0 s))")
     print(f"load after: {os.getloadavg()[0]:.2f}")
 
 

@@ -25,6 +25,7 @@ checked against a real car, the comment says so.
 
 import argparse
 import errno
+import hashlib
 import hmac
 import ipaddress
 import json
@@ -79,7 +80,7 @@ DTYPE_CODES = {"|u1": 1, "<u2": 2, "<i4": 3, "<f4": 4, "<f8": 5}  # numpy dtype.
 
 FATAL_CODES = frozenset([
     "bad_magic", "bad_version", "oversized", "sequence", "bad_hello", "bad_token", "busy",
-    "too_many_clients", "timeout", "shutting_down",
+    "too_many_clients", "timeout", "shutting_down", "control_lost",
 ])
 HTTP_METHODS = (b"GET ", b"POST", b"HEAD", b"PUT ", b"DELE", b"OPTI", b"PATC", b"CONN", b"TRAC", b"PRI ")
 HTTP_REPLY = (
@@ -507,7 +508,7 @@ class QuanserCar(object):
                 self.capabilities.append(name)
             except Exception as exc:  # CarError (API missing), DeviceError, MediaError, ...
                 self.missing[name] = _error_text(exc)
-                log.warning("%s not available (%s); serving without it", name, _error_text(exc))
+                _log(logging.WARNING, "%s not available (%s); serving without it", name, _error_text(exc))
 
     # --- the board ------------------------------------------------------------------------------
     def _u32(self, values):
@@ -604,7 +605,7 @@ class QuanserCar(object):
             _quietly(card.watchdog_stop)
             self.hardware_watchdog = False
             self.watchdog_note = "unavailable ({})".format(_error_text(exc))
-            log.warning("the board's watchdog is unavailable (%s): if this process is killed (kill -9, power "
+            _log(logging.WARNING, "the board's watchdog is unavailable (%s): if this process is killed (kill -9, power "
                         "loss of the computer) the motor keeps its last PWM; signals (Ctrl-C, SIGTERM, SIGHUP, "
                         "SIGQUIT) still stop it", _error_text(exc))
 
@@ -623,7 +624,7 @@ class QuanserCar(object):
             try:
                 reloaded = self.card.watchdog_reload()
             except self.HILError as exc:
-                log.error("reloading the board's watchdog failed: %s", _error_text(exc))
+                _log(logging.ERROR, "reloading the board's watchdog failed: %s", _error_text(exc))
                 return True
             if reloaded is None or reloaded:
                 return True
@@ -632,7 +633,7 @@ class QuanserCar(object):
                 self.card.watchdog_start(float(self.watchdog_s))
             except self.HILError as exc:
                 self.hardware_watchdog = False
-                log.error("the board's watchdog expired and could not be restarted: %s", _error_text(exc))
+                _log(logging.ERROR, "the board's watchdog expired and could not be restarted: %s", _error_text(exc))
         return False
 
     def _write(self, throttle, steering, leds):
@@ -696,7 +697,7 @@ class QuanserCar(object):
         self.applied = (0.0, 0.0, ALL_OFF)
         self.fault = ("the {} board {}; {}; the board was closed (send STOP to reopen it)".format(
             self.info["name"] if hasattr(self, "info") else "QCar", why, ", ".join(stopped) or "nothing to stop"))
-        log.error("%s", self.fault)
+        _log(logging.ERROR, "%s", self.fault)
 
     def reopen(self):
         """After a fault: open and set up the board afresh (it starts stopped)."""
@@ -712,7 +713,7 @@ class QuanserCar(object):
             with self.lock:
                 self.fault = "reopening the board failed: {}".format(exc)
             raise CarFault(self.fault)
-        log.warning("the board was reopened; the car is stopped")
+        _log(logging.WARNING, "the board was reopened; the car is stopped")
 
     def read(self):
         with self.lock:
@@ -889,19 +890,73 @@ def _quietly(fn, *args):
 
 
 # =================================================================================================
-# The server
+# The server (docs/protocol.md sections 3, 5 and 6: what a server must do)
 # =================================================================================================
+MIN_TOKEN, MAX_TOKEN = 16, 256
+FREE_FAILURES, PENALTY_BASE_S, PENALTY_MAX_S, FORGET_S = 3, 0.5, 30.0, 600.0
+
+
 def check_token(token):
     """None, or the token if it is 16-256 printable characters (else InputError)."""
-    if token is None:
+    if token is None or not token.strip():
         return None
-    token = token.strip()
-    if not token:
-        return None
-    if len(token) < 16 or len(token) > 256 or not token.isprintable() or " " in token:
-        raise InputError("the token must be 16-256 printable characters without spaces (got {}); make one with "
-                         "--new-token".format(len(token)))
+    if not token.isprintable() or token != token.strip() or not MIN_TOKEN <= len(token) <= MAX_TOKEN:
+        raise InputError("the token must be {}-{} printable characters without leading or trailing spaces (got {}); "
+                         "make one with --new-token".format(MIN_TOKEN, MAX_TOKEN, len(token)))
     return token
+
+
+def token_matches(given, secret):
+    """Constant-time comparison of digests (neither the value nor the length leaks through timing)."""
+    if not isinstance(given, str):
+        return False
+    a = hashlib.sha256(given.encode("utf-8", "surrogatepass")).digest()
+    return hmac.compare_digest(a, hashlib.sha256(secret.encode("utf-8")).digest())
+
+
+def penalty_s(failures):
+    """Seconds an address waits after its ``failures``-th wrong token in a row: 3 free, then 0.5,
+    1, 2, ... at most 30 s."""
+    if failures <= FREE_FAILURES:
+        return 0.0
+    return min(PENALTY_BASE_S * 2.0 ** (failures - FREE_FAILURES - 1), PENALTY_MAX_S)
+
+
+class TokenGuard(object):
+    """Wrong tokens per client address: the wait before a token from it is compared again."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.seen = {}  # address -> (failures in a row, wait until, last failure)
+
+    def wait_s(self, addr):
+        now = time.monotonic()
+        with self.lock:
+            entry = self.seen.get(addr)
+            if entry is None:
+                return 0.0
+            if now - entry[2] > FORGET_S:
+                del self.seen[addr]
+                return 0.0
+            return max(0.0, entry[1] - now)
+
+    def failed(self, addr):
+        now = time.monotonic()
+        with self.lock:
+            failures, _, last = self.seen.pop(addr, (0, 0.0, now))
+            if now - last > FORGET_S:
+                failures = 0
+            failures += 1
+            wait = penalty_s(failures)
+            self.seen[addr] = (failures, now + wait, now)
+            if len(self.seen) > 4096:
+                oldest = min(self.seen, key=lambda a: self.seen[a][2])
+                del self.seen[oldest]
+            return wait
+
+    def succeeded(self, addr):
+        with self.lock:
+            self.seen.pop(addr, None)
 
 
 def is_loopback_address(addr):
@@ -931,57 +986,76 @@ class _End(Exception):
 
 
 class RefusalLog(object):
-    """Refused connections are counted and logged at most once per ``interval`` (one line each)."""
+    """Refusals (connections that never became clients) at a bounded rate: the first of each kind
+    in an interval gets its own line, the rest are counted and summed up in one line when the
+    interval ends."""
 
     def __init__(self, interval=10.0):
         self.interval = interval
         self.lock = threading.Lock()
+        self.start = time.monotonic()
+        self.logged = set()
         self.counts = {}
-        self.last = None
+        self.last_peer = ""
+        self.total = 0
 
-    def refused(self, reason, peer, detail=""):
+    def refused(self, code, peer, detail=""):
+        self.flush()
+        with self.lock:
+            self.total += 1
+            first = code not in self.logged
+            if first:
+                self.logged.add(code)
+            else:
+                self.counts[code] = self.counts.get(code, 0) + 1
+                self.last_peer = peer
+        if first:
+            _log(logging.WARNING, "%s refused: %s%s", peer, code, ": " + detail if detail else "")
+
+    def flush(self, force=False):
         now = time.monotonic()
         with self.lock:
-            if self.last is None or now - self.last >= self.interval:
-                pending = self.counts
-                self.counts = {}
-                self.last = now
-            else:
-                self.counts[reason] = self.counts.get(reason, 0) + 1
+            if not force and now - self.start < self.interval:
                 return
-        if pending:
-            log.warning("refused %s more connection(s) in the last %g s", ", ".join(
-                "{} {}".format(n, r) for r, n in sorted(pending.items())), self.interval)
-        log.warning("%s refused: %s%s (further refusals are counted, one line per %g s)", peer, reason,
-                    ": " + detail if detail else "", self.interval)
+            counts, last, span = self.counts, self.last_peer, now - self.start
+            self.start, self.logged, self.counts = now, set(), {}
+        if counts:
+            n = sum(counts.values())
+            kinds = ", ".join("{} {:,}".format(c, k) for c, k in sorted(counts.items(), key=lambda kv: -kv[1]))
+            _log(logging.WARNING, "refused %s more connection%s in the last %.0f s (%s); the last from %s",
+                 "{:,}".format(n), "" if n == 1 else "s", span, kinds, last)
 
-    def flush(self):
-        with self.lock:
-            pending, self.counts = self.counts, {}
-        if pending:
-            log.warning("refused %s more connection(s)", ", ".join("{} {}".format(n, r) for r, n in sorted(pending.items())))
+
+def _log(level, msg, *args):
+    try:
+        log.log(level, msg, *args)
+    except Exception:  # a failing handler (the terminal is gone) must not end a server thread
+        pass
+
+
+_POLL_GONE = (getattr(select, "POLLRDHUP", 0) | select.POLLHUP | select.POLLERR) if hasattr(select, "poll") else 0
 
 
 class CarServer(object):
     """Serve ``car`` (a :class:`DryRunCar` or :class:`QuanserCar`) on ``host:port``."""
 
     def __init__(self, car, host="127.0.0.1", port=DEFAULT_PORT, token=None, watchdog=0.25,
-                 controller_timeout=None, throttle_limit=0.3, max_clients=16, max_pending=32,
-                 max_pending_per_host=4, hello_timeout=2.0, frame_timeout=5.0, send_timeout=10.0,
-                 sensor_period=0.05):
+                 controller_timeout=None, throttle_limit=0.3, max_clients=16, max_pending=16,
+                 monitor_rate=10.0, hello_timeout=2.0, frame_timeout=5.0, send_timeout=5.0):
         if not (isinstance(port, int) and 0 <= port < 65536):
             raise InputError("--port must be in 0-65535, got {!r}".format(port))
         if not (math.isfinite(watchdog) and 0.01 <= watchdog <= 60.0):
             raise InputError("--watchdog must be between 0.01 and 60 s, got {}".format(watchdog))
         if controller_timeout is None:
             controller_timeout = 4.0 * watchdog
-        if not (math.isfinite(controller_timeout) and watchdog <= controller_timeout <= 3600.0):
-            raise InputError("--controller-timeout must be between the watchdog time and 3600 s, got {}".format(
-                controller_timeout))
+        if not (math.isfinite(controller_timeout) and 0.01 <= controller_timeout <= 3600.0):
+            raise InputError("--controller-timeout must be between 0.01 and 3600 s, got {}".format(controller_timeout))
         if not (math.isfinite(throttle_limit) and 0.0 < throttle_limit <= 1.0):
             raise InputError("--throttle-limit must be in (0, 1], got {}".format(throttle_limit))
         if not 2 <= max_clients <= 1024:
             raise InputError("--max-clients must be in 2-1024 (one slot is kept for a controller), got {}".format(max_clients))
+        if not (math.isfinite(monitor_rate) and 0.1 <= monitor_rate <= 1000.0):
+            raise InputError("--monitor-rate must be between 0.1 and 1000 Hz, got {}".format(monitor_rate))
         self.car = car
         self.host, self.port = host, port
         self.token = check_token(token)
@@ -991,28 +1065,30 @@ class CarServer(object):
         self.steering_limit = MAX_STEERING
         self.max_clients = max_clients
         self.max_pending = max_pending
-        self.max_pending_per_host = max_pending_per_host
+        self.monitor_rate = float(monitor_rate)
         self.hello_timeout = hello_timeout
         self.frame_timeout = frame_timeout
         self.send_timeout = send_timeout
-        self.sensor_period = sensor_period
 
         self.drive_lock = threading.RLock()  # controller identity + feeding + drive writes (one HIL call)
+        self.control_free = threading.Condition(self.drive_lock)  # notified when the controller leaves
         self.state_lock = threading.Lock()  # the session sets
         self.controller = None
         self.sessions = set()
         self.pending = []  # sessions that have not said hello, oldest first
+        self.monitors = set()
         self.last_feed = time.monotonic()
         self.tripped = False
-        self.tripped_at = 0.0
         self.trips = 0
+        self.takeovers = 0
         self.stopping = False
         self.refusals = RefusalLog()
-        self.token_failures = {}  # host -> (count, last time)
+        self.tokens = TokenGuard()
         self.sensor_cache = {}  # reply type -> (monotonic time read, payload parts)
         self.sensor_locks = {LIDAR: threading.Lock(), RGBD: threading.Lock(), CSI: threading.Lock()}
         self._stop_evt = threading.Event()
         self._watchdog_off = threading.Event()  # set last, when every client is gone
+        self._kick = threading.Event()  # wakes the watchdog to recompute its deadline
         self._listener = None
         self._threads = []
         self.bound = None
@@ -1027,7 +1103,8 @@ class CarServer(object):
                          "extra": car.extra()},
             "lockstep": False, "watchdog_s": self.watchdog, "controller_timeout_s": self.controller_timeout,
             "throttle_limit": self.throttle_limit, "steering_limit": self.steering_limit,
-            "max_request": MAX_REQUEST, "params": params,
+            "max_request": MAX_REQUEST, "max_clients": self.max_clients, "monitor_rate_hz": self.monitor_rate,
+            "hello_timeout_s": self.hello_timeout, "frame_timeout_s": self.frame_timeout, "params": params,
         }
 
     # --- lifecycle ------------------------------------------------------------------------------
@@ -1100,6 +1177,8 @@ class CarServer(object):
         self.stopping = True
         self._stop_evt.set()
         self.safe_stop(why)
+        with self.drive_lock:
+            self.control_free.notify_all()
         with self.state_lock:
             sessions = list(self.sessions)
         for s in sessions:
@@ -1109,13 +1188,13 @@ class CarServer(object):
                 s.thread.join(3.0)
         self.safe_stop(why)
         self._watchdog_off.set()
+        self._kick.set()
         for t in self._threads:
             if t is not threading.current_thread():
                 t.join(3.0)
         if self._listener is not None:
             _quietly(self._listener.close)
-        self.refusals.flush()
-        return None
+        self.refusals.flush(force=True)
 
     # --- the car --------------------------------------------------------------------------------
     def safe_stop(self, why):
@@ -1129,12 +1208,13 @@ class CarServer(object):
         except CarFault:
             return True  # the board was closed after stopping the car by another path
         except Exception as exc:
-            log.error("could not stop the car (%s): %s", why, exc)
+            _log(logging.ERROR, "could not stop the car (%s): %s", why, exc)
             return False
 
     def feed(self):
         self.last_feed = time.monotonic()
         self.tripped = False
+        self._kick.set()
 
     def status(self):
         bits = 0
@@ -1144,41 +1224,41 @@ class CarServer(object):
             bits |= STATUS_CONTROLLED
         return bits
 
+    def controller_stale(self, ctl, now):
+        """The controller lost its claim: the watchdog stopped the car and it sent nothing for
+        ``controller_timeout`` s (the next control hello takes over)."""
+        return self.tripped and now - ctl.last_rx >= self.controller_timeout
+
     def _watchdog_loop(self):
-        """Its own thread: trips the watchdog, reloads the board's watchdog, ends silent
-        controllers. The only lock it takes is the drive lock, held for one HIL call at a time."""
-        while not self._watchdog_off.wait(0.005):
+        """Its own thread: waits for the watchdog's deadline itself, trips it, reloads the board's
+        watchdog. The only lock it takes is the drive lock, held for one HIL call at a time."""
+        while not self._watchdog_off.is_set():
+            now = time.monotonic()
+            wait = 0.005  # the board's watchdog is reloaded every watchdog/5 s at most; 5 ms is plenty
+            if self.controller is not None and not self.tripped:
+                wait = min(wait, max(0.0, self.last_feed + self.watchdog - now))
+            self._kick.wait(wait)
+            self._kick.clear()
             try:
                 self._watchdog_tick()
             except Exception as exc:  # never let the watchdog die
-                log.error("watchdog: %s: %s", type(exc).__name__, exc)
+                _log(logging.ERROR, "watchdog: %s: %s", type(exc).__name__, exc)
 
     def _watchdog_tick(self):
         if not self.car.kick():
-            log.error("the board's own watchdog expired (this server stalled for more than %g s): the board "
-                      "stopped the motor", self.watchdog)
             with self.drive_lock:
-                self._trip(self.controller, "the board's watchdog expired")
+                self._trip(self.controller, "the board's own watchdog expired (this server stalled for more than "
+                                            "{:g} s): the board stopped the motor".format(self.watchdog))
         ctl = self.controller
-        if ctl is None:
+        if ctl is None or self.tripped:
             return
-        now = time.monotonic()
-        if not self.tripped and now - self.last_feed > self.watchdog:
+        silent = time.monotonic() - self.last_feed
+        if silent > self.watchdog:
             with self.drive_lock:  # re-check under the lock: a command may have just arrived
                 silent = time.monotonic() - self.last_feed
                 if self.controller is ctl and not self.tripped and silent > self.watchdog:
                     self._trip(ctl, "no command from {} for {:g} s (stopped {:.1f} ms after the last)".format(
                         ctl.peer, self.watchdog, silent * 1e3))
-        elif self.tripped and now - max(ctl.last_rx, self.tripped_at) > self.controller_timeout:
-            with self.drive_lock:
-                if self.controller is not ctl:
-                    return
-                self.controller = None
-                self.tripped = False
-            ctl.revoke("the controller sent nothing for {:g} s after the watchdog stopped the car; control was "
-                       "released (the next HELLO for control gets it)".format(self.controller_timeout))
-            log.warning("%s sent nothing for %g s after the watchdog stopped the car: control released",
-                        ctl.peer, self.controller_timeout)
 
     def _trip(self, ctl, why):
         """With the drive lock held: stop the car with hazard lamps, set status bit 0."""
@@ -1187,12 +1267,62 @@ class CarServer(object):
         except CarFault:
             pass  # stopped through another path, board closed, logged
         except Exception as exc:
-            log.error("watchdog could not stop the car: %s", exc)
+            _log(logging.ERROR, "watchdog could not stop the car: %s", exc)
         if ctl is not None:
             self.tripped = True
-            self.tripped_at = time.monotonic()
             self.trips += 1
-            log.warning("watchdog: %s; car stopped (throttle 0, hazard lamps)", why)
+        _log(logging.WARNING, "watchdog: %s; car stopped (throttle 0, hazard lamps)", why)
+
+    def claim_control(self, session):
+        """Make ``session`` the controller; None, or the refusal's message (``busy``). A controller
+        that is leaving is waited for (1 s at most); a stale one is taken over (``control_lost``)."""
+        wait_until = time.monotonic() + 1.0
+        revoke = None
+        with self.control_free:
+            while True:
+                holder = self.controller
+                now = time.monotonic()
+                if holder is None or holder is session:
+                    break
+                if self.controller_stale(holder, now):
+                    revoke = holder
+                    break
+                if (holder.ending or holder.peer_gone()) and now < wait_until and not self.stopping:
+                    self.control_free.wait(min(0.05, wait_until - now))  # it is leaving: wait for it to be gone
+                    continue
+                return ("the car is controlled by {} (last heard {:.2g} s ago; control passes on once the watchdog "
+                        "has stopped the car and it has been silent for {:g} s); connect as a monitor to watch".format(
+                            holder.peer, now - holder.last_rx, self.controller_timeout))
+            self.controller = session
+            self.feed()
+            if revoke is not None:
+                self.takeovers += 1
+        if revoke is not None:
+            quiet = time.monotonic() - revoke.last_rx
+            revoke.revoke("control passed to {}: nothing was heard from this connection for {:.2g} s after the "
+                          "watchdog stopped the car".format(session.peer, quiet))
+            _log(logging.WARNING, "%s (control) was silent for %.2g s after the watchdog stopped the car; control "
+                 "passed to %s", revoke.peer, quiet, session.peer)
+        return None
+
+    def release(self, session):
+        """``session`` leaves: True if it was the controller (the car is then stopped)."""
+        with self.state_lock:
+            self.sessions.discard(session)
+            self.monitors.discard(session)
+            if session in self.pending:
+                self.pending.remove(session)
+        with self.drive_lock:
+            was = self.controller is session
+        if not was:
+            return None
+        ok = self.safe_stop("{} left".format(session.peer))
+        with self.control_free:
+            if self.controller is session:
+                self.controller = None
+                self.tripped = False
+            self.control_free.notify_all()
+        return ok
 
     # --- connections ----------------------------------------------------------------------------
     def _accept_loop(self):
@@ -1201,6 +1331,7 @@ class CarServer(object):
                 ready, _, _ = select.select([self._listener], [], [], 0.25)
             except (OSError, ValueError):
                 break
+            self.refusals.flush()
             if self.stopping:
                 break
             if not ready:
@@ -1212,34 +1343,15 @@ class CarServer(object):
             peer = _peer_name(addr)
             host = str(addr[0]) if isinstance(addr, tuple) else peer
             evict = None
-            refuse = None
             with self.state_lock:
-                same_host = [s for s in self.pending if s.host == host]
-                if len(same_host) >= self.max_pending_per_host:
-                    evict = same_host[0]  # the oldest of this host's silent connections makes room
-                elif len(self.pending) >= self.max_pending:
-                    evict = self.pending[0]
-                elif len(self.sessions) - len(self.pending) >= self.max_clients:
-                    refuse = "the server already has {} clients".format(self.max_clients)
-                if evict is not None:
-                    self.pending.remove(evict)
+                if len(self.pending) >= self.max_pending:  # the oldest connection without a hello makes room
+                    evict = self.pending.pop(0)
                     evict.evicted = True
-                if refuse is None:
-                    session = _Session(self, sock, peer, host)
-                    self.sessions.add(session)
-                    self.pending.append(session)
+                session = _Session(self, sock, peer, host)
+                self.sessions.add(session)
+                self.pending.append(session)
             if evict is not None:
                 evict.interrupt()
-                self.refusals.refused("no hello", evict.peer, "too many connections without a hello; the oldest was dropped")
-            if refuse is not None:
-                try:
-                    sock.settimeout(0.5)
-                    send_frame(sock, ERROR, 1, 0, [error_payload("too_many_clients", refuse + "; try again later")])
-                except OSError:
-                    pass
-                _quietly(sock.close)
-                self.refusals.refused("too_many_clients", peer, refuse)
-                continue
             try:
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
@@ -1249,20 +1361,6 @@ class CarServer(object):
             t.daemon = True
             session.thread = t
             t.start()
-
-    def token_delay(self, host):
-        """Seconds to wait before answering a wrong token from ``host`` (0.25 s, doubling, at most 4 s;
-        forgotten after a minute without failures)."""
-        now = time.monotonic()
-        with self.state_lock:
-            count, last = self.token_failures.get(host, (0, now))
-            if now - last > 60.0:
-                count = 0
-            count += 1
-            self.token_failures[host] = (count, now)
-            if len(self.token_failures) > 4096:
-                self.token_failures.clear()
-        return min(0.25 * 2 ** (count - 1), 4.0)
 
 
 class _Session(object):
@@ -1287,7 +1385,10 @@ class _Session(object):
         self.send_lock = threading.Lock()
         self.revoked = None
         self.evicted = False
+        self.ending = False
         self.bye_ref = None
+        self.refusal = None  # (code, detail) when this connection never became a client
+        self.next_frame = {}  # a monitor's next sensor slots: reply type -> monotonic time
 
     # --- sending --------------------------------------------------------------------------------
     def send(self, mtype, ref, *parts):
@@ -1305,15 +1406,19 @@ class _Session(object):
             return
         self.errors += 1
         if self.errors <= 5:
-            log.warning("%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
+            _log(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
             if self.errors == 5:
-                log.warning("%s: further errors from this client are counted, not logged", self.peer)
+                _log(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
 
-    def fatal(self, code, message, ref=0):
+    def fatal(self, code, message, ref=0, extra=None):
+        body = {"code": code, "message": message, "fatal": True}
+        body.update(extra or {})
         try:
-            self.send(ERROR, ref, error_payload(code, message))
+            self.send(ERROR, ref, json.dumps(body, separators=(",", ":")).encode("utf-8"))
         except OSError:
             pass
+        if self.role is None:
+            self.refusal = (code, message)
         return _End("{}: {}".format(code, message))
 
     def interrupt(self):
@@ -1323,8 +1428,20 @@ class _Session(object):
             pass
 
     def revoke(self, why):
+        """Another client took control from this stale one: tell it and end the connection."""
         self.revoked = why
         self.interrupt()
+
+    def peer_gone(self):
+        """The client has closed its end (seen without reading: this thread may be about to)."""
+        if not _POLL_GONE:
+            return False
+        try:
+            poller = select.poll()
+            poller.register(self.sock.fileno(), _POLL_GONE)
+            return bool(poller.poll(0))
+        except (OSError, ValueError):
+            return True
 
     # --- the connection's life -------------------------------------------------------------------
     def run(self):
@@ -1338,24 +1455,22 @@ class _Session(object):
                     self.send(BYE, 0, json.dumps({"reason": end.reason}).encode("utf-8"))
                 except OSError:
                     pass
+        except socket.timeout:
+            reason = "not reading its replies: one could not be sent within {:g} s".format(self.server.send_timeout)
         except OSError as exc:
             reason = "connection error: {}".format(exc.strerror or exc)
         except Exception as exc:  # never let one client take the server down
             reason = "internal error: {}: {}".format(type(exc).__name__, exc)
         finally:
+            self.ending = True
             self._finish(reason)
 
     def _finish(self, reason):
         server = self.server
+        was_controller = server.release(self)
         stopped = ""
-        with server.drive_lock:
-            was_controller = server.controller is self
-            if was_controller:
-                server.controller = None
-                server.tripped = False
-        if was_controller:
-            ok = server.safe_stop("{} left".format(self.peer))
-            stopped = "; car stopped" if ok else "; STOPPING THE CAR FAILED"
+        if was_controller is not None:
+            stopped = "; car stopped" if was_controller else "; STOPPING THE CAR FAILED"
         if self.errors > 5:
             reason += "; {} error frames in all".format(self.errors)
         if self.bye_ref is not None:
@@ -1364,30 +1479,27 @@ class _Session(object):
             except OSError:
                 pass
         _quietly(self.sock.close)
-        with server.state_lock:
-            server.sessions.discard(self)
-            if self in server.pending:
-                server.pending.remove(self)
         if self.role is None:
-            if not self.evicted:
-                server.refusals.refused("no hello", self.peer, _one_line(reason, 120))
+            code, detail = self.refusal or ("no_hello", _one_line(reason, 120))
+            server.refusals.refused(code, self.peer, _one_line(detail, 160))
             return
         line = "%s (%s) disconnected: %s%s"
         args = (self.peer, self.role, _one_line(reason), stopped)
-        if reason.startswith(("internal", "connection error")) or "FAILED" in stopped:
-            log.warning(line, *args)
-        else:
-            log.info(line, *args)
+        level = logging.INFO
+        if reason.startswith(("internal", "connection error", "not reading", "control_lost")) or "FAILED" in stopped:
+            level = logging.WARNING
+        _log(level, line, *args)
 
     def _recv_more(self, deadline):
-        """Receive more bytes (False at end of stream); ``deadline`` (monotonic) or None."""
+        """Receive more bytes (False at end of stream, None at the deadline); ``deadline`` or None."""
         while True:
             if self.revoked:
-                raise self.fatal("timeout", self.revoked)
+                raise self.fatal("control_lost", self.revoked)
             if self.server.stopping:
                 raise _End("server stopping", bye=self.role is not None)
             if self.evicted:
-                raise self.fatal("too_many_clients", "too many connections that have not said hello; dropped")
+                raise self.fatal("too_many_clients", "more than {} connections were waiting for their hello; this, the "
+                                 "oldest, was dropped to make room".format(self.server.max_pending))
             wait = 0.25
             if deadline is not None:
                 left = deadline - time.monotonic()
@@ -1416,6 +1528,7 @@ class _Session(object):
             n = len(buf)
             if n >= 2 and bytes(buf[:2]) != MAGIC:
                 if self.rx_seq == 0 and looks_like_http(buf):
+                    self.refusal = ("http", "spoke HTTP; answered 400")
                     raise _End(self._http())
                 raise self.fatal("bad_magic", "not a qcarlab frame (bad magic)")
             if n >= HEADER_SIZE:
@@ -1442,6 +1555,7 @@ class _Session(object):
             if got is None:  # a deadline passed
                 if self.role is None:
                     if looks_like_http(self.buf):
+                        self.refusal = ("http", "spoke HTTP; answered 400")
                         raise _End(self._http())
                     what = "no hello" if not self.buf else "the hello was not complete"
                     raise self.fatal("timeout", "{} within {:g} s".format(what, server.hello_timeout))
@@ -1501,29 +1615,33 @@ class _Session(object):
         if isinstance(client, str):
             self.client = "".join(ch if ch.isprintable() else "?" for ch in client[:64])
         if server.token is not None:
-            given = msg.get("token")
-            if not isinstance(given, str) or not hmac.compare_digest(
-                    given.encode("utf-8", "surrogatepass"), server.token.encode("utf-8")):
-                time.sleep(server.token_delay(self.host))
-                raise self.fatal("bad_token", "wrong or missing token", seq)
+            wait = server.tokens.wait_s(self.host)
+            if wait > 0:
+                raise self.fatal("bad_token", "too many wrong tokens from {}; try again in {:.1f} s".format(
+                    self.host, wait), seq, {"retry_after_s": round(wait, 3)})
+            if not token_matches(msg.get("token"), server.token):
+                wait = server.tokens.failed(self.host)
+                raise self.fatal("bad_token", "wrong or missing token", seq,
+                                 {"retry_after_s": round(wait, 3)} if wait > 0 else None)
+            server.tokens.succeeded(self.host)
         with server.state_lock:
-            if self in server.pending:
-                server.pending.remove(self)
-            monitors = len([s for s in server.sessions if s.role == "monitor"])
-        if role == "control":
-            with server.drive_lock:
-                holder = server.controller
-                if holder is None:
-                    server.controller = self
-                    server.feed()
-            if holder is not None:
-                raise self.fatal("busy", "the car is controlled by {}; connect as a monitor to watch".format(
-                    holder.peer), seq)
-        elif monitors >= server.max_clients - 1:
-            raise self.fatal("too_many_clients", "all {} monitor slots are taken (one more is kept for a "
+            if self.evicted or server.stopping:
+                raise self.fatal("too_many_clients", "the server is busy with other connections; try again", seq)
+            full = role == "monitor" and len(server.monitors) >= server.max_clients - 1
+            if not full:
+                if self in server.pending:
+                    server.pending.remove(self)
+                if role == "monitor":
+                    server.monitors.add(self)
+        if full:
+            raise self.fatal("too_many_clients", "the server already has {} monitors (one more slot is kept for a "
                              "controller); try again later".format(server.max_clients - 1), seq)
+        if role == "control":
+            refusal = server.claim_control(self)
+            if refusal is not None:
+                raise self.fatal("busy", refusal, seq)
         self.role = role
-        log.info("%s connected as %s (%s)", self.peer, role, self.client)
+        _log(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
         self.send(WELCOME, seq, json.dumps(server.welcome(role), separators=(",", ":")).encode("utf-8"))
 
     # --- requests -------------------------------------------------------------------------------
@@ -1586,7 +1704,7 @@ class _Session(object):
             if controller:
                 server.feed()
                 self.car.write(throttle, steering, leds)
-        if not controller:  # released by the watchdog a moment ago: not this car's command any more
+        if not controller:  # taken over a moment ago: not this car's command any more
             self.error("read_only", "this connection lost the control role", seq)
             return
         if flags & FLAG_READ_BACK:
@@ -1633,6 +1751,10 @@ class _Session(object):
                    "itself on a real car", seq)
 
     def _sensor(self, mtype, seq, payload):
+        """A sensor frame. Monitors are paced to ``monitor_rate`` frames/s per sensor (a request
+        early for its slot waits, then gets the newest frame; frames in between are dropped, never
+        queued); a frame younger than 1/rate is resent rather than a new one read. The controller
+        is never paced and always gets a fresh reading."""
         server = self.server
         self._empty(mtype, payload)
         reply, cap, method = {GET_LIDAR: (LIDAR, "lidar", "read_lidar"), GET_RGBD: (RGBD, "rgbd", "read_rgbd"),
@@ -1641,9 +1763,17 @@ class _Session(object):
             why = getattr(self.car, "missing", {}).get(cap, "not fitted")
             self.error("unsupported", "this car has no {} sensor ({})".format(cap, why), seq)
             return
+        period = 1.0 / server.monitor_rate
+        controller = server.controller is self
+        if not controller:
+            slot = self.next_frame.get(reply, 0.0)
+            delay = slot - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            self.next_frame[reply] = max(slot, time.monotonic() - period) + period
         with server.sensor_locks[reply]:  # one reader per sensor; never the drive lock
             cached = server.sensor_cache.get(reply)
-            if cached is not None and time.monotonic() - cached[0] < server.sensor_period:
+            if not controller and cached is not None and time.monotonic() - cached[0] < period:
                 parts = cached[1]
             else:
                 t, arrays = getattr(self.car, method)()
@@ -1682,6 +1812,7 @@ def build_parser():
                    help="a controller silent this long after the watchdog stopped the car loses control (default 4 x watchdog)")
     p.add_argument("--throttle-limit", type=float, default=0.3, help="largest |throttle| (duty fraction) applied")
     p.add_argument("--max-clients", type=int, default=16, help="connections after hello (one slot kept for a controller)")
+    p.add_argument("--monitor-rate", type=float, default=10.0, help="sensor frames per second per monitor and sensor")
     p.add_argument("--no-lidar", action="store_true", help="do not open the LIDAR")
     p.add_argument("--no-rgbd", action="store_true", help="do not open the RealSense camera")
     p.add_argument("--no-csi", action="store_true", help="do not open the CSI cameras")
@@ -1714,21 +1845,38 @@ def main(argv=None):
         import secrets
         print(secrets.token_urlsafe(24))
         return 0
-    handlers = [logging.StreamHandler(sys.stderr)]
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s: %(message)s", handlers=handlers)
+    # the log goes through a queue to its own thread: a terminal or file that blocks never holds
+    # up the watchdog (which logs each stop)
+    import logging.handlers
+    import queue
+
+    fmt = logging.Formatter("%(asctime)s %(levelname)s: %(message)s")
+    outputs = [logging.StreamHandler(sys.stderr)]
+    log_queue = queue.Queue()
+    listener = logging.handlers.QueueListener(log_queue, *outputs)
+    root = logging.getLogger()
+    root.addHandler(logging.handlers.QueueHandler(log_queue))
+    root.setLevel(logging.INFO)
     car = None
     server = None
+    listening = False
     try:
         token = check_token(_token_from(args))
         if args.log_file:
-            fh = logging.FileHandler(os.path.expanduser(args.log_file))
-            fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s: %(message)s"))
-            logging.getLogger().addHandler(fh)
+            try:
+                outputs.append(logging.FileHandler(os.path.expanduser(args.log_file)))
+            except OSError as exc:
+                raise InputError("--log-file {}: {}".format(args.log_file, exc.strerror or exc))
+        for h in outputs:
+            h.setFormatter(fmt)
+        listener.handlers = tuple(outputs)
+        listener.start()
+        listening = True
         car_type = args.car_type if args.car_type == "auto" else int(args.car_type)
         # options and the port first, then the hardware
         server = CarServer(None, args.host, args.port, token=token, watchdog=args.watchdog,
                            controller_timeout=args.controller_timeout, throttle_limit=args.throttle_limit,
-                           max_clients=args.max_clients).bind()
+                           max_clients=args.max_clients, monitor_rate=args.monitor_rate).bind()
         if args.dry_run:
             car = DryRunCar(1 if car_type == "auto" else car_type)
         else:
@@ -1773,6 +1921,8 @@ def main(argv=None):
             server.stop()
         if car is not None:
             car.close()
+        if listening:
+            listener.stop()
 
 
 def _say(text):
