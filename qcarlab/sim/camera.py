@@ -18,7 +18,7 @@ fx = fy = 616 px, show). Pixel (u, v): u to the right, v down; the principal poi
 centre (cx, cy) = (319.5, 239.5), so the two middle columns straddle the optical axis. The depth
 image is aligned to the colour image and holds the **z-depth from the camera** (the distance
 along the optical axis from the D435's optical centre, as the RealSense reports it): a wall 2 m
-ahead of the car's centre reads ``2 - rgbd_x`` = 1.81 m in the middle of the image. Depth is 0
+ahead of the car's centre reads ``2 - rgbd_x`` = 1.92 m in the middle of the image. Depth is 0
 (no data) nearer than :data:`RGBD_MIN_DEPTH` and beyond ``rgbd_max_depth``. Noise: colour
 +-:data:`COLOR_NOISE_SD` levels per channel, depth sigma = :data:`DEPTH_NOISE` * z^2.
 
