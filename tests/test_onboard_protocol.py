@@ -255,3 +255,17 @@ def test_stopping_the_server_says_bye_and_stops_the_car():
                 assert frame is not None and frame.type == M.BYE, kind
                 assert "server stopping" in json.loads(bytes(frame.payload))["reason"]
             assert code == 0 and "the car is stopped" in out, (kind, out, err[-500:])
+
+
+def test_the_car_side_parameters_are_qcarlabs_constants():
+    from dataclasses import fields
+
+    from qcarlab.constants import QCAR1_PARAMS, QCAR2_PARAMS
+
+    names = {f.name for f in fields(QCAR1_PARAMS)}
+    for car_type, params in ((1, QCAR1_PARAMS), (2, QCAR2_PARAMS)):
+        sent = cs.CAR_PARAMS[car_type]
+        assert set(sent) <= names, set(sent) - names
+        assert {k: getattr(params, k) for k in sent} == pytest.approx(sent), car_type
+        assert params_from_mapping(sent, "car side") == params  # the laptop rebuilds the same car
+    assert cs.MAX_STEERING == QCAR1_PARAMS.max_steering and cs.LIDAR_MAX_RANGE == QCAR1_PARAMS.lidar_max_range
