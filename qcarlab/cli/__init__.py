@@ -17,5 +17,6 @@ from qcarlab.cli import avoid  # noqa: F401  (avoid)
 from qcarlab.cli import grade  # noqa: F401  (grade)
 from qcarlab.cli import lab  # noqa: F401  (blocks, template)
 from qcarlab.cli import replay  # noqa: F401  (replay info)
+from qcarlab.cli import onboard  # noqa: F401  (onboard, deploy)
 
 __all__ = ["app", "main"]

@@ -56,7 +56,7 @@ def avoid_cmd(
     = "combined",
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
     stop_distance: Annotated[float, typer.Option(help="Stop when a return in the forward window is closer than "
-                                                 "this, m from the LIDAR (0.2125 m behind the front bumper).")] = 0.4,
+                                                 "this, m from the LIDAR (0.223 m behind the front bumper).")] = 0.4,
     half_width: Annotated[float, typer.Option(help="Half width of the forward window, m (car half width 0.096 + "
                                               "margin).")] = 0.15,
     duration: Annotated[float, typer.Option(help="Run length, s (a collision ends it earlier).")] = 20.0,

@@ -258,7 +258,7 @@ def keyboard_drive_cmd(
         max_throttle=max_throttle,
         throttle_step=min(throttle_step, max_throttle),
         throttle_ramp=ramp,
-        max_steering=0.5236,
+        max_steering=0.5,
         steering_step=steering_step,
         steering_ramp=steering_ramp,
     )

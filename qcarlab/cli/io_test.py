@@ -62,7 +62,7 @@ def _summary(result: Result) -> None:
 @recordable
 def io_test_cmd(
     throttle: Annotated[float, typer.Option(help="Motor PWM duty fraction (the sheet's % / 100), limited to +-0.3.")] = 0.1,
-    steering: Annotated[float, typer.Option(help="Steering angle in rad, + = left, limited to +-0.5236.")] = 0.0,
+    steering: Annotated[float, typer.Option(help="Steering angle in rad, + = left, limited to +-0.5.")] = 0.0,
     leds: Annotated[
         str,
         typer.Option(help="Lamps to switch on, comma separated: " + ", ".join(known_lamp_words()) + "."),

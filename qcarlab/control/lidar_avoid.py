@@ -4,8 +4,8 @@ blocks and the Task 4 combination. Pure: numpy in, numbers out; no car, no I/O.
 Every function takes the scan as the car gives it (:class:`qcarlab.sensors.LidarScan`): ``angles``
 in the body frame, counter-clockwise from forward (REP-103: + = left), ``ranges`` in metres from
 the LIDAR, ``0`` = no return. A return is the body-frame point ``x = r cos(theta)`` (forward),
-``y = r sin(theta)`` (left). On the QCar the LIDAR sits on the roof over the car's centre
-(``QCarParams.lidar_x = 0``), so its front bumper is ``length / 2 = 0.2125 m`` ahead of the LIDAR:
+``y = r sin(theta)`` (left). On the QCar the LIDAR sits on the roof just behind the car's centre
+(``QCarParams.lidar_x = -0.0108``), so its front bumper is ``length / 2 - lidar_x = 0.223 m`` ahead of the LIDAR:
 a stop distance is measured from the LIDAR, as the sheet's function sees it.
 
 - :func:`lidar_stop` ("LIDAR Stop.slx", Figure 60): speed only, 0 when an obstacle is near.
@@ -65,7 +65,7 @@ def lidar_stop(ranges, angles, desired_speed: float, stop_distance: float = 0.4,
 
     The forward window is :func:`forward_range`'s corridor of +-``half_width`` (m) ahead of the
     car (0.15 m: the car's half width 0.096 m plus 5 cm). ``stop_distance`` is measured from the
-    LIDAR (over the car's centre, 0.2125 m behind the front bumper). Acts on the speed only.
+    LIDAR (by the car's centre, 0.223 m behind the front bumper). Acts on the speed only.
     """
     return 0.0 if forward_range(ranges, angles, half_width) < stop_distance else float(desired_speed)
 

@@ -4,14 +4,14 @@ All angles in rad, positions in m, world frame X right / Y up, yaw counter-clock
 positive steering = turn left. ``pose`` is ``(x, y, yaw)`` of the car's CENTRE (the point the
 sheet's bicycle model and the simulator report), except for :func:`pure_pursuit`, which takes the
 rear axle's (:func:`rear_axle` converts). Each controller returns the steering angle at
-the wheels ``delta``; pass ``max_steering`` (e.g. ``DEFAULT_PARAMS.max_steering`` = 0.5236) to clip
+the wheels ``delta``; pass ``max_steering`` (e.g. ``DEFAULT_PARAMS.max_steering`` = 0.5) to clip
 it to ``[-max_steering, max_steering]``, otherwise it is returned unclipped (the car clips too).
 
 A tick of the sheet's PathFollowing model::
 
     search = LookaheadTarget(path, lookahead=0.5)
     target, index, progress = search(pose[:2])
-    delta = pure_pursuit(rear_axle(pose), target, 0.5, wheelbase=0.256, max_steering=0.5236)
+    delta = pure_pursuit(rear_axle(pose), target, 0.5, wheelbase=0.256, max_steering=0.5)
 """
 
 from __future__ import annotations

@@ -65,7 +65,7 @@ class AvoidConfig:
 
     strategy: str = "combined"
     speed: float = 0.3  # m/s desired
-    stop_distance: float = 0.4  # m from the LIDAR (over the car's centre)
+    stop_distance: float = 0.4  # m from the LIDAR (by the car's centre)
     half_width: float = 0.15  # m, the stop window's half width (car half width 0.096 + 5 cm)
     duration: float = 20.0  # s
     rate: float = 100.0  # Hz
@@ -78,7 +78,7 @@ class AvoidConfig:
             raise InputError(f"--strategy must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}")
         if not (math.isfinite(self.speed) and 0.0 < self.speed <= 3.0):
             raise InputError(f"--speed must be in (0, 3] m/s, got {self.speed}")
-        front = params.length / 2.0 + params.lidar_x
+        front = params.length / 2.0 - params.lidar_x  # the bumper's distance ahead of the LIDAR
         if not (math.isfinite(self.stop_distance) and front < self.stop_distance <= params.lidar_max_range):
             raise InputError(f"--stop-distance must be in ({front:g}, {params.lidar_max_range:g}] m (measured from "
                              f"the LIDAR, {front:g} m behind the front bumper), got {self.stop_distance}")
@@ -101,8 +101,8 @@ BLOCKS = (
               "speed. Acts on the speed only.", "speed",
               fill="The stop strategy (LIDAR Stop.slx): set the speed to 0 when the QCar is near an obstacle "
               "ahead, else the desired speed. distances[i] is the range (m) of the return at headings[i] "
-              "(rad, counter-clockwise from forward, + = left); 0 means no return. The LIDAR is over the "
-              "car's centre: the front bumper is 0.2125 m ahead of it.",
+              "(rad, counter-clockwise from forward, + = left); 0 means no return. The LIDAR is by the "
+              "car's centre: the front bumper is 0.223 m ahead of it.",
               example="lidar_stop(np.array([0.3]), np.array([0.0]), 0.3) == 0.0 (an obstacle 0.3 m dead ahead)"),
     BlockSpec("lidar_steer", "lidar_steer(distances, headings, desired_speed) -> steering_cmd",
               "m, rad, m/s -> rad (+ = left, within +-0.5)", "6.1 Task 3, Figure 61",

@@ -106,7 +106,7 @@ class DriveConfig:
     max_throttle: float = 0.15
     throttle_step: float = 0.03  # per key press
     throttle_ramp: float = 0.3  # duty/s: how fast the applied throttle follows its target
-    max_steering: float = 0.5236
+    max_steering: float = 0.5  # the servo's +-0.5 rad (QCarParams.max_steering)
     steering_step: float = 0.1  # rad per key press
     steering_ramp: float = 1.5  # rad/s
     blink_hz: float = 1.5  # indicators and hazard lamps

@@ -5,7 +5,6 @@ Pure conversions: numbers in, ``foxglove.messages`` objects out; no files, no ch
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import cv2
@@ -113,10 +112,12 @@ def mounts(params: Any, ns: int) -> list[FrameTransform]:
     p = params
     out = [_tf(ns, C.BASE_FRAME, C.LIDAR_FRAME, p.lidar_x, 0.0, p.lidar_z, (0.0, 0.0, 0.0, 1.0)),
            _tf(ns, C.BASE_FRAME, C.CAMERA_FRAME, p.rgbd_x, 0.0, p.rgbd_z, C.camera_rotation(0.0, p.rgbd_pitch))]
+    from qcarlab.constants import csi_mounts
+
+    where = csi_mounts(p)
     for view in C.CSI_VIEWS:
-        yaw = C.CSI_YAW[view]
-        out.append(_tf(ns, C.BASE_FRAME, C.CSI_FRAMES[view], p.csi_x * math.cos(yaw), p.csi_x * math.sin(yaw),
-                       p.csi_z, C.camera_rotation(yaw)))
+        x, y, z, yaw = where[view]
+        out.append(_tf(ns, C.BASE_FRAME, C.CSI_FRAMES[view], x, y, z, C.camera_rotation(yaw)))
     return out
 
 

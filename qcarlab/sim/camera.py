@@ -18,12 +18,13 @@ fx = fy = 616 px, show). Pixel (u, v): u to the right, v down; the principal poi
 centre (cx, cy) = (319.5, 239.5), so the two middle columns straddle the optical axis. The depth
 image is aligned to the colour image and holds the **z-depth from the camera** (the distance
 along the optical axis from the D435's optical centre, as the RealSense reports it): a wall 2 m
-ahead of the car's centre reads ``2 - rgbd_x`` = 1.81 m in the middle of the image. Depth is 0
+ahead of the car's centre reads ``2 - rgbd_x`` = 1.92 m in the middle of the image. Depth is 0
 (no data) nearer than :data:`RGBD_MIN_DEPTH` and beyond ``rgbd_max_depth``. Noise: colour
 +-:data:`COLOR_NOISE_SD` levels per channel, depth sigma = :data:`DEPTH_NOISE` * z^2.
 
 **CSI.** Four 160 deg equidistant fisheye cameras (r = f theta), 820 x 410, on the roof
-``csi_x`` from the centre facing right, rear, left and front, ``csi_z`` above the floor.
+``csi_front_x``/``csi_rear_x`` on the axis and ``csi_side_y`` to the sides, facing front, rear, left
+and right, ``csi_z`` above the floor.
 
 How it is drawn: the floor is a top-down texture (markings, brightness regions) warped into the
 image (a homography per texture level for the pinhole; a precomputed per-pixel ray map for the
@@ -53,7 +54,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from qcarlab.constants import DEFAULT_PARAMS, QCarParams
+from qcarlab.constants import csi_mounts, DEFAULT_PARAMS, QCarParams
 from qcarlab.sensors import CameraIntrinsics, CSIFrames, RGBDFrame
 from qcarlab.sim import _kernels
 from qcarlab.sim.raster import brightness_grid, build_raster, floor_pyramid
@@ -646,13 +647,7 @@ class CSICameras:
         half_az = float(np.abs(az).max()) + 0.02
         half_tan = float(np.abs(tan_el).max()) + 0.02
         fc = self.f * CSI_OVERSAMPLE
-        m = p.csi_x
-        mounts = {
-            "right": (0.0, -m, p.csi_z, -math.pi / 2.0),
-            "rear": (-m, 0.0, p.csi_z, math.pi),
-            "left": (0.0, m, p.csi_z, math.pi / 2.0),
-            "front": (m, 0.0, p.csi_z, 0.0),
-        }
+        mounts = csi_mounts(p)
         self._views = {name: _CylinderView(self.world, mounts[name], half_az, half_tan, fc) for name in CSI_ORDER}
         v0 = self._views["front"]
         # fisheye pixel -> transposed cylinder pixel: x = cylinder row, y = cylinder column

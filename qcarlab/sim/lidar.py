@@ -12,13 +12,13 @@ The model (DESIGN.md section 3): ``beams`` samples per turn (800 by default, the
 ``2 pi i / beams`` in the body frame, REP-103). ``fov`` (rad, < 2 pi) makes it a sector
 scanner instead (F1TENTH's Hokuyo: 1080 beams over 4.7 rad): beam ``i`` at
 ``-fov/2 + i fov / (beams - 1)``. The beams sweep the horizontal plane at the
-mount height ``lidar_z`` (0.20 m): walls, obstacles, sign posts and plates and the moving balls
+mount height ``lidar_z`` (0.186 m): walls, obstacles, sign posts and plates and the moving balls
 cut by that plane reflect; shapes lower than the mount are not seen, as on the real car.
 
 A range is the distance from the LIDAR's centre plus Gaussian noise (``lidar_noise``, 5 mm,
 drawn from the ``rng`` given, the LIDAR's own: it draws the noise of 16 scans at a time;
 ``rng=None`` gives exact ranges), kept within
-[``lidar_min_range``, ``lidar_max_range``] (0.15-12 m). As the device, a beam reads **0** when
+[``lidar_min_range``, ``lidar_max_range``] (0.15-18 m). As the device, a beam reads **0** when
 nothing is within the maximum range and also when the object is closer than the minimum range
 (the RPLidar reports no valid distance then; set :data:`CLOSE_READS_MIN` to clamp instead).
 
