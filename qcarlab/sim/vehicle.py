@@ -1,8 +1,10 @@
 """The simulated QCar's body: kinematic bicycle, steering servo, DC motor + ESC + gear train, battery.
 
-The sub-steps are scalar float arithmetic, compiled with numba (plain Python without it) on
-one float64 state buffer, so a 10 ms control step of five sub-steps costs well under a
-microsecond plus the call; the simulator runs hundreds of times faster than real time.
+The sub-steps are scalar float arithmetic on one float64 state buffer, read into locals once a
+control step: plain Python (some 5 us for a 10 ms step of five sub-steps) or, once numba is
+loaded in the process anyway (the sensors load it) or when asked (:data:`COMPILED`), the same
+code compiled (about 1 us with the call); the simulator runs hundreds of times faster than real
+time.
 
 **Kinematic bicycle (lab sheet 4.1.1, exact form).** The reference point is the car's centre,
 midway between the axles (l_r = l_f = L/2). With wheel angle delta, the slip angle at the centre
@@ -35,12 +37,12 @@ coulomb counting. Below the shutdown voltage the ESC cuts the motor.
 from __future__ import annotations
 
 import math
+import sys
 from array import array
 
 import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
-from qcarlab.sim._kernels import njit
 
 # A LiPo cell's open-circuit voltage against its state of charge (typical discharge curve).
 _SOC_POINTS = (0.0, 0.05, 0.1, 0.2, 0.4, 0.6, 0.8, 0.9, 1.0)
@@ -121,34 +123,55 @@ for _i, (_name, _doc) in enumerate(zip(_FIELDS, (
     setattr(VehicleState, _name, _field(_i, _doc))
 
 
-# the step's constants, one float64 array (indices below), so that the compiled step takes two arrays
+# the step's constants, one float64 array (indices below), so that the compiled step takes arrays
 (_P_DT, _P_TAU, _P_RBAT, _P_IDLE, _P_VCUT, _P_KTR, _P_J, _P_K, _P_C, _P_KB, _P_R, _P_G, _P_CAP, _P_L,
  _P_STAND, _P_CELLS) = range(16)
 _SOC_TABLE = np.array(_SOC_POINTS)
 _VOLT_TABLE = np.array(_CELL_VOLTS)
 
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _cell_voltage(soc, socs, volts):
-    soc = min(max(soc, 0.0), 1.0)
-    for i in range(1, socs.shape[0]):
-        if soc <= socs[i]:
-            s0 = socs[i - 1]
-            s1 = socs[i]
-            v0 = volts[i - 1]
-            v1 = volts[i]
-            return v0 + (v1 - v0) * (soc - s0) / (s1 - s0)
-    return volts[volts.shape[0] - 1]
+#: Which implementation of the sub-steps runs: None (default) = the numba-compiled one when numba
+#: is already loaded in the process (the sensors load it), else plain Python; True = always
+#: compiled (loads numba: some 0.5 s at the first step of a process, worth it for long sweeps);
+#: False = always plain Python. Both are the same code on the same numbers: the same results.
+COMPILED: bool | None = None
+_compiled_advance = None
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
 def _advance(s, p, duty, delta_cmd, dt, socs, volts):
     """``dt`` seconds of the body in ceil(dt / physics_dt) equal sub-steps, in place on the
-    state buffer ``s`` (see :class:`VehicleState`); the equations are the module docstring's."""
+    state buffer ``s`` (see :class:`VehicleState`); the equations are the module docstring's.
+    Plain Python on an ``array('d')`` and the constants as a list, or compiled with numba on the
+    same buffer as a numpy array (see :data:`COMPILED`): the state is read into locals once,
+    stepped, and written back once."""
     n = max(1, math.ceil(dt / p[_P_DT] - 1e-9))
     h = dt / n
+    delta = s[_DELTA]
+    current = s[_CURRENT]
+    omega = s[_OMEGA]
+    motor_angle = s[_MOTOR_ANGLE]
+    v_cur = s[_V]
+    wdist = s[_WDIST]
+    soc = s[_SOC]
+    x = s[_X]
+    y = s[_Y]
+    yaw = s[_YAW]
+    yaw_rate = s[_YAW_RATE]
+    accel = s[_ACCEL]
+    dist = s[_DIST]
+    t = s[_T]
+    vbat = s[_VBAT]
+    shutdown = s[_SHUTDOWN] != 0.0
     # the open-circuit voltage moves by microvolts within a control step: evaluate it once
-    ocv = p[_P_CELLS] * _cell_voltage(s[_SOC], socs, volts)
+    # (a LiPo cell's discharge curve, piecewise linear, as cell_voltage)
+    q = min(max(soc, 0.0), 1.0)
+    cell = volts[len(volts) - 1]
+    for i in range(1, len(socs)):
+        if q <= socs[i]:
+            s0 = socs[i - 1]
+            v0 = volts[i - 1]
+            cell = v0 + (volts[i] - v0) * (q - s0) / (socs[i] - s0)
+            break
+    ocv = p[_P_CELLS] * cell
     servo_a = 1.0 - math.exp(-h / p[_P_TAU])
     kt_r = p[_P_KTR]
     J = p[_P_J]
@@ -159,18 +182,20 @@ def _advance(s, p, duty, delta_cmd, dt, socs, volts):
     g = p[_P_G]
     rbat = p[_P_RBAT]
     idle = p[_P_IDLE]
+    vcut = p[_P_VCUT]
+    cap = p[_P_CAP]
+    wheelbase = p[_P_L]
     stand = p[_P_STAND] != 0.0
     for _ in range(n):
         # steering servo (exact first-order lag)
-        s[_DELTA] += (delta_cmd - s[_DELTA]) * servo_a
+        delta += (delta_cmd - delta) * servo_a
         # battery terminal voltage from the last step's current
-        vbat = ocv - rbat * (idle + abs(duty * s[_CURRENT]))
-        if vbat < p[_P_VCUT]:
-            s[_SHUTDOWN] = 1.0
-        s[_VBAT] = vbat
-        vm = 0.0 if s[_SHUTDOWN] != 0.0 else duty * vbat
+        vbat = ocv - rbat * (idle + abs(duty * current))
+        if vbat < vcut:
+            shutdown = True
+        vm = 0.0 if shutdown else duty * vbat
         # motor + load, semi-implicit with Coulomb friction that sticks at zero
-        w = s[_OMEGA]
+        w = omega
         drive = kt_r * vm
         if w == 0.0 and abs(drive) <= cc:
             w_new = 0.0
@@ -179,37 +204,68 @@ def _advance(s, p, duty, delta_cmd, dt, socs, volts):
             w_new = (J * w + h * (drive - sgn * cc)) / (J + h * kk)
             if w != 0.0 and w_new * sgn < 0.0:
                 w_new = 0.0
-        s[_CURRENT] = (vm - kb * w_new) / rm
-        s[_MOTOR_ANGLE] += 0.5 * (w + w_new) * h
-        s[_OMEGA] = w_new
-        v_old = s[_V]
+        current = (vm - kb * w_new) / rm
+        motor_angle += 0.5 * (w + w_new) * h
+        omega = w_new
+        v_old = v_cur
         v_wheel = w_new * g
-        s[_WDIST] += 0.5 * (w + w_new) * g * h
-        s[_SOC] -= (idle + abs(duty * s[_CURRENT])) * h / p[_P_CAP]
+        wdist += 0.5 * (w + w_new) * g * h
+        soc -= (idle + abs(duty * current)) * h / cap
         if stand:
-            s[_V] = 0.0
-            s[_YAW_RATE] = 0.0
-            s[_ACCEL] = 0.0
+            v_cur = 0.0
+            yaw_rate = 0.0
+            accel = 0.0
         else:
             v = 0.5 * (v_old + v_wheel)  # mean speed over the step
-            tan_d = math.tan(s[_DELTA])
+            tan_d = math.tan(delta)
             beta = math.atan(0.5 * tan_d)
-            r = v * math.cos(beta) * tan_d / p[_P_L]  # yaw rate
-            heading = s[_YAW] + beta
+            r = v * math.cos(beta) * tan_d / wheelbase  # yaw rate
+            heading = yaw + beta
             turn = r * h
             if abs(turn) < 1e-9:
-                s[_X] += v * h * math.cos(heading)
-                s[_Y] += v * h * math.sin(heading)
+                x += v * h * math.cos(heading)
+                y += v * h * math.sin(heading)
             else:
                 rad = v / r
-                s[_X] += rad * (math.sin(heading + turn) - math.sin(heading))
-                s[_Y] += rad * (math.cos(heading) - math.cos(heading + turn))
-            s[_YAW] = (s[_YAW] + turn + math.pi) % (2.0 * math.pi) - math.pi
-            s[_YAW_RATE] = r
-            s[_DIST] += abs(v) * h
-            s[_ACCEL] = (v_wheel - v_old) / h
-            s[_V] = v_wheel
-        s[_T] += h
+                x += rad * (math.sin(heading + turn) - math.sin(heading))
+                y += rad * (math.cos(heading) - math.cos(heading + turn))
+            yaw = (yaw + turn + math.pi) % (2.0 * math.pi) - math.pi
+            yaw_rate = r
+            dist += abs(v) * h
+            accel = (v_wheel - v_old) / h
+            v_cur = v_wheel
+        t += h
+    s[_DELTA] = delta
+    s[_CURRENT] = current
+    s[_OMEGA] = omega
+    s[_MOTOR_ANGLE] = motor_angle
+    s[_V] = v_cur
+    s[_WDIST] = wdist
+    s[_SOC] = soc
+    s[_X] = x
+    s[_Y] = y
+    s[_YAW] = yaw
+    s[_YAW_RATE] = yaw_rate
+    s[_ACCEL] = accel
+    s[_DIST] = dist
+    s[_T] = t
+    s[_VBAT] = vbat
+    s[_SHUTDOWN] = 1.0 if shutdown else 0.0
+
+
+def _compiled():
+    """The numba-compiled :func:`_advance` when :data:`COMPILED` asks for it, else None."""
+    global _compiled_advance
+    use = COMPILED if COMPILED is not None else "numba" in sys.modules
+    if not use:
+        return None
+    if _compiled_advance is None:
+        from qcarlab.sim._kernels import HAVE_NUMBA, njit
+
+        if not HAVE_NUMBA:
+            return None
+        _compiled_advance = njit(cache=True, nogil=True, error_model="numpy")(_advance)
+    return _compiled_advance
 
 
 class Vehicle:
@@ -251,6 +307,7 @@ class Vehicle:
         k[_P_STAND] = 1.0 if self.on_stand else 0.0
         k[_P_CELLS] = p.battery_cells
         self._k = k
+        self._kl = k.tolist()  # the same constants for the plain-Python step (faster to index)
 
     @property
     def shutdown(self) -> bool:
@@ -264,15 +321,18 @@ class Vehicle:
         self.delta_cmd = m if delta > m else (-m if delta < -m else delta)
 
     def step(self, dt: float) -> None:
-        """Advance by ``dt`` seconds in physics steps of at most ``params.physics_dt`` (compiled
-        with numba: some 0.5 us for a 10 ms step of five sub-steps, the call included)."""
+        """Advance by ``dt`` seconds in physics steps of at most ``params.physics_dt``."""
         if dt <= 0.0:
             return
         # simulated time moves by dt rounded to the nanosecond, so that 100 steps of 10 ms make
         # exactly 1 s (the sub-steps' own sum drifts in the last bits)
         a = self.state._a
         t_ns = round(a[_T] * 1e9) + round(dt * 1e9)
-        _advance(self.state.buffer, self._k, float(self.duty), float(self.delta_cmd), float(dt), _SOC_TABLE, _VOLT_TABLE)
+        kernel = _compiled()
+        if kernel is not None:
+            kernel(self.state.buffer, self._k, float(self.duty), float(self.delta_cmd), float(dt), _SOC_TABLE, _VOLT_TABLE)
+        else:
+            _advance(a, self._kl, self.duty, self.delta_cmd, dt, _SOC_POINTS, _CELL_VOLTS)
         a[_T] = t_ns / 1e9
 
     @property
