@@ -1,12 +1,24 @@
-"""The car over TCP on loopback: latency, frame throughput, load, watchdog, fuzz (issue 5's targets).
+"""The car over TCP on loopback: latency, frames, load, watchdog, camera monitors, takeover, floods, fuzz.
 
-Run: python benchmarks/bench_net.py [--duration 60] [--only rtt,rgbd,load,watchdog,fuzz] [--quick]
+Run: python benchmarks/bench_net.py [--duration 30] [--only rtt,rgbd,load,watchdog,camera,takeover,flood,fuzz] [--quick]
 
-Targets: command+readout round trip median <= 0.25 ms; RGBD frame pairs >= 100 /s; one controller
-at full rate + 8 monitors for --duration s with no error and no lost or out-of-order reply; the
-watchdog stops the car within 0.3 s of the last command; >= 10,000 malformed frames (hypothesis)
-leave the server serving with the car stopped. The server runs in its own process (as ``qcarlab
-serve`` does); each client is its own process in the load test.
+Targets (issues 5, 12 and 16):
+- command + readout round trip, loopback: median <= 0.05 ms, p99 <= 0.2 ms (the raw Python echo of
+  the same bytes between two processes is measured in the same run, alternating batches: the floor
+  this machine allows);
+- RGBD frame pairs >= 100 /s; one controller at full rate + 8 monitors with no error;
+- the watchdog stops the car within the watchdog time + 20 ms, also while monitors pull every
+  sensor flat out, and while they make the simulator's first sensor readings;
+- one controller at 100 Hz with 8 monitors pulling RGBD pairs at 10 Hz (and flat out): command round
+  trip p99 < 2 ms;
+- a frozen controller (its process stopped, its socket open) hands over to the next one that asks
+  within the controller timeout + 0.1 s of its last frame;
+- 16 sockets reconnecting without a hello: a real client gets in every time, the log stays short;
+- >= 10,000 malformed frames (hypothesis) leave the server serving with the car stopped.
+The server runs in its own process (as ``qcarlab serve`` does, with its settings); each client is
+its own process where timing matters. Monitor processes run at nice 10 and the measured
+controller at real-time priority (where allowed; else nice -10): in a lab they are laptops
+elsewhere on the network, here they share the server's two cores with whatever else runs.
 """
 
 from __future__ import annotations
@@ -26,13 +38,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from qcarlab.errors import QcarlabError  # noqa: E402
 
-TARGETS = {"rtt_ms": 0.25, "rgbd_fps": 100.0, "watchdog_s": 0.3, "fuzz_frames": 10_000}
+TARGETS = {"rtt_median_ms": 0.05, "rtt_p99_ms": 0.2, "rgbd_fps": 100.0, "watchdog_extra_s": 0.020,
+           "camera_p99_ms": 2.0, "takeover_extra_s": 0.1, "fuzz_frames": 10_000}
 
 
 # --- the server process -----------------------------------------------------------------------------
-def _serve(kind: str, conn, watchdog: float, hello_timeout: float) -> None:
+def _serve(kind: str, conn, watchdog: float, hello_timeout: float, options: dict) -> None:
     from qcarlab.car.sim import SimCar
-    from qcarlab.net.server import CarServer
+    from qcarlab.net.server import CarServer, tune_process
     from qcarlab.net.testing import SyntheticCar
 
     lines = [0]
@@ -56,22 +69,30 @@ def _serve(kind: str, conn, watchdog: float, hello_timeout: float) -> None:
         except Exception as exc:  # the simulator's camera is someone else's work in progress
             conn.send(f"{type(exc).__name__}: {exc}")
             return
-    server = CarServer(car, "127.0.0.1", 0, watchdog=watchdog, hello_timeout=hello_timeout, max_clients=64).start()
+    options = dict(options)
+    options.setdefault("max_clients", 64)
+    options.setdefault("prepare", not kind.endswith("-cold"))  # as qcarlab serve does; -cold: sensors built on demand
+    options.setdefault("render_process", True)  # as qcarlab serve does
+    tune_process(options.get("priority", True))  # as qcarlab serve does, before any thread starts
+    server = CarServer(car, "127.0.0.1", 0, watchdog=watchdog, hello_timeout=hello_timeout, **options).start()
     conn.send(server.address[1])
     threading.Thread(target=lambda: (conn.recv(), server.request_stop()), daemon=True).start()
     server.serve_forever()
     server.stop()
-    conn.send({"log_lines": lines[0], "watchdog_trips": server.trips, "sessions_left": len(server.sessions)})
+    conn.send({"log_lines": lines[0], "watchdog_trips": server.trips, "sessions_left": len(server.sessions),
+               "takeovers": server.takeovers, "evicted": server.evicted, "trip_delays": list(server.trip_delays),
+               "watchdog_priority": server.watchdog_priority,
+               "readings": {int(k): v for k, v in server.sensors.readings.items()}})
     car.close()
 
 
 class Served:
     """A server process: ``with Served("sim") as port: ...``; ``.report`` after exit."""
 
-    def __init__(self, kind: str = "sim", watchdog: float = 0.25, hello_timeout: float = 2.0):
+    def __init__(self, kind: str = "sim", watchdog: float = 0.25, hello_timeout: float = 2.0, **options):
         self.ctx = mp.get_context("spawn")
         self.parent, child = self.ctx.Pipe()
-        self.proc = self.ctx.Process(target=_serve, args=(kind, child, watchdog, hello_timeout), daemon=True)
+        self.proc = self.ctx.Process(target=_serve, args=(kind, child, watchdog, hello_timeout, options), daemon=True)
         self.report: dict = {}
 
     def __enter__(self) -> int:
@@ -102,28 +123,95 @@ def _car(port: int, role: str = "control"):
 
 
 # --- 1. round trips ---------------------------------------------------------------------------------
-def bench_rtt(n: int) -> dict:
-    with Served("sim") as port, _car(port) as car:
-        for _ in range(500):  # warm up
-            car.write_read(0.0, 0.0)
-        samples = {"write_read": [], "write + read": [], "ping": []}
-        for i in range(n):
-            thr = 0.05 if i % 2 else 0.0
-            t0 = time.perf_counter()
-            car.write_read(thr, 0.0)
-            t1 = time.perf_counter()
-            car.write(thr, 0.0)
-            car.read()
-            t2 = time.perf_counter()
-            car.ping()
-            t3 = time.perf_counter()
-            samples["write_read"].append(t1 - t0)
-            samples["write + read"].append(t2 - t1)
-            samples["ping"].append(t3 - t2)
-    out = {}
-    for name, values in samples.items():
-        values.sort()
-        out[name] = {"median_ms": statistics.median(values) * 1e3, "p99_ms": values[int(0.99 * len(values))] * 1e3}
+def _echo_server(conn) -> None:
+    """The floor: a raw Python echo of the same bytes (16-byte header + 116-byte command back as a
+    16-byte header + 204-byte readout), one blocking thread, as little work as Python allows."""
+    import socket
+
+    srv = socket.create_server(("127.0.0.1", 0))
+    conn.send(srv.getsockname()[1])
+    c, _ = srv.accept()
+    c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    buf = bytearray(4096)
+    reply = bytes(220)
+    while True:
+        n = c.recv_into(buf)
+        if not n:
+            return
+        c.sendall(reply)
+
+
+def _stats(values: list[float]) -> dict:
+    values = sorted(values)
+    return {"median_ms": statistics.median(values) * 1e3, "p99_ms": values[int(0.99 * len(values))] * 1e3}
+
+
+def _rtt_client(ports: dict, n: int, batches: int, results, privileged: bool) -> None:
+    import socket
+
+    results.put(_as_own_machine() if privileged else "normal")
+    esock = socket.create_connection(("127.0.0.1", ports["echo"]))
+    esock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    request, ebuf = bytes(132), bytearray(4096)
+    sim, syn = _car(ports["sim"]), _car(ports["synthetic"])
+    for _ in range(500):  # warm up
+        sim.write_read(0.0, 0.0)
+        syn.write_read(0.0, 0.0)
+
+    def echo_once() -> None:
+        esock.sendall(request)
+        got = 0
+        while got < 220:
+            got += esock.recv_into(ebuf)
+
+    def write_then_read() -> None:
+        sim.write(0.0, 0.0)
+        sim.read()
+
+    runs = {
+        "raw echo": echo_once,
+        "write_read sim": lambda: sim.write_read(0.05, 0.0),
+        "write_read synthetic": lambda: syn.write_read(0.05, 0.0),
+        "write + read sim": write_then_read,
+        "ping": sim.ping,
+    }
+    samples: dict[str, list[float]] = {name: [] for name in runs}
+    per = max(1, n // batches)
+    clock = time.perf_counter
+    for b in range(batches):  # back-to-back round trips, one kind per batch, kinds alternating
+        order = list(runs.items()) if b % 2 == 0 else list(runs.items())[::-1]
+        for name, once in order:
+            out = samples[name]
+            for _ in range(per):
+                t0 = clock()
+                once()
+                out.append(clock() - t0)
+    esock.close()
+    sim.close()
+    syn.close()
+    results.put({name: _stats(values) for name, values in samples.items()})
+
+
+def bench_rtt(n: int, batches: int = 10, privileged: bool = True) -> dict:
+    """write_read (command + readout in one round trip) against a served simulator and a served
+    synthetic car (transport only), plain write + read, ping, and the raw echo, back to back in
+    alternating batches so that the machine's load hits them alike. The client is a process of its
+    own at the priority of a laptop of its own (``_as_own_machine``)."""
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    echo = ctx.Process(target=_echo_server, args=(child,), daemon=True)
+    echo.start()
+    ports = {"echo": parent.recv()}
+    with Served("sim", priority=privileged) as port_sim, Served("synthetic", priority=privileged) as port_syn:
+        ports.update(sim=port_sim, synthetic=port_syn)
+        results = ctx.Queue()
+        client = ctx.Process(target=_rtt_client, args=(ports, n, batches, results, privileged), daemon=True)
+        client.start()
+        priority = results.get(timeout=60)
+        out = results.get(timeout=600)
+        client.join(10)
+    echo.join(5)
+    out["client priority"] = priority
     return out
 
 
@@ -131,8 +219,8 @@ def bench_rtt(n: int) -> dict:
 def bench_rgbd(seconds: float) -> dict:
     out = {}
     for kind in ("sim-camera", "sim-lockstep-camera", "synthetic"):
-        try:
-            served = Served(kind)
+        try:  # transport: monitors unpaced here (the server's monitor rate is 10 frames/s by default)
+            served = Served(kind, monitor_rate=1000.0)
             port = served.__enter__()
         except RuntimeError as exc:
             out[kind] = {"error": str(exc)}
@@ -208,15 +296,40 @@ def bench_load(duration: float, monitors: int = 8) -> dict:
     }
 
 
-# --- 4. watchdog and dropped connection ---------------------------------------------------------------
-def bench_watchdog(repeats: int) -> dict:
+# --- 4. watchdog and dropped connection, with and without sensor load ---------------------------------
+def _as_remote() -> None:
+    """A monitor process stands in for a laptop elsewhere on the network: it runs at nice 10, so that
+    the server's load is the monitors' requests, not their own CPU on the server's two cores."""
+    try:
+        os.nice(10)
+    except OSError:
+        pass
+
+
+def _sensor_puller(port: int, kinds: tuple[str, ...], start, stop) -> None:
+    """A monitor pulling sensor frames flat out (the server paces it)."""
+    _as_remote()
+    car = _car(port, "monitor")
+    start.wait(60)
+    while not stop.is_set():
+        for kind in kinds:
+            try:
+                getattr(car, f"read_{kind}")()
+            except QcarlabError:
+                pass
+    car.close()
+
+
+def _watchdog_runs(port: int, repeats: int, before_silence=None) -> tuple[list[float], list[float]]:
     watchdog, dropped = [], []
-    with Served("sim", watchdog=0.25) as port, _car(port, "monitor") as mon:
+    with _car(port, "monitor") as mon:
         for k in range(repeats):
             car = _car(port)
             for _ in range(20):
                 car.write(0.2, 0.0)
                 time.sleep(0.005)
+            if before_silence is not None:
+                before_silence(k)
             car.write(0.2, 0.0)
             last = time.perf_counter()  # the last command was applied before this
             while mon.read().throttle != 0.0:
@@ -230,10 +343,234 @@ def bench_watchdog(repeats: int) -> dict:
             dropped.append(time.perf_counter() - t0)
             car._sock = None
             car.closed = True
-    return {
-        "watchdog_median_s": statistics.median(watchdog), "watchdog_max_s": max(watchdog),
-        "drop_median_s": statistics.median(dropped), "drop_max_s": max(dropped), "repeats": repeats,
-    }
+            time.sleep(0.05)
+    return watchdog, dropped
+
+
+def bench_watchdog(repeats: int, pullers: int = 8) -> dict:
+    """Stop latency after the last command: idle, with ``pullers`` monitor processes pulling LIDAR,
+    RGBD and CSI flat out, and with monitors making the simulator's first readings (a server that
+    builds its sensors on demand, one fresh server per run). ``server`` is the delay the server
+    measured from the last command to the stop (both under its drive lock: the stop's own
+    lateness); ``watchdog`` is what a monitor saw (adds its own request's latency)."""
+    ctx = mp.get_context("spawn")
+    out = {}
+    served = Served("sim", watchdog=0.25)
+    with served as port:
+        w, d = _watchdog_runs(port, repeats)
+    out["idle"] = {"watchdog": w, "dropped": d, "server": served.report.get("trip_delays", [])}
+    served = Served("sim", watchdog=0.25)
+    with served as port:
+        start, stop = ctx.Event(), ctx.Event()
+        procs = [ctx.Process(target=_sensor_puller, args=(port, ("lidar", "rgbd", "csi"), start, stop), daemon=True)
+                 for _ in range(pullers)]
+        for proc in procs:
+            proc.start()
+        time.sleep(2.0)
+        start.set()
+        time.sleep(0.5)
+        w, d = _watchdog_runs(port, repeats)
+        stop.set()
+        for proc in procs:
+            proc.join(10)
+    out[f"{pullers} monitors pulling every sensor"] = {"watchdog": w, "dropped": d,
+                                                        "server": served.report.get("trip_delays", [])}
+    first: list[float] = []
+    first_server: list[float] = []
+    for _ in range(max(2, repeats // 3)):
+        served = Served("sim-cold", watchdog=0.25)
+        with served as port:
+            start, stop = ctx.Event(), ctx.Event()
+            procs = [ctx.Process(target=_sensor_puller, args=(port, (kind,), start, stop), daemon=True)
+                     for kind in ("lidar", "rgbd", "csi")]
+            for proc in procs:
+                proc.start()
+            time.sleep(1.5)
+            w, _ = _watchdog_runs(port, 1, before_silence=lambda k: start.set())
+            first += w
+            stop.set()
+            for proc in procs:
+                proc.join(15)
+        first_server += served.report.get("trip_delays", [])
+    out["monitors making the first sensor readings"] = {"watchdog": first, "dropped": [], "server": first_server}
+    out["priority"] = served.report.get("watchdog_priority", "?")
+    return out
+
+
+# --- 4b. the controller's round trip with camera monitors ------------------------------------------------
+def _camera_monitor(port: int, rate: float | None, start, stop, results) -> None:
+    _as_remote()
+    car = _car(port, "monitor")
+    start.wait(60)
+    n, t0 = 0, time.perf_counter()
+    while not stop.is_set():
+        car.read_rgbd()
+        n += 1
+        if rate:
+            delay = t0 + n / rate - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+    results.put(n / (time.perf_counter() - t0))
+    car.close()
+
+
+def _as_own_machine() -> str:
+    """The measured controller stands in for a laptop of its own: real-time priority where allowed
+    (else nice -10), so that the other work on this shared machine does not decide its figures
+    (monitors run at nice 10). Returns what it got."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(5))
+        return "real-time"
+    except (AttributeError, OSError):
+        pass
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, -10)
+        return "nice -10"
+    except (AttributeError, OSError):
+        return "normal"
+
+
+def _ticking_controller(port: int, hz: float, ticks: int, start, results) -> None:
+    _as_own_machine()
+    car = _car(port)
+    start.wait(60)
+    rtts, missed = [], 0
+    period = 1.0 / hz
+    t_next = time.perf_counter()
+    for i in range(ticks):
+        t0 = time.perf_counter()
+        car.write_read(0.05 if i % 2 else 0.04, 0.0)
+        t1 = time.perf_counter()
+        rtts.append(t1 - t0)
+        t_next += period
+        if t1 > t_next:  # this tick's work ran into the next tick
+            missed += 1
+            t_next = t1
+        else:
+            time.sleep(max(0.0, t_next - time.perf_counter()))
+    results.put({"rtts": rtts, "missed": missed})
+    car.close()
+
+
+def bench_camera(seconds: float, monitors: int = 8, kind: str = "sim") -> dict:
+    """A controller at 100 Hz (write_read each tick) with ``monitors`` monitor processes pulling
+    RGBD pairs at 10 Hz, then flat out (the server paces them at its monitor rate, 10 Hz)."""
+    ctx = mp.get_context("spawn")
+    out = {}
+    ticks = int(seconds * 100)
+    with Served(kind, watchdog=0.25) as port:
+        for label, rate in (("none", None), ("10 Hz", 10.0), ("flat out", None)):
+            start, stop, res_m, res_c = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
+            n_mon = 0 if label == "none" else monitors
+            procs = [ctx.Process(target=_camera_monitor, args=(port, rate, start, stop, res_m), daemon=True)
+                     for _ in range(n_mon)]
+            ctl = ctx.Process(target=_ticking_controller, args=(port, 100.0, ticks, start, res_c), daemon=True)
+            for proc in procs + [ctl]:
+                proc.start()
+            time.sleep(2.0)
+            start.set()
+            c = res_c.get(timeout=seconds + 120)
+            stop.set()
+            rates = [res_m.get(timeout=30) for _ in procs]
+            for proc in procs + [ctl]:
+                proc.join(10)
+            out[label] = {**_stats(c["rtts"]), "max_ms": max(c["rtts"]) * 1e3, "missed": c["missed"], "ticks": ticks,
+                          "monitor_fps": statistics.median(rates) if rates else 0.0}
+    return out
+
+
+# --- 4c. takeover after a frozen controller ------------------------------------------------------------
+def _freezable_controller(port: int, ready) -> None:
+    car = _car(port)
+    for _ in range(50):
+        car.write(0.2, 0.0)
+        time.sleep(0.005)
+    car.write(0.2, 0.0)
+    ready.send(time.time())  # the last command was answered before this
+    while True:  # frozen from here on (SIGSTOP), then killed
+        time.sleep(1.0)
+
+
+def bench_takeover(repeats: int) -> dict:
+    """A controller's process is stopped (SIGSTOP: a laptop asleep, its socket open); a second
+    client asks for control every 10 ms: the time from the frozen one's last command to control."""
+    import signal
+
+    from qcarlab.car.tcp import TcpCar, TcpConnectError
+
+    ctx = mp.get_context("spawn")
+    took, busy = [], []
+    with Served("sim", watchdog=0.25) as port:
+        for _ in range(repeats):
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_freezable_controller, args=(port, child), daemon=True)
+            proc.start()
+            last_wall = parent.recv()
+            os.kill(proc.pid, signal.SIGSTOP)
+            last = time.perf_counter() - (time.time() - last_wall)
+            refused = 0
+            while True:
+                try:
+                    car = TcpCar("127.0.0.1", port, timeout=5.0, connect_timeout=5.0)
+                except TcpConnectError as exc:
+                    if exc.kind != "busy":
+                        raise
+                    refused += 1
+                    time.sleep(0.01)
+                    continue
+                took.append(time.perf_counter() - last)
+                busy.append(refused)
+                car.write(0.0, 0.0)
+                car.close()
+                break
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.join(5)
+    return {"takeover_s": took, "busy_answers": busy}
+
+
+# --- 4d. a flood of connections that never say hello ---------------------------------------------------------
+def _squatter(port: int, stop, counts) -> None:
+    import socket
+
+    n = 0
+    while not stop.is_set():
+        try:
+            s = socket.create_connection(("127.0.0.1", port), timeout=2.0)
+            n += 1
+            time.sleep(0.001)
+            s.close()
+        except OSError:
+            time.sleep(0.001)
+    counts.put(n)
+
+
+def bench_flood(seconds: float, squatters: int = 16) -> dict:
+    from qcarlab.car.tcp import TcpCar, TcpConnectError
+
+    ctx = mp.get_context("spawn")
+    served = Served("synthetic")
+    with served as port:
+        stop, counts = ctx.Event(), ctx.Queue()
+        procs = [ctx.Process(target=_squatter, args=(port, stop, counts), daemon=True) for _ in range(squatters)]
+        for proc in procs:
+            proc.start()
+        time.sleep(1.5)
+        ok = tries = 0
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            tries += 1
+            try:
+                with TcpCar("127.0.0.1", port, role="monitor", timeout=3.0, connect_timeout=3.0) as mon:
+                    mon.ping()
+                    ok += 1
+            except TcpConnectError:
+                pass
+            time.sleep(0.05)
+        stop.set()
+        opened = sum(counts.get(timeout=30) for _ in procs)
+        for proc in procs:
+            proc.join(10)
+    return {"seconds": seconds, "connections": opened, "tries": tries, "ok": ok, "server": served.report}
 
 
 # --- 5. malformed frames ------------------------------------------------------------------------------
@@ -286,22 +623,38 @@ def machine() -> str:
     return f"{platform.platform()}, {cpu or platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}"
 
 
+def _ms(values: list[float]) -> str:
+    if not values:
+        return "-"
+    return f"median {statistics.median(values) * 1e3:.1f} ms, max {max(values) * 1e3:.1f} ms"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--duration", type=float, default=60.0, help="seconds of the controller + 8 monitors load test")
-    ap.add_argument("--only", default="rtt,rgbd,load,watchdog,fuzz", help="comma-separated subset")
-    ap.add_argument("--quick", action="store_true", help="small samples (a smoke run): 5 s load, 1,000 fuzz frames")
+    ap.add_argument("--duration", type=float, default=30.0, help="seconds of each timed load (controller + monitors)")
+    ap.add_argument("--only", default="rtt,rgbd,load,watchdog,camera,takeover,flood,fuzz", help="comma-separated subset")
+    ap.add_argument("--quick", action="store_true", help="small samples (a smoke run): 5 s loads, 1,000 fuzz frames")
     args = ap.parse_args()
     only = set(args.only.split(","))
     quick = args.quick
-    duration = 5.0 if quick and args.duration == 60.0 else args.duration
+    duration = 5.0 if quick and args.duration == 30.0 else args.duration
     print(f"machine: {machine()}")
+    print(f"load average before: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     ok = True
     if "rtt" in only:
-        r = bench_rtt(2000 if quick else 20000)
-        for name, v in r.items():
-            print(f"round trip {name:<13} median {v['median_ms']:.3f} ms  p99 {v['p99_ms']:.3f} ms")
-        ok &= r["write_read"]["median_ms"] <= TARGETS["rtt_ms"]
+        for privileged in (True, False):
+            r = bench_rtt(2000 if quick else 20000, privileged=privileged)
+            how = (f"server as qcarlab serve runs it here, client at {r.pop('client priority')} priority" if privileged
+                   else f"no priorities asked for (as without root), client at {r.pop('client priority')} priority")
+            print(f"round trips, {how}:")
+            for name, v in r.items():
+                print(f"  round trip {name:<21} median {v['median_ms']:.3f} ms  p99 {v['p99_ms']:.3f} ms")
+            floor = r["raw echo"]["median_ms"]
+            print(f"  the server's own cost over the raw echo: {r['write_read sim']['median_ms'] - floor:.3f} ms "
+                  f"(sim), {r['write_read synthetic']['median_ms'] - floor:.3f} ms (synthetic car) at the median")
+            if privileged:
+                w = r["write_read sim"]
+                ok &= w["median_ms"] <= TARGETS["rtt_median_ms"] and w["p99_ms"] <= TARGETS["rtt_p99_ms"]
     if "rgbd" in only:
         r = bench_rgbd(2.0 if quick else 5.0)
         for kind, v in r.items():
@@ -325,10 +678,33 @@ def main() -> None:
         ok &= r["errors"] == 0 and r["controller_watchdog_readouts"] == 0
     if "watchdog" in only:
         r = bench_watchdog(3 if quick else 10)
-        print(f"watchdog stop after the last command: median {r['watchdog_median_s']:.3f} s, max {r['watchdog_max_s']:.3f} s "
-              f"(target <= {TARGETS['watchdog_s']} s); dropped connection: median {r['drop_median_s'] * 1e3:.1f} ms, "
-              f"max {r['drop_max_s'] * 1e3:.1f} ms ({r['repeats']} runs)")
-        ok &= r["watchdog_max_s"] <= TARGETS["watchdog_s"]
+        print(f"watchdog thread priority: {r.pop('priority')}")
+        for label, v in r.items():
+            extra = [x - 0.25 for x in v["server"]] or [float("inf")]
+            print(f"watchdog 0.25 s, {label}: the server stopped the car {_ms(v['server'])} after the last command "
+                  f"(+{max(extra) * 1e3:.1f} ms at worst, target +{TARGETS['watchdog_extra_s'] * 1e3:.0f} ms); "
+                  f"a monitor saw it stopped {_ms(v['watchdog'])} after"
+                  + (f"; dropped connection: seen stopped {_ms(v['dropped'])} after" if v["dropped"] else ""))
+            ok &= max(extra) <= TARGETS["watchdog_extra_s"]
+    if "camera" in only:
+        r = bench_camera(duration)
+        for label, v in r.items():
+            mons = "no monitors" if label == "none" else f"8 RGBD monitors {label} (got {v['monitor_fps']:.1f} frames/s each)"
+            print(f"controller 100 Hz, {mons}: command round trip median {v['median_ms']:.3f} ms, "
+                  f"p99 {v['p99_ms']:.3f} ms, max {v['max_ms']:.1f} ms; {v['missed']} of {v['ticks']:,} ticks missed")
+            if label != "none":
+                ok &= v["p99_ms"] < TARGETS["camera_p99_ms"]
+    if "takeover" in only:
+        r = bench_takeover(3 if quick else 10)
+        print(f"takeover after a frozen controller (watchdog 0.25 s, controller timeout 1 s): {_ms(r['takeover_s'])} "
+              f"from its last command ({statistics.median(r['busy_answers']):.0f} busy answers before, median)")
+        ok &= max(r["takeover_s"]) <= 1.0 + TARGETS["takeover_extra_s"]
+    if "flood" in only:
+        r = bench_flood(5.0 if quick else 20.0)
+        print(f"flood: 16 sockets reconnecting without a hello ({r['connections']:,} connections in "
+              f"{r['seconds']:.0f} s): a real client got in {r['ok']} of {r['tries']} times; the server logged "
+              f"{r['server'].get('log_lines', '?')} lines and dropped {r['server'].get('evicted', '?')} waiting connections")
+        ok &= r["ok"] == r["tries"]
     if "fuzz" in only:
         r = bench_fuzz(1000 if quick else TARGETS["fuzz_frames"])
         print(f"fuzz: {r['frames']:,} malformed frames in {r['cases']:,} connections in {r['seconds']:.1f} s; "
@@ -338,6 +714,7 @@ def main() -> None:
         print(f"  the server logged {r['server'].get('log_lines', '?')} lines in all, "
               f"{r['server'].get('sessions_left', '?')} connections left at the end")
         ok &= quick or r["frames"] >= TARGETS["fuzz_frames"]
+    print(f"load average after: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     print("all targets met" if ok else "SOME TARGETS MISSED")
     sys.exit(0 if ok else 1)
 

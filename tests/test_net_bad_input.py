@@ -227,7 +227,7 @@ def test_hostile_hellos(server, netlog):
         assert raw.request(M.HELLO, P.encode_json(tricky)).type == M.WELCOME
     assert wait_for(lambda: any(who in line and "disconnected" in line for line in netlog))
     assert all("\n" not in line and "\x1b" not in line for line in netlog)
-    srv = CarServer(SyntheticCar(), "127.0.0.1", 0, token="t0ken").start()
+    srv = CarServer(SyntheticCar(), "127.0.0.1", 0, token="t0ken-long-enough-1234").start()
     try:
         with RawClient(srv.address) as raw:
             frame = raw.request(M.HELLO, b'{"protocol": 1, "role": "monitor", "token": "\\ud800"}')

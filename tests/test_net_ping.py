@@ -122,13 +122,13 @@ def test_wrong_protocol_version(cli):
 
 def test_wrong_token(cli, monkeypatch):
     monkeypatch.delenv("QCARLAB_TOKEN", raising=False)
-    srv = CarServer(SyntheticCar(), "127.0.0.1", 0, token="the-real-one").start()
+    srv = CarServer(SyntheticCar(), "127.0.0.1", 0, token="the-real-one-0123456789").start()
     try:
         code, out, err = cli("ping", srv.uri, "-c", "1", "--token", "a-guess")
         assert code == 1 and "wrong token" in one_line(err)
         code, out, err = cli("ping", srv.uri, "-c", "1")
         assert code == 1 and "wrong token" in err
-        code, out, err = cli("ping", srv.uri, "-c", "1", "--token", "the-real-one")
+        code, out, err = cli("ping", srv.uri, "-c", "1", "--token", "the-real-one-0123456789")
         assert code == 0, err
     finally:
         srv.stop()

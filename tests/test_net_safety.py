@@ -81,7 +81,7 @@ def test_watchdog_stops_the_car_with_hazard_lamps_in_time(served, netlog):
         assert r.throttle == 0.0 and r.steering == 0.0
         assert {"indicator_front_left", "indicator_front_right", "indicator_rear_left", "indicator_rear_right"} <= lamps_on(r.leds)
         assert mon.status & P.STATUS_WATCHDOG
-        assert any("watchdog" in line for line in netlog)
+        assert wait_for(lambda: any("watchdog" in line for line in netlog))
         ctl.write(0.1, 0.0)  # a new command takes over again
         assert car.cmd.throttle == pytest.approx(0.1) and not server.tripped
 
@@ -160,7 +160,7 @@ def test_non_loopback_bind_needs_a_token(served):
     car = SyntheticCar()
     with pytest.raises(InputError, match="without a token"):
         CarServer(car, "0.0.0.0", 0).start()
-    server, _ = served(car=car, host="0.0.0.0", token="s3cret-token")
+    server, _ = served(car=car, host="0.0.0.0", token="s3cret-token-0123456789")
     port = server.address[1]
     with pytest.raises(TcpConnectError) as missing:
         TcpCar("127.0.0.1", port, timeout=2.0)
@@ -168,13 +168,13 @@ def test_non_loopback_bind_needs_a_token(served):
     with pytest.raises(TcpConnectError) as wrong:
         TcpCar("127.0.0.1", port, token="guess", timeout=2.0)
     assert wrong.value.kind == "token" and "QCARLAB_TOKEN" in str(wrong.value)
-    with TcpCar("127.0.0.1", port, token="s3cret-token", timeout=2.0) as ok:
+    with TcpCar("127.0.0.1", port, token="s3cret-token-0123456789", timeout=2.0) as ok:
         ok.write(0.1, 0.0)
 
 
 def test_token_from_the_environment(served, monkeypatch):
-    server, _ = served(token="from-env-123")
-    monkeypatch.setenv("QCARLAB_TOKEN", "from-env-123")
+    server, _ = served(token="from-env-123-abcdefgh")
+    monkeypatch.setenv("QCARLAB_TOKEN", "from-env-123-abcdefgh")
     with connect(server, role="monitor") as mon:
         assert mon.ping() > 0
 
@@ -208,11 +208,13 @@ def test_stopping_the_server_says_bye_and_stops_the_car(netlog):
 
 
 def test_too_many_clients_get_an_error_and_the_rest_keep_working(served):
-    server, _ = served(max_clients=2)
+    server, _ = served(max_clients=3)  # two monitors, and one slot kept for a controller
     a, b = connect(server, role="monitor"), connect(server, role="monitor")
     with pytest.raises(TcpConnectError) as full:
         connect(server, role="monitor")
-    assert full.value.kind == "full"
+    assert full.value.kind == "full" and "kept for a controller" in str(full.value)
+    with connect(server) as ctl:  # the reserved slot
+        ctl.write(0.1, 0.0)
     assert a.ping() > 0 and b.ping() > 0
     a.close()
     b.close()

@@ -29,7 +29,7 @@ from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import InputError, NotBuiltError
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable, Mapping
+    from collections.abc import Callable, Iterable, Mapping
 
 log = logging.getLogger("qcarlab")
 
@@ -218,6 +218,17 @@ class Car(ABC):
     def read_csi(self) -> Any:
         """The latest four CSI frames (right, rear, left, front), 820x410 BGR uint8."""
         raise NotBuiltError(f"{self.identity().backend} car: the CSI cameras are not available on this backend yet")
+
+    def sensor_job(self, kind: str) -> Callable[[], Any]:
+        """For servers: called with the car's drive lock held, returns a function that produces the
+        ``kind`` frame ("lidar", "rgbd" or "csi") and is run without it, so that a slow sensor never
+        holds up a command or the watchdog. This default reads at once (under the lock); backends
+        whose sensors are independent of the drive I/O return the reading itself."""
+        frame = getattr(self, f"read_{kind}")()
+        return lambda: frame
+
+    def prepare_sensors(self) -> None:
+        """Build whatever the sensors need before the first frame (a server calls it at start)."""
 
     # --- lifecycle ----------------------------------------------------------------------------
     def close(self) -> None:

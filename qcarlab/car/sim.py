@@ -200,24 +200,45 @@ class SimCar(Car):
     def _latest_frame(self, kind: str, rate: float, render) -> Any:
         """The latest frame of a sensor that takes ``rate`` frames/s: frame k is taken at k / rate
         from the pose at that time; reads between two frames return the same frame."""
+        return self._frame_job(kind, rate, render)()
+
+    def _frame_job(self, kind: str, rate: float, render) -> Any:
+        """Fix the frame's time and pose now; the returned function draws it (builds the sensor on
+        first use) without touching the vehicle, so a server runs it off the drive lock, or hands
+        its ``kind``, ``pose`` and ``t`` to a process of its own (:meth:`sensor_recipe`)."""
         self._sync()
         k = math.floor(self.vehicle.state.t * rate + 1e-9)
         cached = self._frames.get(kind)
         if cached is not None and cached[0] == k:
-            return cached[1]
+            return _FrameJob(self, kind, k, k / rate, None, render, cached[1])
         t_k = k / rate
-        frame = render(self._sensor(kind), self.pose_at(t_k), t_k)
-        self._frames[kind] = (k, frame)
-        return frame
+        return _FrameJob(self, kind, k, t_k, self.pose_at(t_k), render)
+
+    def sensor_job(self, kind: str) -> Any:
+        return self._frame_job(kind, _RATES[kind](self.params), _DRAW[kind])
+
+    def prepare_sensors(self) -> None:
+        """Load the world and build every sensor now (no frame is taken, no noise drawn)."""
+        for kind in ("lidar", "rgbd", "csi"):
+            self._sensor(kind)
+
+    def sensor_recipe(self) -> dict[str, Any]:
+        """What another process needs to draw this car's sensor frames: ``SimCar(**recipe)`` there
+        has the same world and sensors, and its noise streams start where this car's would."""
+        return {"params": self.params, "seed": self.seed, "world": self._world(), "lidar_beams": self.lidar_beams}
+
+    def draw_frame(self, kind: str, pose: tuple[float, float, float], t: float) -> Any:
+        """Draw sensor ``kind``'s frame at time ``t`` from ``pose`` (no clock, no vehicle)."""
+        return _DRAW[kind](self._sensor(kind), pose, t)
 
     def read_lidar(self) -> Any:
-        return self._latest_frame("lidar", self.params.lidar_rate, lambda s, pose, t: s.scan(pose, t))
+        return self._latest_frame("lidar", self.params.lidar_rate, _DRAW["lidar"])
 
     def read_rgbd(self) -> Any:
-        return self._latest_frame("rgbd", self.params.rgbd_rate, lambda s, pose, t: s.render(pose, t))
+        return self._latest_frame("rgbd", self.params.rgbd_rate, _DRAW["rgbd"])
 
     def read_csi(self) -> Any:
-        return self._latest_frame("csi", self.params.csi_rate, lambda s, pose, t: s.render(pose, t))
+        return self._latest_frame("csi", self.params.csi_rate, _DRAW["csi"])
 
     def identity(self) -> Identity:
         caps = ["drive", "lamps", "encoder", "imu", "battery", "truth", "lidar", "rgbd", "csi"]
@@ -232,3 +253,31 @@ class SimCar(Car):
 
     def stop(self) -> None:
         self._apply(Command(0.0, 0.0, ALL_OFF))
+
+
+_RATES = {"lidar": lambda p: p.lidar_rate, "rgbd": lambda p: p.rgbd_rate, "csi": lambda p: p.csi_rate}
+_DRAW = {
+    "lidar": lambda sensor, pose, t: sensor.scan(pose, t),
+    "rgbd": lambda sensor, pose, t: sensor.render(pose, t),
+    "csi": lambda sensor, pose, t: sensor.render(pose, t),
+}
+
+
+class _FrameJob:
+    """Sensor ``kind``'s frame ``k``, taken at ``t`` from ``pose``: calling it draws it (or returns
+    it, when it was drawn already: ``pose`` is then None)."""
+
+    __slots__ = ("car", "kind", "k", "t", "pose", "render", "frame")
+
+    def __init__(self, car: SimCar, kind: str, k: int, t: float, pose: Any, render: Any, frame: Any = None):
+        self.car, self.kind, self.k, self.t, self.pose, self.render, self.frame = car, kind, k, t, pose, render, frame
+
+    @property
+    def key(self) -> tuple[str, int]:
+        return self.kind, self.k
+
+    def __call__(self) -> Any:
+        if self.frame is None:
+            self.frame = self.render(self.car._sensor(self.kind), self.pose, self.t)
+            self.car._frames[self.kind] = (self.k, self.frame)
+        return self.frame

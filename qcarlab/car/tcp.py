@@ -34,6 +34,7 @@ from qcarlab.net.protocol import MsgType as M
 log = logging.getLogger("qcarlab")
 
 TOKEN_ENV = "QCARLAB_TOKEN"
+_yield = getattr(os, "sched_yield", lambda: None)
 
 
 class TcpConnectError(CarError):
@@ -48,6 +49,7 @@ class TcpCar(Car):
     """A car behind a qcarlab server at ``host:port``."""
 
     frame_timeout = 15.0  # s to wait for a sensor frame (the first one may be built on demand)
+    spin = 0.0001  # s to look for a reply before sleeping on it (a loopback reply comes within tens of us)
 
     def __init__(
         self,
@@ -79,6 +81,7 @@ class TcpCar(Car):
         self._seq = 0
         self._rx = 0
         self._sock: socket.socket | None = None
+        self._waiter: P.Waiter | None = None
         self._reader: P.FrameReader | None = None
         self._warned_trip = False
         if token is None:
@@ -125,15 +128,17 @@ class TcpCar(Car):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         except OSError:
             pass
-        sock.settimeout(self.timeout)
+        sock.settimeout(0.0)  # non-blocking: waits go through the waiter, bounded by self.timeout
         self._sock = sock
-        self._reader = P.FrameReader(sock, P.MAX_REPLY)
+        self._waiter = P.Waiter(sock)
+        self._reader = P.FrameReader(sock, P.MAX_REPLY, waiter=self._waiter)
+        self._reader.recv_timeout = self.timeout
         hello = {"protocol": P.VERSION, "role": self.role, "client": client}
         if token:
             hello["token"] = token
         try:
             self._seq = 1
-            P.send_frame(sock, M.HELLO, 1, 0, P.encode_json(hello))
+            P.send_frame(sock, M.HELLO, 1, 0, P.encode_json(hello), waiter=self._waiter, timeout=self.timeout)
             frame = self._reader.read_frame()
         except TimeoutError:
             self._drop()
@@ -163,6 +168,8 @@ class TcpCar(Car):
             err = _error_fields(frame)
             code, message = err["code"], err["message"]
             if code == "bad_token":
+                if err.get("retry_after_s"):
+                    raise TcpConnectError(f"{uri}: wrong token: {message} (set {TOKEN_ENV} to the server's token)", "token")
                 raise TcpConnectError(
                     f"{uri}: wrong token: the server refused it (pass --token or set {TOKEN_ENV} to the server's token)",
                     "token",
@@ -212,8 +219,9 @@ class TcpCar(Car):
             seq = self._seq
             try:
                 if timeout is not None:
-                    sock.settimeout(timeout)
-                P.send_frame(sock, mtype, seq, 0, *parts)
+                    reader.recv_timeout = timeout
+                P.send_frame(sock, mtype, seq, 0, *parts, waiter=self._waiter, timeout=self.timeout)
+                self._look_for_reply(reader)
                 while True:
                     frame = reader.read_frame()
                     if frame is None:
@@ -243,8 +251,7 @@ class TcpCar(Car):
                 self._drop()
                 raise TcpConnectError(f"{self.uri}: the connection to the car was lost ({exc.strerror or exc})", "lost") from None
             finally:
-                if timeout is not None and self._sock is not None:
-                    self._sock.settimeout(self.timeout)
+                reader.recv_timeout = self.timeout
         if frame.type == M.ERROR:
             self._raise_error(frame)
         if frame.type == M.BYE and mtype != M.BYE:
@@ -259,11 +266,24 @@ class TcpCar(Car):
             raise TcpConnectError(f"{self.uri}: unexpected {frame.name} in reply to {M(mtype).name}", "protocol")
         return frame
 
+    def _look_for_reply(self, reader: P.FrameReader) -> None:
+        """Spin a little for the reply before sleeping on it: a thread woken from sleep pays tens of
+        microseconds a round trip on a busy machine."""
+        if not self.spin:
+            return
+        end = time.perf_counter() + self.spin
+        while not reader.poll() and not reader.eof and time.perf_counter() < end:
+            _yield()
+
     def _raise_error(self, frame: P.Frame) -> None:
         err = _error_fields(frame)
         code, message = err["code"], err["message"]
         if err["fatal"]:
             self._drop()
+        if code == "control_lost":
+            raise TcpConnectError(f"{self.uri}: this connection lost control of the car: {message}", "lost")
+        if code == "timeout":
+            raise TcpConnectError(f"{self.uri}: the server closed the connection: {message}", "lost")
         if code == "bad_value":
             raise InputError(message)
         if code == "unsupported":
@@ -427,4 +447,6 @@ def _error_fields(frame: P.Frame) -> dict[str, Any]:
     err = _json_or_empty(frame.payload)
     code = err.get("code") if isinstance(err.get("code"), str) else "error"
     message = err.get("message") if isinstance(err.get("message"), str) else "(no message)"
-    return {"code": code, "message": message, "fatal": bool(err.get("fatal", code in P.FATAL_CODES))}
+    retry = err.get("retry_after_s")
+    return {"code": code, "message": message, "fatal": bool(err.get("fatal", code in P.FATAL_CODES)),
+            "retry_after_s": retry if isinstance(retry, (int, float)) else None}

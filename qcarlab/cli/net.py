@@ -22,9 +22,13 @@ TokenOpt = Annotated[
     str | None,
     typer.Option(
         "--token", envvar="QCARLAB_TOKEN", show_envvar=True,
-        help="Shared secret; needed to serve on anything but loopback (clients send the same).",
+        help="Shared secret, 16+ characters; needed to serve on anything but loopback (clients send the same). "
+        "Prefer the QCARLAB_TOKEN variable: other users of the machine can read a command line.",
     ),
 ]
+
+
+STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT")  # Ctrl-C, kill, the ssh session closing, Ctrl-backslash
 
 
 @app.command("serve")
@@ -32,15 +36,26 @@ def serve_cmd(
     backend: Annotated[
         str, typer.Option(help="[b]sim[/b]: the built-in simulator; [b]quanser[/b]: the physical QCar (run on the car).")
     ] = "sim",
-    host: Annotated[str, typer.Option(help="Address to listen on; anything but loopback needs --token.")] = "127.0.0.1",
+    host: Annotated[str, typer.Option(help="Address to listen on; anything but loopback needs a token.")] = "127.0.0.1",
     port: Annotated[int, typer.Option(min=0, max=65535, help="TCP port (0 picks a free one and prints it).")] = DEFAULT_PORT,
     lockstep: Annotated[
         bool, typer.Option("--lockstep", help="Simulator time moves only when the client advances it (deterministic runs).")
     ] = False,
     token: TokenOpt = None,
+    new_token: Annotated[
+        bool, typer.Option("--new-token", help="Print a new random token (for QCARLAB_TOKEN) and exit.")
+    ] = False,
     watchdog: Annotated[
         float, typer.Option(help="Stop the car (throttle 0, hazard lamps) after this many seconds without a command.")
     ] = 0.25,
+    controller_timeout: Annotated[
+        float | None,
+        typer.Option(help="A controller silent this long after the watchdog stopped the car loses control to the "
+                          "next one that asks (default: 4 watchdog periods)."),
+    ] = None,
+    monitor_rate: Annotated[
+        float, typer.Option(help="Sensor frames per second each monitor gets, per sensor (the controller is not limited).")
+    ] = 10.0,
     on_stand: Annotated[
         bool,
         typer.Option(
@@ -49,7 +64,9 @@ def serve_cmd(
         ),
     ] = False,
     throttle_limit: Annotated[float, typer.Option(help="Throttle limit enforced by the server, whatever clients send.")] = 0.3,
-    max_clients: Annotated[int, typer.Option(min=1, max=1024, help="Most connections at once (one controller, the rest monitors).")] = 16,
+    max_clients: Annotated[
+        int, typer.Option(min=2, max=1024, help="Most clients at once: one controller (its slot is kept) and the rest monitors.")
+    ] = 16,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     params: ParamsOpt = None,
@@ -61,19 +78,97 @@ def serve_cmd(
 
     Example: qcarlab serve --backend sim --port 18960   then   qcarlab io-test --car tcp://127.0.0.1:18960
     """
-    from qcarlab.net.server import CarServer, is_loopback
+    from qcarlab.net.guard import new_token as make_token
+    from qcarlab.net.guard import token_problem
+    from qcarlab.net.server import CarServer, is_loopback, process_settings, restore_process, tune_process
 
+    if new_token:
+        print(make_token(), flush=True)
+        return
     backend = backend.strip().lower()
     if backend not in ("sim", "quanser"):
         raise InputError(f"--backend must be 'sim' or 'quanser', got {backend!r}")
     if not (math.isfinite(watchdog) and 0.01 <= watchdog <= 60.0):
         raise InputError(f"--watchdog must be between 0.01 and 60 s, got {watchdog}")
     token = token or None
+    if token is not None and (problem := token_problem(token)):
+        raise InputError(problem)
     if not is_loopback(host) and not token:
         raise InputError(
-            f"refusing to serve on {host or 'all interfaces'} without a token: anyone on that network could drive "
-            "the car; pass --token SECRET (or set QCARLAB_TOKEN), or bind to 127.0.0.1"
+            f"refusing to serve on {host or 'all interfaces'} without a token: it is not a loopback address, anyone "
+            "on that network could drive the car; set QCARLAB_TOKEN (qcarlab serve --new-token makes one), or bind to 127.0.0.1"
         )
+    caught: list[str] = []
+    servers: list[CarServer] = []
+    previous = _catch_stop_signals(caught, servers)
+    try:
+        car, what = _open_served_car(backend, lockstep, world, seed, on_stand, params, throttle_limit)
+        from qcarlab.cli.recording import live_car
+
+        car = live_car(car, live, live_port, token)  # --live: what the served car does, streamed to Foxglove
+        with car:
+            server = CarServer(car, host, port, token=token, watchdog=watchdog, controller_timeout=controller_timeout,
+                               lockstep=lockstep, max_clients=max_clients, monitor_rate=monitor_rate, prepare=True,
+                               render_process=True)
+            saved = process_settings()
+            tune_process()  # before the server's threads start: they inherit its priority
+            try:
+                server.start()
+            except BaseException:
+                restore_process(saved)
+                raise
+            servers.append(server)
+            try:
+                if caught:  # a signal came while the car was being opened
+                    server.request_stop()
+                mode = "lock-step" if lockstep else "real time"
+                _say(
+                    f"serving {what} on {server.uri} ({mode}, protocol v{VERSION}, watchdog {watchdog:g} s, "
+                    f"controller timeout {server.controller_timeout:g} s, throttle limit {car.throttle_limit:g}"
+                    f"{', token required' if token else ''}); Ctrl-C to stop"
+                )
+                server.serve_forever()
+            finally:
+                server.stop()  # the car first, then every client is told bye
+                restore_process(saved)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    why = f" ({caught[0]})" if caught else ""
+    _say(f"stopped serving{why}; the car is stopped")
+
+
+def _catch_stop_signals(caught: list[str], server_box: list) -> dict:
+    """Every signal that ends ``serve`` stops the car first (Ctrl-C, kill, the ssh session closing)."""
+    previous: dict = {}
+    if threading.current_thread() is not threading.main_thread():
+        return previous
+
+    def handler(signum: int, _frame: object) -> None:
+        caught.append(signal.Signals(signum).name)
+        for server in server_box:
+            server.request_stop()
+
+    for name in STOP_SIGNALS:
+        signum = getattr(signal, name, None)
+        if signum is not None:
+            try:
+                previous[signum] = signal.signal(signum, handler)
+            except (OSError, ValueError):
+                pass
+    return previous
+
+
+def _say(line: str) -> None:
+    """Print a line; a terminal that is gone (SIGHUP) or a closed pipe must not stop the shutdown."""
+    try:
+        print(line, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
+def _open_served_car(backend, lockstep, world, seed, on_stand, params, throttle_limit):
+    """The car ``serve`` exposes, and a phrase naming it."""
     if backend == "quanser":
         if lockstep:
             raise InputError("--lockstep needs --backend sim (the physical car's time does not wait)")
@@ -83,41 +178,16 @@ def serve_cmd(
         from qcarlab.constants import DEFAULT_PARAMS, load_params
 
         car = QuanserCar(load_params(params) if params else DEFAULT_PARAMS, throttle_limit=throttle_limit)
-        what = f"the physical QCar ({car.identity().name})"
-    else:
-        try:
-            car = open_car(
-                "sim", world=world, seed=seed, on_stand=on_stand, realtime=not lockstep,
-                params=params, throttle_limit=throttle_limit,
-            )
-        except ImportError as exc:
-            raise NotBuiltError(f"--world {world!r}: simulator worlds are not built yet ({exc})") from None
-        stand = "on its stand" if on_stand else "on the floor"
-        what = f"the simulated QCar (seed {seed}, {stand}{', world ' + str(world) if world else ''})"
-    from qcarlab.cli.recording import live_car
-
-    car = live_car(car, live, live_port, token)  # --live: what the served car does, streamed to Foxglove
-    with car:
-        server = CarServer(car, host, port, token=token, watchdog=watchdog, lockstep=lockstep, max_clients=max_clients)
-        server.start()
-        mode = "lock-step" if lockstep else "real time"
-        print(
-            f"serving {what} on {server.uri} ({mode}, protocol v{VERSION}, watchdog {watchdog:g} s, "
-            f"throttle limit {car.throttle_limit:g}{', token required' if token else ''}); Ctrl-C to stop",
-            flush=True,
+        return car, f"the physical QCar ({car.identity().name})"
+    try:
+        car = open_car(
+            "sim", world=world, seed=seed, on_stand=on_stand, realtime=not lockstep,
+            params=params, throttle_limit=throttle_limit,
         )
-        previous = None
-        if threading.current_thread() is threading.main_thread():
-            previous = signal.signal(signal.SIGTERM, lambda *_: server.request_stop())
-        try:
-            server.serve_forever()
-        except KeyboardInterrupt:
-            pass
-        finally:
-            server.stop()
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
-    print("stopped serving; the car is stopped", flush=True)
+    except ImportError as exc:
+        raise NotBuiltError(f"--world {world!r}: simulator worlds are not built yet ({exc})") from None
+    stand = "on its stand" if on_stand else "on the floor"
+    return car, f"the simulated QCar (seed {seed}, {stand}{', world ' + str(world) if world else ''})"
 
 
 def normalise_uri(uri: str) -> tuple[str, int]:
@@ -133,10 +203,34 @@ def normalise_uri(uri: str) -> tuple[str, int]:
             text = "tcp://" + host_part
         else:
             text = f"tcp://{host_part}:{DEFAULT_PORT}"
+    if text.startswith("tcp://"):
+        _check_authority(text[len("tcp://") :].rstrip("/"), uri)
     scheme, host, port = parse_car_uri(text)
     if scheme != "tcp" or host is None or port is None:
         raise InputError(f"{uri!r}: expected tcp://HOST:PORT")
     return host, port
+
+
+_HOST_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-._")
+
+
+def _check_authority(authority: str, uri: str) -> None:
+    """HOST:PORT with HOST a name, an IPv4 address or a bracketed IPv6 address ([::1]:18960)."""
+    if authority.startswith("["):
+        close = authority.find("]")
+        if close < 0:
+            raise InputError(f"{uri!r}: unclosed '[' in the address; IPv6 addresses are written tcp://[::1]:PORT")
+        inner, rest = authority[1:close], authority[close + 1 :]
+        if not inner or not all(c in "0123456789abcdefABCDEF:.%" or c.isalnum() for c in inner) or ":" not in inner:
+            raise InputError(f"{uri!r}: {inner!r} is not an IPv6 address")
+        if not rest.startswith(":"):
+            raise InputError(f"{uri!r}: expected tcp://[IPV6]:PORT")
+        return
+    host = authority.rpartition(":")[0]
+    if "]" in authority or ":" in host:
+        raise InputError(f"{uri!r}: IPv6 addresses go in brackets: tcp://[::1]:PORT")
+    if host and not set(host) <= _HOST_CHARS:
+        raise InputError(f"{uri!r}: {host!r} is not a host name or address")
 
 
 @app.command("ping")

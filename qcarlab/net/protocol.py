@@ -19,8 +19,10 @@ from __future__ import annotations
 
 import json
 import math
+import select
 import socket
 import struct
+import time
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
@@ -69,6 +71,7 @@ MSG_NAMES = {int(m): m.name for m in MsgType}
 
 # flags of COMMAND
 FLAG_READ_BACK = 0x1  # reply with a READOUT taken right after applying, instead of APPLIED
+FLAGS_KNOWN = FLAG_READ_BACK  # a COMMAND with any other bit set is refused (bad_value)
 
 # status bits of READOUT
 STATUS_WATCHDOG = 0x1  # the watchdog stopped the car since the last command
@@ -103,7 +106,7 @@ FRAME_FIELDS: dict[int, tuple[str, ...]] = {
 # error codes; the fatal ones close the connection after the error frame
 FATAL_CODES = frozenset(
     {"bad_magic", "bad_version", "oversized", "sequence", "bad_hello", "bad_token", "busy",
-     "too_many_clients", "timeout", "shutting_down"}
+     "too_many_clients", "timeout", "shutting_down", "control_lost"}
 )
 ERROR_CODES = FATAL_CODES | {
     "unknown_type", "bad_payload", "bad_value", "read_only", "not_lockstep", "unsupported",
@@ -165,11 +168,30 @@ def pack_header(mtype: int, seq: int, ref: int, length: int) -> bytes:
     return HEADER.pack(MAGIC, VERSION, mtype, seq & 0xFFFFFFFF, ref & 0xFFFFFFFF, length)
 
 
-def send_frame(sock: socket.socket, mtype: int, seq: int, ref: int, *parts: Any) -> None:
-    """Send one frame; ``parts`` are bytes-like objects (numpy arrays included) sent without copies."""
+def send_frame(sock: socket.socket, mtype: int, seq: int, ref: int, *parts: Any,
+               waiter: Waiter | None = None, timeout: float | None = None) -> None:
+    """Send one frame; ``parts`` are bytes-like objects (numpy arrays included) sent without copies.
+
+    With a ``waiter`` the socket is non-blocking and the frame must make progress at least every
+    ``timeout`` seconds (TimeoutError otherwise); without one the socket's own timeout applies."""
+    if waiter is not None and len(parts) <= 1 and isinstance(parts[0] if parts else b"", (bytes, bytearray)):
+        payload = parts[0] if parts else b""  # the common case: one small reply, one system call
+        if len(payload) <= 65536:
+            data = HEADER.pack(MAGIC, VERSION, mtype, seq & 0xFFFFFFFF, ref & 0xFFFFFFFF, len(payload)) + payload
+            try:
+                sent = sock.send(data)
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            if sent < len(data):
+                _send_nonblocking(sock, [memoryview(data)[sent:]], waiter, timeout)
+            return
     views = [memoryview(p).cast("B") if not isinstance(p, (bytes, bytearray)) else p for p in parts]
     length = sum(len(v) for v in views)
     header = pack_header(mtype, seq, ref, length)
+    if waiter is not None:
+        data = [header + b"".join(views)] if length <= 65536 else [header, *views]
+        _send_nonblocking(sock, data, waiter, timeout)
+        return
     if length <= 65536:
         sock.sendall(header + b"".join(views))
         return
@@ -184,14 +206,57 @@ def _send_all_parts(sock: socket.socket, parts: list[Any]) -> None:
         return
     while views:
         sent = sock.sendmsg(views[:64])
-        while sent and views:
-            first = len(views[0])
-            if sent >= first:
-                sent -= first
-                views.pop(0)
-            else:
-                views[0] = views[0][sent:]
-                sent = 0
+        _consume(views, sent)
+
+
+def _consume(views: list[memoryview], sent: int) -> None:
+    while sent and views:
+        first = len(views[0])
+        if sent >= first:
+            sent -= first
+            views.pop(0)
+        else:
+            views[0] = views[0][sent:]
+            sent = 0
+
+
+def _send_nonblocking(sock: socket.socket, parts: list[Any], waiter: Waiter, timeout: float | None) -> None:
+    views = [memoryview(p) for p in parts if len(p)]
+    gather = hasattr(sock, "sendmsg")
+    while views:
+        try:
+            sent = sock.sendmsg(views[:64]) if gather and len(views) > 1 else sock.send(views[0])
+        except (BlockingIOError, InterruptedError):
+            if not waiter.writable(timeout):
+                raise TimeoutError(f"no progress sending for {timeout} s") from None
+            continue
+        _consume(views, sent)
+
+
+class Waiter:
+    """Waits until a non-blocking socket can be read or written (poll; select where there is none)."""
+
+    def __init__(self, sock: socket.socket):
+        self.sock = sock
+        if hasattr(select, "poll"):
+            fd = sock.fileno()
+            self._r = select.poll()
+            self._r.register(fd, select.POLLIN)
+            self._w = select.poll()
+            self._w.register(fd, select.POLLOUT)
+        else:  # pragma: no cover (Windows)
+            self._r = self._w = None
+
+    def readable(self, timeout: float | None) -> bool:
+        """True when the socket has data (or its end); False after ``timeout`` s (None: no limit)."""
+        if self._r is not None:
+            return bool(self._r.poll(None if timeout is None else max(0.0, timeout) * 1000.0))
+        return bool(select.select([self.sock], [], [], timeout)[0])
+
+    def writable(self, timeout: float | None) -> bool:
+        if self._w is not None:
+            return bool(self._w.poll(None if timeout is None else max(0.0, timeout) * 1000.0))
+        return bool(select.select([], [self.sock], [], timeout)[1])
 
 
 class FrameReader:
@@ -200,10 +265,26 @@ class FrameReader:
     ``read_frame`` returns None at a clean end of stream (between frames). A socket timeout while
     waiting raises ``TimeoutError``; ``mid_frame`` then says whether a frame was under way (the
     reader stays usable either way: nothing is consumed before a whole frame is in).
+
+    Deadlines (the server's; a client leaves them unset and the socket's own timeout applies):
+
+    - ``frame_timeout``: a frame's bytes must all arrive within this many seconds of its first
+      byte (or, when it came with the previous frame, of the moment reading it began), however
+      they trickle in (a byte every second does not keep a frame open);
+    - ``deadline``: an absolute ``time.monotonic()`` that caps every wait (the whole HELLO);
+    - ``idle_timeout``: how long to wait for the first byte of a frame (TimeoutError between
+      frames, ``mid_frame`` False); None waits as long as the other deadlines allow.
+
+    With a ``waiter`` the socket is non-blocking (``settimeout(0)``): a read that finds bytes costs
+    one system call, and ``recv_timeout`` bounds each wait where no deadline does (a client's "no
+    reply within 5 s").
     """
 
-    def __init__(self, sock: socket.socket, max_payload: int, bufsize: int = 256 * 1024):
+    def __init__(self, sock: socket.socket, max_payload: int, bufsize: int = 256 * 1024,
+                 frame_timeout: float | None = None, waiter: Waiter | None = None):
         self.sock = sock
+        self.waiter = waiter  # set: the socket is non-blocking and waits go through it
+        self.recv_timeout: float | None = None  # with a waiter: the longest wait for more bytes
         self.max_payload = max_payload
         self.buf = bytearray(bufsize)
         self.view = memoryview(self.buf)
@@ -211,6 +292,12 @@ class FrameReader:
         self.end = 0
         self.broken = False
         self.bytes_in = 0
+        self.frame_timeout = frame_timeout
+        self.deadline: float | None = None
+        self.idle_timeout: float | None = None
+        self.first_byte_at = 0.0  # time.monotonic() when the frame under way began
+        self.eof = False  # poll() saw the end of the stream
+        self._resume = False  # a partial frame was left behind by the last frame returned
 
     @property
     def buffered(self) -> int:
@@ -218,24 +305,99 @@ class FrameReader:
 
     @property
     def mid_frame(self) -> bool:
-        return self.end > self.start
+        return self.end > self.start or self.broken
 
     def peek(self) -> bytes:
         return bytes(self.buf[self.start : self.end])
 
+    def _limit(self, now: float) -> float | None:
+        """The time.monotonic() by which more bytes must come (None: no limit)."""
+        limit = self.deadline
+        if self.frame_timeout is not None and self.mid_frame:
+            own: float | None = self.first_byte_at + self.frame_timeout
+        elif self.idle_timeout is not None:
+            own = now + self.idle_timeout
+        elif self.waiter is not None and self.recv_timeout is not None:
+            own = now + self.recv_timeout
+        else:
+            own = None
+        if own is not None:
+            limit = own if limit is None else min(limit, own)
+        return limit
+
+    def _arm(self) -> None:
+        """Set the socket's timeout to what the deadlines leave (no-op when none is set)."""
+        if self.frame_timeout is None and self.deadline is None:
+            return
+        now = time.monotonic()
+        limit = self._limit(now)
+        if limit is None:
+            self.sock.settimeout(None)
+            return
+        left = limit - now
+        if left <= 0.0:
+            raise TimeoutError("deadline passed")
+        self.sock.settimeout(left)
+
+    def _recv_into(self, view: memoryview) -> int:
+        fresh = not self.mid_frame
+        if self.waiter is None:
+            self._arm()
+            got = self.sock.recv_into(view)
+        else:
+            limit: float | None = -1.0  # fixed at the first wait: a wait is not extended by waking up
+            while True:
+                try:
+                    got = self.sock.recv_into(view)
+                    break
+                except (BlockingIOError, InterruptedError):
+                    now = time.monotonic()
+                    if limit == -1.0:
+                        limit = self._limit(now)
+                    if limit is not None and limit <= now:
+                        raise TimeoutError("deadline passed") from None
+                    self.waiter.readable(None if limit is None else limit - now)
+        if got and fresh:
+            self.first_byte_at = time.monotonic()
+        self.bytes_in += got
+        return got
+
+    def poll(self) -> int:
+        """Take whatever bytes are already there without waiting (the socket must be non-blocking:
+        ``settimeout(0)``, as it is with a waiter); returns the count, 0 when nothing is there. End
+        of stream is left for ``read_frame`` to find."""
+        if self.end == len(self.buf):
+            return 0
+        if self.start == self.end:
+            self.start = self.end = 0
+        fresh = not self.mid_frame
+        try:
+            got = self.sock.recv_into(self.view[self.end :])
+        except (BlockingIOError, InterruptedError):
+            return 0
+        if got == 0:
+            self.eof = True
+            return 0
+        if fresh:
+            self.first_byte_at = time.monotonic()
+        self.end += got
+        self.bytes_in += got
+        return got
+
     def _fill(self) -> bool:
         """Receive more bytes into the buffer; False at end of stream."""
+        if self.eof:
+            return False
         if self.end == len(self.buf):
             if self.start == 0:  # cannot happen for frames that fit, kept for safety
                 raise ProtocolError("oversized", "frame larger than the receive buffer")
             n = self.end - self.start
             self.buf[:n] = self.buf[self.start : self.end]
             self.start, self.end = 0, n
-        got = self.sock.recv_into(self.view[self.end :])
+        got = self._recv_into(self.view[self.end :])
         if got == 0:
             return False
         self.end += got
-        self.bytes_in += got
         return True
 
     def _ensure(self, n: int) -> bool:
@@ -251,6 +413,9 @@ class FrameReader:
     def read_frame(self) -> Frame | None:
         if self.broken:
             raise ProtocolError("incomplete", "the connection's stream is out of step")
+        if self._resume:  # time spent between two calls (serving the last frame) is not the peer's
+            self._resume = False
+            self.first_byte_at = time.monotonic()
         if not self._ensure(2):
             if self.buffered:
                 raise IncompleteFrame(self.buffered)
@@ -275,6 +440,8 @@ class FrameReader:
             self.start += total
             if self.start == self.end:
                 self.start = self.end = 0
+            else:  # the next frame's first bytes came with this one: its clock starts when it is read
+                self._resume = True
             return Frame(mtype, seq, ref, payload)
         # a large payload: copy what is buffered, receive the rest in place
         payload = bytearray(length)
@@ -285,11 +452,10 @@ class FrameReader:
         view = memoryview(payload)
         self.broken = True  # until the payload is complete
         while have < length:
-            got = self.sock.recv_into(view[have:])
+            got = self._recv_into(view[have:])
             if got == 0:
                 raise IncompleteFrame(have)
             have += got
-            self.bytes_in += got
         self.broken = False
         return Frame(mtype, seq, ref, payload)
 

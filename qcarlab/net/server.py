@@ -4,36 +4,46 @@
     from qcarlab.net.server import CarServer
 
     with SimCar(seed=1, realtime=True) as car, CarServer(car, "127.0.0.1", 18960) as server:
-        server.serve_forever()          # Ctrl-C (KeyboardInterrupt) ends it; the car is stopped
+        server.serve_forever()          # request_stop() (a signal handler) ends it; the car is stopped
 
-One thread per connection (blocking sockets, TCP_NODELAY), one lock around the car. Safety:
+One thread per connection (blocking sockets, TCP_NODELAY). The rules (docs/protocol.md, section 6):
 
-- **one controller**: the first client that says hello as ``control`` drives; others may connect
-  as ``monitor`` (read-only); a second controller is refused (``busy``);
-- **watchdog**: no command from the controller for ``watchdog`` seconds -> throttle 0, wheels
-  straight, hazard and brake lamps (in lock-step mode any frame from the controller counts, since
-  simulated time only moves when the controller says so);
+- **one controller**: the first client that says hello as ``control`` drives; others connect as
+  ``monitor`` (read-only). A second controller is refused (``busy``), unless the controller has
+  gone quiet: once the watchdog has stopped the car and the controller has sent nothing for
+  ``controller_timeout`` seconds, the next control hello takes over (the old one gets
+  ``control_lost``). One of the ``max_clients`` slots is kept for a controller.
+- **watchdog**: its own thread, waiting on nothing but the deadline and the drive lock, which is
+  only ever held for one quick backend call (never for a sensor reading): no command from the
+  controller for ``watchdog`` seconds -> throttle 0, wheels straight, hazard and brake lamps (in
+  lock-step any frame from the controller counts, since simulated time only moves when it says so).
 - **dropped connection**: when the controller leaves (bye, close, reset, protocol error) the car is
-  stopped before its socket is closed;
-- **limits**: every command goes through ``Car.write``: non-finite values are refused (the car is
-  stopped), throttle and steering are clamped to the car's limits whatever the client sends;
-- **token**: binding anything but loopback needs a token; a hello without it is refused;
-- **bad input**: malformed, oversized or out-of-order frames, unknown types, silent clients and
-  HTTP speakers get an error frame (or a plain HTTP 400) and/or are disconnected, with one log
-  line; the server keeps serving everyone else.
+  stopped before its socket is closed.
+- **limits**: every command goes through ``Car.write`` (non-finite values refused and the car
+  stopped, throttle and steering clamped to the car's limits whatever the client sends).
+- **deadlines**: the whole HELLO within ``hello_timeout`` of the connection, every frame within
+  ``io_timeout`` of its first byte, every reply sent within ``io_timeout``; at most
+  ``max_pending`` connections may be waiting for their hello (the oldest is dropped for a new one).
+- **token**: a server whose socket is bound to anything but a loopback address needs a token
+  (16+ characters); wrong tokens from one address are slowed down (:mod:`qcarlab.net.guard`).
+- **sensors**: read off the drive lock, shared, paced for monitors (:mod:`qcarlab.net.sensors`).
+- **bad input**: an error frame (or an HTTP 400) and/or a closed connection; refusals are logged
+  at a bounded rate; the server keeps serving everyone else.
 """
 
 from __future__ import annotations
 
 import errno
-import hmac
 import ipaddress
 import logging
 import math
+import os
 import select
 import socket
+import sys
 import threading
 import time
+from collections import OrderedDict, deque
 from dataclasses import fields as dc_fields
 from typing import Any
 
@@ -41,35 +51,138 @@ from qcarlab.car.base import Car, Readout
 from qcarlab.car.lamps import parse_lamps
 from qcarlab.errors import CarError, InputError, NotBuiltError, QcarlabError
 from qcarlab.net import protocol as P
-from qcarlab.net.frames import frame_arrays
+from qcarlab.net.guard import RefusalLog, TokenGuard, token_matches, token_problem
 from qcarlab.net.protocol import MsgType as M
+from qcarlab.net.sensors import SENSORS, NoData, SensorHub
 
 log = logging.getLogger("qcarlab.net")
 
-LOOPBACK_NAMES = ("localhost", "ip6-localhost", "ip6-loopback")
+
+def _log(level: int, msg: str, *args: Any) -> None:
+    """Log a line; a handler that fails (a terminal gone after SIGHUP, a closed pipe) never takes a
+    server thread down with it."""
+    try:
+        log.log(level, msg, *args)
+    except Exception:
+        pass
+
 WATCHDOG_LAMPS = parse_lamps(["hazard", "brake"])
 CONTROL_ONLY = frozenset({M.COMMAND, M.STOP, M.ADVANCE})
-SENSOR_CALLS = {M.GET_LIDAR: (M.LIDAR, "read_lidar", "lidar"),
-                M.GET_RGBD: (M.RGBD, "read_rgbd", "rgbd"),
-                M.GET_CSI: (M.CSI, "read_csi", "csi")}
 MAX_LOGGED_ERRORS = 5  # per connection; further ones are counted and summed up at disconnect
+HOUSEKEEPING_S = 0.05  # period of the housekeeping thread (log lines, the real-time simulator's clock)
+SWITCH_INTERVAL_S = 0.0005  # the interpreter's thread switch interval in a serving process
+
+
+def process_settings() -> tuple[Any, ...]:
+    """What :func:`tune_process` changes, to give back with :func:`restore_process`."""
+    try:
+        sched = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.getpriority(os.PRIO_PROCESS, 0))
+    except (AttributeError, OSError):
+        sched = None
+    return sys.getswitchinterval(), sched
+
+
+def restore_process(saved: tuple[Any, ...]) -> None:
+    interval, sched = saved
+    sys.setswitchinterval(interval)
+    if sched is not None:
+        try:
+            os.sched_setscheduler(0, sched[0], os.sched_param(sched[1]))
+            os.setpriority(os.PRIO_PROCESS, 0, sched[2])
+        except (AttributeError, OSError):
+            pass
+
+
+def tune_process(priority: bool = True) -> str:
+    """Settings for a process that serves a car (``qcarlab serve``; call it before any thread is
+    started): a short thread switch interval, so that a busy thread (a monitor's frame) hands over
+    to the controller's or the watchdog's thread within half a millisecond instead of five; and,
+    where the system allows it (root, CAP_SYS_NICE), real-time round-robin priority 5 for this
+    thread and every thread it starts (else nice -10), so that other processes' load cannot leave a
+    thread that holds the interpreter lock waiting for a CPU while the watchdog (priority 12) or the
+    controller's thread (10) waits for that lock. Connections without a hello are served at the
+    ordinary priority, monitors' requests are rate-limited: no client can take the machine's CPUs
+    from its other programs. Returns the priority set."""
+    if sys.getswitchinterval() > SWITCH_INTERVAL_S:
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+    if not priority:
+        return "normal"
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(PRIORITY_CLIENT))  # Linux: inherited by new threads
+        return f"real-time (SCHED_RR {PRIORITY_CLIENT})"
+    except (AttributeError, OSError):
+        pass
+    try:
+        if os.getpriority(os.PRIO_PROCESS, 0) > -10:
+            os.setpriority(os.PRIO_PROCESS, 0, -10)
+        return "nice -10"
+    except (AttributeError, OSError):
+        return "normal"
+
+
+# real-time priorities of the server's threads, where the system allows them (see tune_process)
+PRIORITY_WATCHDOG = 12
+PRIORITY_CONTROLLER = 10
+PRIORITY_CLIENT = 5  # monitors, housekeeping, the main thread
+MONITOR_REQUESTS_PER_S = 1000.0  # a monitor's requests are served at most this often
+MONITOR_BURST = 20.0  # ... after a burst of this many
+
+
+def raise_thread_priority(level: int = PRIORITY_WATCHDOG) -> str:
+    """Give the calling thread real-time round-robin priority ``level`` where the system allows it
+    (Linux, root or CAP_SYS_NICE), else nice -10; returns what was set. Other processes' load then
+    delays it less; without the privilege nothing changes."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(level))  # 0: this thread, on Linux
+        return f"real-time (SCHED_RR {level})"
+    except (AttributeError, OSError):
+        pass
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), -10)
+        return "nice -10"
+    except (AttributeError, OSError):
+        return "normal"
+
+
+def ordinary_thread_priority() -> None:
+    """The ordinary scheduler for the calling thread (nice -10 where allowed): for the thread that
+    accepts connections, and the threads of connections that have not said hello, so that a flood
+    of connections cannot take the machine's CPUs from its other programs."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), -10)
+    except (AttributeError, OSError):
+        pass
+
+
+def _addresses(host: str) -> list[str]:
+    try:
+        infos = socket.getaddrinfo(host or None, None, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (OSError, UnicodeError):
+        return []
+    return [i[4][0] for i in infos]
+
+
+def address_is_loopback(addr: str) -> bool:
+    """True for a numeric loopback address (127.0.0.0/8, ::1, ::ffff:127.x.x.x)."""
+    try:
+        ip = ipaddress.ip_address(addr.strip("[]").split("%")[0])
+    except ValueError:
+        return False
+    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    return ip.is_loopback
 
 
 def is_loopback(host: str) -> bool:
-    """True when every address ``host`` names is a loopback address (127.0.0.0/8, ::1)."""
+    """True when every address ``host`` resolves to is a loopback address. Names are resolved, never
+    trusted ("localhost" mapped elsewhere by a hosts file is not loopback); the server decides
+    again by the address its socket is bound to."""
     if not host:
         return False
-    if host.lower() in LOOPBACK_NAMES:
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]").split("%")[0]).is_loopback
-    except ValueError:
-        pass
-    try:
-        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
-    except OSError:
-        return False
-    return bool(infos) and all(ipaddress.ip_address(i[4][0].split("%")[0]).is_loopback for i in infos)
+    addrs = _addresses(host)
+    return bool(addrs) and all(address_is_loopback(a) for a in addrs)
 
 
 class CarServer:
@@ -83,49 +196,91 @@ class CarServer:
         *,
         token: str | None = None,
         watchdog: float = 0.25,
+        controller_timeout: float | None = None,
         lockstep: bool | None = None,
         max_clients: int = 16,
+        max_pending: int = 16,
         hello_timeout: float = 2.0,
         io_timeout: float = 5.0,
+        monitor_rate: float = 10.0,
+        spin: float = 0.0002,
+        prepare: bool = False,
+        render_process: bool = False,
+        priority: bool = True,
     ):
         if not (isinstance(port, int) and 0 <= port < 65536):
             raise InputError(f"--port must be in 0-65535, got {port!r}")
         if not (math.isfinite(watchdog) and 0.01 <= watchdog <= 60.0):
             raise InputError(f"--watchdog must be between 0.01 and 60 s, got {watchdog}")
-        if token is not None and (not token or len(token) > 256 or not token.isprintable()):
-            raise InputError("--token must be 1-256 printable characters")
-        if not 1 <= max_clients <= 1024:
-            raise InputError(f"max clients must be in 1-1024, got {max_clients}")
+        if controller_timeout is None:
+            controller_timeout = 4.0 * watchdog
+        if not (math.isfinite(controller_timeout) and 0.01 <= controller_timeout <= 3600.0):
+            raise InputError(f"--controller-timeout must be between 0.01 and 3600 s, got {controller_timeout}")
+        if token is not None and token != "":
+            problem = token_problem(token)
+            if problem:
+                raise InputError(problem)
+        if not 2 <= max_clients <= 1024:
+            raise InputError(f"--max-clients must be in 2-1024 (one slot is kept for the controller), got {max_clients}")
+        if not 1 <= max_pending <= 1024:
+            raise InputError(f"max pending connections must be in 1-1024, got {max_pending}")
+        if not (math.isfinite(monitor_rate) and 0.1 <= monitor_rate <= 1000.0):
+            raise InputError(f"--monitor-rate must be between 0.1 and 1000 Hz, got {monitor_rate}")
         self.car = car
         self.host = host
         self.port = port
         self.token = token or None
         self.watchdog = float(watchdog)
+        self.controller_timeout = float(controller_timeout)
         self.lockstep = bool(car.stepped) if lockstep is None else bool(lockstep)
         if self.lockstep and not car.stepped:
             raise InputError("lock-step serving needs a stepped car (the simulator without --realtime)")
         if not self.lockstep and car.stepped:
             raise InputError("a stepped simulator can only be served in lock-step (its time moves only on advance)")
         self.max_clients = max_clients
-        self.hello_timeout = hello_timeout
-        self.io_timeout = io_timeout
+        self.max_pending = max_pending
+        self.hello_timeout = float(hello_timeout)
+        self.io_timeout = float(io_timeout)
+        self.monitor_rate = float(monitor_rate)
+        self.spin = max(0.0, float(spin))
+        self.prepare = prepare
+        self.render_process = render_process
+        self.priority = priority  # ask for real-time priority for the watchdog's and the controller's threads
+        self.tuned = False  # tune_process() ran: every thread is real-time, monitors stay so after their hello
+        self.worker: Any = None  # the RenderWorker drawing a real-time simulator's frames, once started
 
-        self.car_lock = threading.RLock()
-        self.state_lock = threading.Lock()
+        # the drive lock: held only around one quick backend call (write, read, stop, time, truth,
+        # advance, fixing a sensor frame's pose); never around a sensor reading or a socket call
+        self.drive_lock = threading.Lock()
+        self.state_lock = threading.Lock()  # who is connected, in which role
+        self.control_free = threading.Condition(self.state_lock)
         self.controller: _Session | None = None
         self.sessions: set[_Session] = set()
+        self.pending: OrderedDict[_Session, None] = OrderedDict()  # connected, no hello yet (oldest first)
+        self.monitors: set[_Session] = set()
         self.last_feed = time.monotonic()
         self.tripped = False
+        self.trip_time = 0.0
         self.trips = 0
-        self.cache: dict[int, Any] = {}  # lock-step: the controller's last readout and frames
+        self.watchdog_priority = "normal"  # what raise_thread_priority() got for the watchdog thread
+        self.trip_delays: deque[float] = deque(maxlen=1000)  # s from the last command to each stop
+        self.takeovers = 0
+        self.evicted = 0
         self.stopping = False
         self._stop_evt = threading.Event()
+        self._kick = threading.Event()  # wakes the watchdog: a controller came or went
+        self._notes: deque[tuple[int, str, tuple[Any, ...]]] = deque(maxlen=1000)
+        self.refusals = RefusalLog(log)
+        self.tokens = TokenGuard()
+        self.sensors = SensorHub(car, self.drive_lock, lockstep=self.lockstep, monitor_rate=self.monitor_rate,
+                                 stop_event=self._stop_evt)
+        self.cache_readout: Readout | None = None  # lock-step: the controller's last readout
         self._listener: socket.socket | None = None
         self._wake_r: socket.socket | None = None
         self._wake_w: socket.socket | None = None
         self._threads: list[threading.Thread] = []
         self._started = False
-        self._bound_port: int | None = None
+        self._bound: tuple[str, int] | None = None
         self.welcome_base = self._welcome_base()
 
     # --- identity ---------------------------------------------------------------------------------
@@ -143,9 +298,14 @@ class CarServer:
             "identity": {"name": ident.name, "backend": ident.backend, "capabilities": caps, "extra": ident.extra},
             "lockstep": self.lockstep,
             "watchdog_s": self.watchdog,
+            "controller_timeout_s": self.controller_timeout,
             "throttle_limit": self.car.throttle_limit,
             "steering_limit": self.car.steering_limit,
             "max_request": P.MAX_REQUEST,
+            "max_clients": self.max_clients,
+            "monitor_rate_hz": self.monitor_rate,
+            "hello_timeout_s": self.hello_timeout,
+            "frame_timeout_s": self.io_timeout,
             "params": params,
         }
 
@@ -157,39 +317,77 @@ class CarServer:
     @property
     def address(self) -> tuple[str, int]:
         """(host, port) actually bound (the port is the real one when 0 was asked)."""
-        return self.host, self._bound_port if self._bound_port is not None else self.port
+        if self._bound is not None:
+            return self._bound
+        return self.host, self.port
 
     @property
     def uri(self) -> str:
         host, port = self.address
         return f"tcp://{'[' + host + ']' if ':' in host else host}:{port}"
 
+    @property
+    def loopback(self) -> bool:
+        """True when the listening socket is bound to a loopback address (known after start)."""
+        return self._bound is not None and address_is_loopback(self._bound[0])
+
     def start(self) -> CarServer:
         """Bind, listen and start serving in background threads; returns self."""
         if self._started:
             return self
-        if not is_loopback(self.host) and not self.token:
-            shown = self.host or "all interfaces"
+        listener = self._bind()
+        bound = listener.getsockname()
+        if not address_is_loopback(bound[0]) and not self.token:
+            listener.close()
+            shown = f"{self.host} ({bound[0]})" if self.host and self.host != bound[0] else (self.host or "all interfaces")
             raise InputError(
-                f"refusing to serve on {shown} without a token: anyone on that network could drive the car; "
-                "pass --token SECRET (or set QCARLAB_TOKEN), or bind to 127.0.0.1"
+                f"refusing to serve on {shown} without a token: that address is not loopback, anyone on its "
+                "network could drive the car; set QCARLAB_TOKEN (qcarlab serve --new-token makes one), or bind to 127.0.0.1"
             )
-        self._listener = self._bind()
-        self._bound_port = self._listener.getsockname()[1]
+        if self.render_process and not self.lockstep and hasattr(self.car, "sensor_recipe"):
+            self._start_worker()
+        if self.prepare and self.worker is None:
+            try:
+                self.car.prepare_sensors()
+            except Exception as exc:  # a sensor that cannot be built fails its requests later, not the server
+                _log(logging.WARNING, "could not prepare the sensors: %s", _one_line(str(exc)))
+        self._listener = listener
+        self._bound = (bound[0], bound[1])
         self._wake_r, self._wake_w = socket.socketpair()
         self._started = True
-        self._spawn(self._accept_loop, "qcarlab-accept")
+        try:
+            self.tuned = os.sched_getscheduler(0) != os.SCHED_OTHER
+        except (AttributeError, OSError):
+            self.tuned = False
         self._spawn(self._watchdog_loop, "qcarlab-watchdog")
+        self._spawn(self._housekeeping_loop, "qcarlab-housekeeping")
+        self._spawn(self._accept_loop, "qcarlab-accept")
         return self
+
+    def _start_worker(self) -> None:
+        from qcarlab.net.render_worker import KINDS, RenderWorker, WorkerGone
+
+        kinds = tuple(k for k in KINDS if k in self.capabilities)
+        if not kinds:
+            return
+        try:
+            self.worker = RenderWorker(self.car.sensor_recipe(), kinds, build=self.prepare)
+        except (WorkerGone, OSError, Exception) as exc:  # serving goes on, drawing in this process
+            _log(logging.WARNING, "sensor frames are drawn in the server's own process: %s", _one_line(str(exc)))
+            return
+        self.sensors.worker = self.worker
 
     def _bind(self) -> socket.socket:
         where = f"{self.host or '*'}:{self.port}"
         try:
             infos = socket.getaddrinfo(self.host or None, self.port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-            family = infos[0][0]
-            return socket.create_server((self.host, self.port), family=family, backlog=64)
-        except socket.gaierror:
+        except (socket.gaierror, UnicodeError):
             raise InputError(f"--host {self.host!r}: unknown host name") from None
+        if not infos:
+            raise InputError(f"--host {self.host!r}: unknown host name")
+        family, _, _, _, sockaddr = infos[0]
+        try:  # bind the resolved numeric address: that address, not the name, decides what is loopback
+            return socket.create_server(sockaddr, family=family, backlog=128)
         except OSError as exc:
             if exc.errno == errno.EADDRINUSE:
                 raise CarError(f"cannot listen on {where}: the port is in use (another qcarlab serve?); pick another --port") from None
@@ -206,7 +404,7 @@ class CarServer:
         return thread
 
     def serve_forever(self) -> None:
-        """Serve until :meth:`stop` is called (from another thread or a signal handler)."""
+        """Serve until :meth:`request_stop` or :meth:`stop` is called (another thread, a signal handler)."""
         self.start()
         while not self._stop_evt.wait(0.2):
             pass
@@ -221,6 +419,8 @@ class CarServer:
             return
         self.stopping = True
         self._stop_evt.set()
+        self._kick.set()
+        self.safe_stop("server stopping")  # first: nothing below may delay it
         if self._wake_w is not None:
             try:
                 self._wake_w.send(b"x")
@@ -228,6 +428,7 @@ class CarServer:
                 pass
         with self.state_lock:
             sessions = list(self.sessions)
+            self.control_free.notify_all()
         for s in sessions:
             s.interrupt()
         for thread in list(self._threads):
@@ -241,7 +442,11 @@ class CarServer:
                     sock.close()
                 except OSError:
                     pass
-        self.safe_stop("server stopping")
+        self.safe_stop("server stopped")
+        if self.worker is not None:
+            self.worker.close()
+        self._flush_notes()
+        self.refusals.flush(math.inf)
 
     def __enter__(self) -> CarServer:
         return self.start()
@@ -253,18 +458,20 @@ class CarServer:
     def safe_stop(self, why: str) -> bool:
         """Stop the car; a failing backend is logged, never raised."""
         try:
-            with self.car_lock:
+            with self.drive_lock:
                 self.car.stop()
             return True
         except Exception as exc:  # the backend failed to stop: say so loudly
-            log.error("could not stop the car (%s): %s", why, exc)
+            _log(logging.ERROR, "could not stop the car (%s): %s", why, exc)
             return False
 
     def feed(self) -> None:
         self.last_feed = time.monotonic()
-        self.tripped = False
+        if self.tripped:
+            self.tripped = False
+            self._kick.set()  # the watchdog waits for a new deadline
 
-    def status(self, session: _Session | None) -> int:
+    def status(self) -> int:
         bits = 0
         if self.tripped:
             bits |= P.STATUS_WATCHDOG
@@ -274,40 +481,81 @@ class CarServer:
             bits |= P.STATUS_LOCKSTEP
         return bits
 
+    def note(self, level: int, msg: str, *args: Any) -> None:
+        """A log line from a thread that must never block on a write (the watchdog)."""
+        self._notes.append((level, msg, args))
+
+    def _flush_notes(self) -> None:
+        while self._notes:
+            level, msg, args = self._notes.popleft()
+            _log(level, msg, *args)
+
+    # --- the watchdog: its own thread, the deadline and the drive lock only ------------------------
     def _watchdog_loop(self) -> None:
-        next_tick = time.monotonic()
-        while not self._stop_evt.wait(0.005):
-            if not self.lockstep and time.monotonic() >= next_tick:
-                # keep a real-time simulator's physics current, so that a request after a long
-                # idle spell does not have to catch up on hours of steps at once
-                next_tick = time.monotonic() + 0.1
-                try:
-                    with self.car_lock:
-                        self.car.time
-                except Exception:
-                    pass
+        self.watchdog_priority = raise_thread_priority(PRIORITY_WATCHDOG) if self.priority else "normal"
+        while not self.stopping:
+            self._kick.clear()
             ctl = self.controller
+            now = time.monotonic()
             if ctl is None or self.tripped:
+                self._kick.wait(0.1)
                 continue
-            if time.monotonic() - self.last_feed <= self.watchdog:
+            due = self.last_feed + self.watchdog
+            if self.lockstep and ctl.busy:  # in lock-step its request in progress is a sign of life
+                due = max(due, now + self.watchdog)
+            if now < due:
+                self._kick.wait(due - now)
                 continue
-            with self.car_lock:  # re-check under the lock: a command may have just arrived
-                if self.controller is not ctl or self.tripped or time.monotonic() - self.last_feed <= self.watchdog:
+            with self.drive_lock:  # re-check under the lock: a command may have just arrived
+                now = time.monotonic()
+                if self.controller is not ctl or self.tripped or now - self.last_feed <= self.watchdog:
                     continue
+                if self.lockstep and ctl.busy:
+                    continue
+                failed = None
                 try:
                     self.car.write(0.0, 0.0, WATCHDOG_LAMPS)
                 except Exception as exc:
-                    log.error("watchdog could not stop the car: %s", exc)
-                    self.safe_stop("watchdog")
+                    failed = exc
+                    try:
+                        self.car.stop()
+                    except Exception:
+                        pass
                 self.tripped = True
+                self.trip_time = now
                 self.trips += 1
-            log.warning(
-                "watchdog: no command from %s for %.3g s; car stopped (throttle 0, hazard lamps)", ctl.peer, self.watchdog
-            )
+                self.trip_delays.append(now - self.last_feed)  # the stop's true lateness, for benchmarks
+            if failed is not None:
+                self.note(logging.ERROR, "watchdog could not stop the car: %s", failed)
+            self.note(logging.WARNING, "watchdog: no command from %s for %.3g s; car stopped (throttle 0, hazard lamps)",
+                      ctl.peer, self.watchdog)
+
+    def controller_stale(self, ctl: _Session, now: float) -> bool:
+        """The controller has lost its claim: the watchdog stopped the car and it has sent nothing
+        for ``controller_timeout`` s."""
+        return self.tripped and now - ctl.last_frame >= self.controller_timeout
+
+    # --- housekeeping: log lines, the real-time simulator's clock ---------------------------------
+    def _housekeeping_loop(self) -> None:
+        next_sync = 0.0
+        while not self._stop_evt.wait(HOUSEKEEPING_S):
+            now = time.monotonic()
+            if not self.lockstep and now >= next_sync:
+                # keep a real-time simulator's physics current, so that a request after a long
+                # idle spell does not have to catch up on hours of steps under the drive lock
+                next_sync = now + 0.1
+                try:
+                    with self.drive_lock:
+                        self.car.time
+                except Exception:
+                    pass
+            self._flush_notes()
+            self.refusals.flush(now)
 
     # --- connections ------------------------------------------------------------------------------
     def _accept_loop(self) -> None:
         assert self._listener is not None and self._wake_r is not None
+        ordinary_thread_priority()  # and so are the connections it starts, until they say hello
         while not self.stopping:
             try:
                 ready, _, _ = select.select([self._listener, self._wake_r], [], [], 1.0)
@@ -321,29 +569,84 @@ class CarServer:
                 sock, addr = self._listener.accept()
             except OSError:
                 continue
-            peer = _peer_name(addr)
-            with self.state_lock:
-                full = len(self.sessions) >= self.max_clients
-            if full:
-                try:
-                    sock.settimeout(0.5)
-                    P.send_frame(sock, M.ERROR, 1, 0, P.error_payload(
-                        "too_many_clients", f"the server already has {self.max_clients} clients; try again later"))
-                except OSError:
-                    pass
-                sock.close()
-                log.warning("%s refused: already %d clients (too_many_clients)", peer, self.max_clients)
-                continue
             try:
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
             except OSError:
                 pass
-            session = _Session(self, sock, peer)
+            session = _Session(self, sock, addr)
+            victim = None
             with self.state_lock:
+                if len(self.pending) >= self.max_pending:  # the oldest connection without a hello makes room
+                    victim, _ = self.pending.popitem(last=False)
+                    victim.evicted = True
+                    self.evicted += 1
+                self.pending[session] = None
                 self.sessions.add(session)
-            session.thread = self._spawn(session.run, f"qcarlab-client-{peer}")
-            self._threads = [t for t in self._threads if t.is_alive() or t is session.thread]
+            if victim is not None:
+                victim.interrupt()
+            try:
+                session.thread = self._spawn(session.run, f"qcarlab-client-{session.peer}")
+            except RuntimeError:  # cannot start a thread: drop this one
+                with self.state_lock:
+                    self.pending.pop(session, None)
+                    self.sessions.discard(session)
+                session.close_socket()
+            self._threads = [t for t in self._threads if t.is_alive()]
+
+    def claim_control(self, session: _Session) -> str | None:
+        """Make ``session`` the controller; returns None, or the refusal's message (``busy``)."""
+        wait_until = time.monotonic() + 1.0
+        revoke = None
+        with self.control_free:
+            while True:
+                holder = self.controller
+                now = time.monotonic()
+                if holder is None or holder is session:
+                    break
+                if self.controller_stale(holder, now):
+                    revoke = holder
+                    break
+                if (holder.ending or holder.peer_gone()) and now < wait_until and not self.stopping:
+                    self.control_free.wait(wait_until - now)  # it is leaving: wait for it to be gone
+                    continue
+                quiet = now - holder.last_frame
+                return (f"the car is controlled by {holder.peer} (last heard {quiet:.2g} s ago; control passes on "
+                        f"once the watchdog has stopped the car and it has been silent for {self.controller_timeout:g} s); "
+                        "connect as a monitor to watch")
+            self.controller = session
+            self.feed()
+            if revoke is not None:
+                self.takeovers += 1
+        self._kick.set()
+        if revoke is not None:
+            revoke.revoke(
+                f"control passed to {session.peer}: nothing was heard from this connection for "
+                f"{time.monotonic() - revoke.last_frame:.2g} s after the watchdog stopped the car"
+            )
+            _log(logging.WARNING, "%s (control) was silent for %.2g s after the watchdog stopped the car; control passed to %s",
+                        revoke.peer, time.monotonic() - revoke.last_frame, session.peer)
+        return None
+
+    def release(self, session: _Session) -> bool:
+        """``session`` leaves; True if it was the controller (then the car was stopped)."""
+        was = False
+        with self.state_lock:
+            self.pending.pop(session, None)
+            self.monitors.discard(session)
+            self.sessions.discard(session)
+            if self.controller is session:
+                was = True
+        if was:
+            ok = self.safe_stop(f"{session.peer} left")
+            with self.control_free:
+                if self.controller is session:
+                    self.controller = None
+                    self.tripped = False
+                self.control_free.notify_all()
+            self._kick.set()
+            return ok
+        return False
 
 
 def _one_line(text: str) -> str:
@@ -363,19 +666,25 @@ def _peer_name(addr: Any) -> str:
 class _End(Exception):
     """End this connection; ``reason`` goes into the disconnect log line."""
 
-    def __init__(self, reason: str):
+    def __init__(self, reason: str, code: str | None = None):
         super().__init__(reason)
         self.reason = reason
+        self.code = code
+
+
+_yield = getattr(os, "sched_yield", lambda: None)
+_POLL_GONE = getattr(select, "POLLRDHUP", 0) | select.POLLHUP | select.POLLERR if hasattr(select, "poll") else 0
 
 
 class _Session:
     """One client connection, served by its own thread."""
 
-    def __init__(self, server: CarServer, sock: socket.socket, peer: str):
+    def __init__(self, server: CarServer, sock: socket.socket, addr: Any):
         self.server = server
         self.car = server.car
         self.sock = sock
-        self.peer = peer
+        self.addr = str(addr[0]) if isinstance(addr, tuple) and addr else str(addr)
+        self.peer = _peer_name(addr)
         self.role: str | None = None
         self.client = "?"
         self.rx_seq = 0
@@ -383,7 +692,22 @@ class _Session:
         self.errors = 0
         self.thread: threading.Thread | None = None
         self.bye_ref: int | None = None
-        self.reader = P.FrameReader(sock, P.MAX_REQUEST, bufsize=P.MAX_REQUEST + P.HEADER_SIZE + 4096)
+        self.accepted = time.monotonic()
+        self.last_frame = self.accepted
+        self.busy = False  # a request is being served (lock-step watchdog)
+        self.ending = False
+        self.evicted = False
+        self.revoked: str | None = None
+        self.refusal: str | None = None  # the error code this connection was refused with
+        self.pace: dict[int, float] = {}  # a monitor's next sensor slots
+        self.tokens = MONITOR_BURST  # a monitor's request budget (token bucket)
+        self.tokens_at = self.accepted
+        self.send_timeout = server.io_timeout
+        sock.settimeout(0.0)  # non-blocking: every wait goes through the waiter, with its deadline
+        self.waiter = P.Waiter(sock)
+        self.reader = P.FrameReader(sock, P.MAX_REQUEST, bufsize=P.MAX_REQUEST + P.HEADER_SIZE + 4096,
+                                    frame_timeout=server.io_timeout, waiter=self.waiter)
+        self.reader.deadline = self.accepted + server.hello_timeout
         self.handlers = {
             M.COMMAND: self._command,
             M.STOP: self._stop,
@@ -404,36 +728,55 @@ class _Session:
     # --- sending ----------------------------------------------------------------------------------
     def send(self, mtype: int, ref: int, *parts: Any) -> None:
         self.tx_seq += 1
-        P.send_frame(self.sock, mtype, self.tx_seq, ref, *parts)
+        try:
+            P.send_frame(self.sock, mtype, self.tx_seq, ref, *parts, waiter=self.waiter, timeout=self.send_timeout)
+        except TimeoutError:
+            raise _End(f"not reading its replies: a reply could not be sent for {self.send_timeout:g} s") from None
+        except OSError as exc:
+            raise _End(f"connection error: {exc.strerror or exc}") from None
 
     def error(self, code: str, message: str, ref: int) -> None:
         """Answer an error frame; non-fatal ones are logged here (one line, rate limited)."""
-        try:
-            self.send(M.ERROR, ref, P.error_payload(code, message))
-        except OSError:
-            pass
+        self.send(M.ERROR, ref, P.error_payload(code, message))
         if code in P.FATAL_CODES or code in ("unsupported", "no_data", "not_lockstep"):
             return
         self.errors += 1
         if self.errors <= MAX_LOGGED_ERRORS:
-            log.warning("%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
+            _log(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
             if self.errors == MAX_LOGGED_ERRORS:
-                log.warning("%s: further errors from this client are counted, not logged", self.peer)
+                _log(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
 
-    def fatal(self, code: str, message: str, ref: int = 0) -> _End:
+    def fatal(self, code: str, message: str, ref: int = 0, extra: dict[str, Any] | None = None) -> _End:
+        payload = {"code": code, "message": message, "fatal": True, **(extra or {})}
         try:
-            self.send(M.ERROR, ref, P.error_payload(code, message))
-        except OSError:
+            self.send(M.ERROR, ref, P.encode_json(payload))
+        except _End:
             pass
-        return _End(f"{code}: {message}")
+        return _End(f"{code}: {message}", code)
 
     # --- the connection's life --------------------------------------------------------------------
     def interrupt(self) -> None:
-        """Wake the thread blocked in recv (server shutdown)."""
+        """Wake the thread blocked in recv (server shutdown, eviction, revocation)."""
         try:
             self.sock.shutdown(socket.SHUT_RD)
         except OSError:
             pass
+
+    def revoke(self, why: str) -> None:
+        """Another client took control from this stale one: tell it and end the connection."""
+        self.revoked = why
+        self.interrupt()
+
+    def peer_gone(self) -> bool:
+        """The client has closed its end (seen without reading: the session thread may be about to)."""
+        if not _POLL_GONE:
+            return False
+        try:
+            poller = select.poll()
+            poller.register(self.sock.fileno(), _POLL_GONE)
+            return bool(poller.poll(0))
+        except (OSError, ValueError):
+            return True
 
     def close_socket(self) -> None:
         try:
@@ -447,6 +790,7 @@ class _Session:
             reason = self._loop()
         except _End as end:
             reason = end.reason
+            self.refusal = end.code
         except OSError as exc:
             reason = f"connection error: {exc.strerror or exc}"
         except Exception as exc:  # never let one client take the server down
@@ -456,66 +800,105 @@ class _Session:
 
     def _finish(self, reason: str) -> None:
         server = self.server
+        self.ending = True
+        if self.revoked is not None:
+            self.fatal("control_lost", self.revoked)
+            reason = f"control_lost: {self.revoked}"
+        was_controller = server.controller is self
         stopped = ""
-        if server.controller is self:
-            ok = server.safe_stop(f"{self.peer} left")
-            with server.state_lock:
-                server.controller = None
-                server.tripped = False
+        if was_controller:
+            ok = server.release(self)
             stopped = "; car stopped" if ok else "; STOPPING THE CAR FAILED"
         if self.errors > MAX_LOGGED_ERRORS:
             reason += f"; {self.errors} error frames in all"
-        line = "%s (%s) disconnected: %s%s"
-        args = (self.peer, self.role or "no hello", _one_line(reason), stopped)
-        if self.role is None or reason.startswith(("internal", "connection error")) or "STOPPING" in stopped:
-            log.warning(line, *args)
+        if self.role is None:  # never a client: counted, at most one line per kind and interval
+            if self.evicted:
+                code = "evicted"
+            elif self.refusal:
+                code = self.refusal
+            elif "HTTP" in reason:
+                code = "http"
+            else:
+                code = "no_hello"
+            server.refusals.refused(code, "%s (no hello) disconnected: %s", self.peer, _one_line(reason))
         else:
-            log.info(line, *args)
+            line = "%s (%s) disconnected: %s%s"
+            args = (self.peer, self.role, _one_line(reason), stopped)
+            if reason.startswith(("internal", "connection error", "not reading", "control_lost")) or "STOPPING" in stopped:
+                _log(logging.WARNING, line, *args)
+            else:
+                _log(logging.INFO, line, *args)
         if self.bye_ref is not None:
             try:
                 self.send(M.BYE, self.bye_ref)
-            except OSError:
+            except _End:
                 pass
         self.close_socket()
-        with server.state_lock:
-            server.sessions.discard(self)
+        if not was_controller:
+            server.release(self)
+
+    def _wait_for_request(self) -> None:
+        """The controller's next request usually comes within microseconds of its reply: look for it
+        a little while (no sleep, no wake-up to pay) before blocking."""
+        reader = self.reader
+        if reader.buffered or reader.eof:
+            return
+        end = time.perf_counter() + self.server.spin
+        while True:
+            try:
+                if reader.poll() or reader.eof:
+                    return
+            except OSError:
+                return
+            if time.perf_counter() >= end:
+                return
+            _yield()  # a thread that needs this core (the client on a busy machine) gets it
 
     def _loop(self) -> str:
         server = self.server
-        deadline = time.monotonic() + server.hello_timeout
-        self.sock.settimeout(server.hello_timeout)
+        reader = self.reader
         while True:
+            if self.revoked is not None:
+                return "control_lost"
+            if server.spin and self.role == "control" and self.is_controller:
+                self._wait_for_request()
             try:
-                if self.role is None:
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        raise TimeoutError
-                    self.sock.settimeout(left)
-                frame = self.reader.read_frame()
+                frame = reader.read_frame()
             except TimeoutError:
+                if self.revoked is not None:
+                    return "control_lost"
                 if self.role is None:
-                    if P.looks_like_http(self.reader.peek()):
+                    if P.looks_like_http(reader.peek()):
                         return self._http()
-                    raise self.fatal("timeout", f"no hello within {server.hello_timeout:g} s") from None
-                if self.reader.mid_frame:
-                    raise self.fatal("timeout", f"incomplete frame: nothing more for {server.io_timeout:g} s") from None
+                    what = "no complete HELLO" if reader.mid_frame else "no hello"
+                    raise self.fatal("timeout", f"{what} within {server.hello_timeout:g} s of connecting") from None
+                if reader.mid_frame:
+                    raise self.fatal(
+                        "timeout", f"incomplete frame: not complete {server.io_timeout:g} s after its first byte"
+                    ) from None
                 if server.stopping:
                     return "server stopping"
                 continue  # an idle client may stay
             except P.IncompleteFrame:
                 return "closed in the middle of a frame"
             except P.ProtocolError as exc:
-                if exc.code == "bad_magic" and self.rx_seq == 0 and P.looks_like_http(self.reader.peek()):
+                if exc.code == "bad_magic" and self.rx_seq == 0 and P.looks_like_http(reader.peek()):
                     return self._http()
                 raise self.fatal(exc.code, exc.message) from None
             if frame is None:
+                if self.revoked is not None:
+                    return "control_lost"
+                if self.evicted:
+                    raise self.fatal("too_many_clients", f"more than {server.max_pending} connections were waiting "
+                                     "for their hello; this one, the oldest, was dropped")
                 if server.stopping:
                     try:
                         self.send(M.BYE, 0, P.encode_json({"reason": "server stopping"}))
-                    except OSError:
+                    except _End:
                         pass
                     return "server stopping"
                 return "closed by the client"
+            self.last_frame = time.monotonic()
             expected = self.rx_seq + 1
             if frame.seq != expected:
                 raise self.fatal("sequence", f"frame seq {frame.seq} out of order (expected {expected})", frame.seq)
@@ -526,11 +909,30 @@ class _Session:
             if frame.type == M.BYE:
                 self.bye_ref = frame.seq  # answered once the car is stopped and the line logged
                 return "said bye"
-            self._dispatch(frame)
+            if self.role == "monitor":
+                self._throttle()
+            self.busy = True
+            try:
+                self._dispatch(frame)
+            finally:
+                self.busy = False
+
+    def _throttle(self) -> None:
+        """A monitor's requests are served at most MONITOR_REQUESTS_PER_S, in bursts of MONITOR_BURST:
+        a request over the budget waits for it (the client sees a slower reply, never an error)."""
+        now = time.monotonic()
+        self.tokens = min(MONITOR_BURST, self.tokens + (now - self.tokens_at) * MONITOR_REQUESTS_PER_S)
+        self.tokens_at = now
+        if self.tokens < 1.0:
+            self.server._stop_evt.wait((1.0 - self.tokens) / MONITOR_REQUESTS_PER_S)
+            now = time.monotonic()
+            self.tokens = min(MONITOR_BURST, self.tokens + (now - self.tokens_at) * MONITOR_REQUESTS_PER_S)
+            self.tokens_at = now
+        self.tokens = max(0.0, self.tokens - 1.0)
 
     def _http(self) -> str:
         try:
-            self.sock.sendall(P.HTTP_REPLY)
+            P._send_nonblocking(self.sock, [P.HTTP_REPLY], self.waiter, 1.0)
         except OSError:
             pass
         return "spoke HTTP; answered 400 and closed"
@@ -556,25 +958,41 @@ class _Session:
         if isinstance(client, str):  # free text going into a log line: printable, short
             self.client = "".join(ch if ch.isprintable() else "?" for ch in client[:64])
         if server.token is not None:
-            given = msg.get("token")
-            if not isinstance(given, str) or not hmac.compare_digest(
-                given.encode("utf-8", "surrogatepass"), server.token.encode("utf-8")
-            ):
-                raise self.fatal("bad_token", "wrong or missing token", frame.seq)
+            wait = server.tokens.wait_s(self.addr)
+            if wait > 0:
+                raise self.fatal("bad_token", f"too many wrong tokens from {self.addr}; try again in {wait:.1f} s",
+                                 frame.seq, {"retry_after_s": round(wait, 3)})
+            if not token_matches(msg.get("token"), server.token):
+                wait = server.tokens.failed(self.addr)
+                extra = {"retry_after_s": round(wait, 3)} if wait > 0 else None
+                raise self.fatal("bad_token", "wrong or missing token", frame.seq, extra)
+            server.tokens.succeeded(self.addr)
+        with server.state_lock:
+            if self.evicted or server.stopping:
+                raise self.fatal("too_many_clients", "the server is busy with other connections; try again", frame.seq)
+            if role == "monitor" and len(server.monitors) >= server.max_clients - 1:
+                full = True
+            else:
+                full = False
+                server.pending.pop(self, None)
+                if role == "monitor":
+                    server.monitors.add(self)
+        if full:
+            raise self.fatal("too_many_clients", f"the server already has {server.max_clients - 1} monitors "
+                             "(one more slot is kept for a controller); try again later", frame.seq)
         if role == "control":
-            with server.state_lock:
-                holder = server.controller
-                if holder is None:
-                    server.controller = self
-                    server.feed()
-            if holder is not None:
-                raise self.fatal(
-                    "busy", f"the car is controlled by {holder.peer}; connect as a monitor to watch", frame.seq
-                )
+            refusal = server.claim_control(self)
+            if refusal is not None:
+                raise self.fatal("busy", refusal, frame.seq)
+            if server.priority:
+                raise_thread_priority(PRIORITY_CONTROLLER)  # this thread serves the controller from now on
+        elif server.priority and server.tuned:
+            raise_thread_priority(PRIORITY_CLIENT)
         self.role = role
+        self.reader.deadline = None
+        self.reader.idle_timeout = server.io_timeout
         welcome = dict(server.welcome_base, role=role)
-        self.sock.settimeout(server.io_timeout)
-        log.info("%s connected as %s (%s)", self.peer, role, self.client)
+        _log(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
         self.send(M.WELCOME, frame.seq, P.encode_json(welcome))
 
     # --- requests ---------------------------------------------------------------------------------
@@ -592,10 +1010,15 @@ class _Session:
                 self.error("unknown_type", f"unknown or unexpected message type {frame.name}", frame.seq)
             return
         if mtype in CONTROL_ONLY and not controller:
-            self.error("read_only", f"{frame.name} needs the control role; this connection is a monitor", frame.seq)
+            if self.role == "control":
+                self.error("read_only", f"{frame.name}: this connection no longer has control", frame.seq)
+            else:
+                self.error("read_only", f"{frame.name} needs the control role; this connection is a monitor", frame.seq)
             return
         try:
             handler(frame)
+        except _End:
+            raise
         except P.ProtocolError as exc:
             if mtype == M.COMMAND:
                 server.safe_stop("bad command")
@@ -614,21 +1037,23 @@ class _Session:
     def _command(self, frame: P.Frame) -> None:
         server = self.server
         throttle, steering, leds, flags = P.unpack_command(frame.payload)
-        with server.car_lock:
+        if flags & ~P.FLAGS_KNOWN:
+            raise InputError(f"command flags 0x{flags:08x} set reserved bits (only bit 0, read back, is defined)")
+        with server.drive_lock:
             server.feed()
             cmd = self.car.write(throttle, steering, leds)
             readout = self.car.read() if flags & P.FLAG_READ_BACK else None
         if readout is not None:
             if server.lockstep:
-                server.cache[M.READOUT] = readout
-            self.send(M.READOUT, frame.seq, P.pack_readout(readout, server.status(self)))
+                server.cache_readout = readout
+            self.send(M.READOUT, frame.seq, P.pack_readout(readout, server.status()))
         else:
             self.send(M.APPLIED, frame.seq, P.pack_applied(cmd.throttle, cmd.steering, cmd.leds))
 
     def _stop(self, frame: P.Frame) -> None:
         server = self.server
         _expect_empty(frame)
-        with server.car_lock:
+        with server.drive_lock:
             server.feed()
             self.car.stop()
         self.send(M.OK, frame.seq)
@@ -636,23 +1061,23 @@ class _Session:
     def _read(self, frame: P.Frame) -> None:
         server = self.server
         _expect_empty(frame)
-        status = server.status(self)
+        status = server.status()
         if server.lockstep and server.controller is not self:
-            readout: Readout | None = server.cache.get(M.READOUT)
+            readout = server.cache_readout
             if readout is None:
                 self.error("no_data", "lock-step: no readout yet (monitors see the controller's last readout)", frame.seq)
                 return
             status |= P.STATUS_CACHED
         else:
-            with server.car_lock:
+            with server.drive_lock:
                 readout = self.car.read()
             if server.lockstep:
-                server.cache[M.READOUT] = readout
+                server.cache_readout = readout
         self.send(M.READOUT, frame.seq, P.pack_readout(readout, status))
 
     def _truth(self, frame: P.Frame) -> None:
         _expect_empty(frame)
-        with self.server.car_lock:
+        with self.server.drive_lock:
             truth = self.car.truth()
         if truth is None:
             self.error("unsupported", "this car has no ground truth (only simulated cars do)", frame.seq)
@@ -661,7 +1086,7 @@ class _Session:
 
     def _time(self, frame: P.Frame) -> None:
         _expect_empty(frame)
-        with self.server.car_lock:
+        with self.server.drive_lock:
             t = self.car.time
         self.send(M.TIME, frame.seq, P.pack_scalar(t))
 
@@ -673,7 +1098,7 @@ class _Session:
             return
         if not (math.isfinite(dt) and 0.0 <= dt <= P.MAX_ADVANCE):
             raise InputError(f"advance: dt must be a number of seconds in [0, {P.MAX_ADVANCE:g}], got {dt!r}")
-        with server.car_lock:
+        with server.drive_lock:
             self.car.advance(dt)
             t = self.car.time
         self.send(M.TIME, frame.seq, P.pack_scalar(t))
@@ -681,23 +1106,16 @@ class _Session:
     def _sensor(self, frame: P.Frame) -> None:
         server = self.server
         _expect_empty(frame)
-        reply, method, cap = SENSOR_CALLS[frame.type]
-        if cap not in server.capabilities:
-            self.error("unsupported", f"this car has no {cap} sensor", frame.seq)
+        kind = SENSORS[frame.type][1]
+        if kind not in server.capabilities:
+            self.error("unsupported", f"this car has no {kind} sensor", frame.seq)
             return
-        if server.lockstep and server.controller is not self:
-            parts = server.cache.get(reply)
-            if parts is None:
-                self.error("no_data", f"lock-step: no {cap} frame yet (monitors see the controller's last one)", frame.seq)
-                return
-        else:
-            with server.car_lock:
-                obj = getattr(self.car, method)()
-                t_now = self.car.time
-            t, arrays = frame_arrays(reply, obj, t_now)
-            parts = P.pack_arrays(t, arrays)
-            if server.lockstep:
-                server.cache[reply] = parts
+        controller = server.controller is self
+        try:
+            reply, parts = server.sensors.frame(frame.type, controller=controller, pace=None if controller else self.pace)
+        except NoData:
+            self.error("no_data", f"lock-step: no {kind} frame yet (monitors see the controller's last one)", frame.seq)
+            return
         self.send(reply, frame.seq, *parts)
 
     def _ping(self, frame: P.Frame) -> None:

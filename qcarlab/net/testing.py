@@ -31,7 +31,9 @@ class SyntheticCar(Car):
     """A car whose sensors return fixed synthetic frames (seeded); remembers the last command.
 
     ``stepped=True`` makes it a lock-step car (time moves on ``advance``); ``sensors`` picks which
-    of lidar/rgbd/csi it has (the others raise NotBuiltError, as an unwired backend does).
+    of lidar/rgbd/csi it has (the others raise NotBuiltError, as an unwired backend does);
+    ``sensor_delay`` makes every sensor reading take that long (a slow device, a first render),
+    read off the drive lock like the Quanser car's devices (``own_sensor_path=False``: under it).
     """
 
     def __init__(
@@ -42,12 +44,16 @@ class SyntheticCar(Car):
         stepped: bool = False,
         sensors: tuple[str, ...] = ("lidar", "rgbd", "csi"),
         seed: int = 0,
+        sensor_delay: float = 0.0,
+        own_sensor_path: bool = True,
     ):
         super().__init__(params, throttle_limit)
         self._stepped = stepped
         self._t = 0.0
         self._t0 = time.monotonic()
         self.sensors = tuple(sensors)
+        self.sensor_delay = sensor_delay  # s a sensor reading takes (a slow camera, a first render)
+        self.own_sensor_path = own_sensor_path  # False: sensors read under the drive lock (the Car default)
         self.cmd = Command()
         self.n_commands = 0
         self.n_reads = 0
@@ -105,6 +111,13 @@ class SyntheticCar(Car):
     def _need(self, name: str) -> None:
         if name not in self.sensors:
             raise NotBuiltError(f"synthetic car: no {name}")
+        if self.sensor_delay:
+            time.sleep(self.sensor_delay)
+
+    def sensor_job(self, kind: str) -> Any:
+        if not self.own_sensor_path:
+            return super().sensor_job(kind)
+        return getattr(self, f"read_{kind}")
 
     def read_lidar(self) -> Any:
         self._need("lidar")
