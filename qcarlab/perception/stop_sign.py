@@ -87,7 +87,13 @@ def color_thresholding_hsv(
     img = np.asarray(image_bgr)
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
         raise InputError(f"expected a BGR uint8 image (H, W, 3), got {img.dtype} {img.shape}")
-    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
+    return in_hsv_range(cv2.cvtColor(img, cv2.COLOR_BGR2HSV), lo, hi)
+
+
+def in_hsv_range(hsv: np.ndarray, lo: Sequence[int], hi: Sequence[int]) -> np.ndarray:
+    """``cv2.inRange`` on an HSV image with the hue wrapping through 0 when ``lo[0] > hi[0]``
+    (``lo``/``hi`` already checked); uint8 mask, 255 = inside."""
+    lo, hi = tuple(int(x) for x in lo), tuple(int(x) for x in hi)
     if lo[0] <= hi[0]:
         return cv2.inRange(hsv, lo, hi)
     upper = cv2.inRange(hsv, lo, (179, hi[1], hi[2]))
