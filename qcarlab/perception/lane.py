@@ -81,9 +81,9 @@ ROW_FRACTION = 2.0 / 3.0  # the region starts this far down the image (row 320 o
 ROW_MIN = 320  # px: the same for a 480-row image (kept for callers that pass pixel rows)
 YELLOW_SIDE = 0.85  # the yellow line's region: columns 0 .. 0.85 W (right lane) or 0.15 W .. W
 MIN_PIXELS = 150  # px at 640 x 480 (scaled with the image area): fewer line pixels is "no line"
-WHITE_S_MAX = 50  # white: saturation at most this ...
+WHITE_S_MAX = 80  # white: saturation at most this (the QCar 1 RGB reads its white paint at S 55..75) ...
 WHITE_V_MIN = 110  # ... value at least this and at least 0.8 x the floor's 99th percentile ...
-WHITE_CONTRAST = 20  # ... and this much above the mean value of the floor W/8 to either side
+WHITE_CONTRAST = 20  # ... and a top-hat (value above the floor round it) of at least this
 BOX_WIDTH = 120  # px, obstacle window
 BOX_HALF_HEIGHT = 20  # px, obstacle window rows: middle +- this
 BOX_GAIN = 520.0  # px per rad of steering: the window's column shift
@@ -155,9 +155,14 @@ def white_level(v: np.ndarray, grey: np.ndarray, v_min: int = WHITE_V_MIN) -> in
 
 def white_from_hsv(hsv: np.ndarray, s_max: int = WHITE_S_MAX, v_min: int = WHITE_V_MIN,
                    contrast: int = WHITE_CONTRAST, width: int | None = None) -> np.ndarray:
-    """White paint in an HSV image (a region of the floor): saturation <= ``s_max``, value >=
-    :func:`white_level`, and ``contrast`` above the mean value of the ``width / 8`` px around it
-    along the row (a line is a bright stripe; a light floor is bright everywhere). uint8 mask."""
+    """White paint in an HSV image (a region of the floor), uint8 mask: saturation <= ``s_max``,
+    value >= :func:`white_level`, and a white top-hat of at least ``contrast``:
+
+        top_hat = V - opening(V, k x k square),  k = width / 8 (80 px at 640)
+
+    The opening wipes out every bright structure narrower than k in some direction (a painted
+    line, whatever its angle) and keeps wide ones (a light floor, a wall): a line stands out from
+    the floor beside it, a plain floor or the bright side of an edge does not."""
     s = cv2.extractChannel(hsv, 1)
     v = cv2.extractChannel(hsv, 2)
     grey = cv2.inRange(s, 0, int(s_max))
@@ -165,10 +170,10 @@ def white_from_hsv(hsv: np.ndarray, s_max: int = WHITE_S_MAX, v_min: int = WHITE
     if level > 255:
         return np.zeros(v.shape, np.uint8)
     bright = cv2.bitwise_and(grey, cv2.inRange(v, level, 255))
-    if contrast > 0:
-        k = max(3, ((width or v.shape[1]) // 4) | 1)
-        ridge = cv2.compare(v, cv2.add(cv2.blur(v, (k, 1)), int(contrast)), cv2.CMP_GE)
-        bright = cv2.bitwise_and(bright, ridge)
+    if contrast > 0 and cv2.countNonZero(bright):
+        k = max(3, ((width or v.shape[1]) // 8) | 1)
+        top_hat = cv2.morphologyEx(v, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+        bright = cv2.bitwise_and(bright, cv2.inRange(top_hat, int(contrast), 255))
     return bright
 
 
