@@ -47,7 +47,8 @@ sys.path.insert(0, str(REPO))
 
 from qcarlab.perception.lane import YELLOW_HSV_MAX, YELLOW_HSV_MIN, detect_lane  # noqa: E402
 from qcarlab.perception.lane_lines import detect_lane_lines  # noqa: E402
-from qcarlab.perception.stop_sign import detect_stop_signs, find_objects, color_thresholding_hsv  # noqa: E402
+from qcarlab.perception.stop_sign import color_thresholding_hsv, find_objects  # noqa: E402
+from qcarlab.perception.stop_signs import detect_stop_signs  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
 LABELS = REPO / "tests" / "data" / "labels"
