@@ -166,11 +166,14 @@ def test_white_backup_answers_no_line_on_a_plain_floor():
     assert det.fit.slope == pytest.approx(200 / 149, abs=0.08)
 
 
-def test_linear_poly_fit_block_still_fits_every_pixel_of_the_mask_it_is_given():
+def test_linear_poly_fit_block_fits_the_line_not_the_blob_beside_it():
     mask = np.zeros((480, 640), np.uint8)
     cv2.line(mask, (100, 479), (300, 300), 255, 6)
+    cv2.circle(mask, (450, 420), 40, 255, -1)  # a round blob of the same colour (a patch of grass)
     fit = linear_poly_fit(mask)
     assert fit.slope == pytest.approx(-200 / 179, abs=0.02) and fit.column_at(479) == pytest.approx(100, abs=2)
+    every = linear_poly_fit(mask, whole_mask=True)  # the sheet's block as it was: the blob drags it
+    assert abs(every.column_at(420) - fit.column_at(420)) > 40
     white = white_line_mask(np.dstack([mask] * 3))
     assert white.shape == mask.shape and white[400].any()
     assert math.isfinite(fit.intercept)

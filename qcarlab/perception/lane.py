@@ -254,17 +254,24 @@ def _fit_rows(nz: np.ndarray, min_pixels: int, row0: int = 0, col0: int = 0) -> 
     return LineFit(slope, intercept, count, (int(rows[0]) + v0, int(rows[-1]) + v0))
 
 
-def linear_poly_fit(mask: np.ndarray, min_pixels: int = MIN_PIXELS) -> LineFit | None:
-    """Least-squares line ``u = slope * v + intercept`` through the mask's non-zero pixels.
+def linear_poly_fit(mask: np.ndarray, min_pixels: int = MIN_PIXELS, whole_mask: bool = False) -> LineFit | None:
+    """Least-squares line ``u = slope * v + intercept`` through the tracked line's pixels.
 
-    Each row counts once (its mean column), so a wide, near blob does not outweigh the thin far
-    part of the line; fewer than ``min_pixels`` pixels or fewer than 2 rows: None. (Which pixels
-    are the line's is :func:`line_components`' job; :func:`detect_lane` passes only those.)
+    The line's pixels are its own blobs (:func:`track_line`): the largest blob of the mask
+    shaped like a line (long, thin, not flat; :mod:`qcarlab.perception.components`) and the
+    blobs collinear with it (a dashed line's dashes), so grass, a box or a second line beside it
+    never enter the fit. Each row counts once (its mean column), so a wide, near blob does not
+    outweigh the thin far part of the line; fewer than ``min_pixels`` line pixels or fewer than
+    2 rows: None. ``whole_mask=True`` fits every non-zero pixel of the mask (the sheet's block
+    as it was).
     """
     m = np.asarray(mask)
     if m.ndim != 2:
         raise InputError(f"linear_poly_fit: expected a 2-D mask, got shape {m.shape}")
-    return _fit_rows((m != 0).view(np.uint8), min_pixels)
+    m = m if m.dtype == np.uint8 else (m != 0).astype(np.uint8) * 255
+    if whole_mask:
+        return _fit_rows(m, min_pixels)
+    return track_line(m, min_pixels, m.shape[1])[0]
 
 
 def lane_mask(image_bgr: np.ndarray, mask: np.ndarray, color: Sequence[int] = (0, 0, 255)) -> np.ndarray:
