@@ -136,4 +136,7 @@ def load_params(path: str | Path | None) -> QCarParams:
         return DEFAULT_PARAMS
     from qcarlab.yamlio import load_yaml
 
-    return params_from_mapping(load_yaml(path, "parameter file"), str(Path(path)))
+    data = load_yaml(path, "parameter file")
+    if isinstance(data, dict):  # a lab's tunables live beside the car's, in a ``lab:`` section
+        data = {k: v for k, v in data.items() if k != "lab"}
+    return params_from_mapping(data, str(Path(path)))

@@ -17,6 +17,8 @@ from qcarlab.errors import InputError
 from qcarlab.experiments.result import Result
 from qcarlab.record import dumps
 
+stderr = Console(stderr=True, highlight=False, soft_wrap=True)
+
 CarOpt = Annotated[
     str, typer.Option("--car", help="Which car: [b]sim[/b] (built-in simulator) or [b]tcp://HOST:PORT[/b].")
 ]
@@ -50,7 +52,19 @@ RealtimeOpt = Annotated[
 DebugOpt = Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")]
 ParamsOpt = Annotated[
     Path | None,
-    typer.Option("--params", help="YAML file overriding the simulated car's parameters (see qcarlab/constants.py)."),
+    typer.Option("--params", help="YAML file: the simulated car's parameters (see qcarlab/constants.py) and, in "
+                 "a lab: section, the lab's tunables (look-ahead, kp, ki, HSV ranges, ...; qcarlab template "
+                 "writes one). Options given on the command line win."),
+]
+UseOpt = Annotated[
+    list[Path] | None,
+    typer.Option("--use", help="Your blocks: a Python file whose functions or classes named like this lab's "
+                 "blocks replace them (qcarlab blocks LAB lists them). Repeatable.", show_default=False),
+]
+BlockOpt = Annotated[
+    list[str] | None,
+    typer.Option("--block", help="One block from your code: NAME=FILE.py:FUNCTION (e.g. "
+                 "stop_sign=mylab/stop.py:my_stop). Repeatable.", show_default=False),
 ]
 RateOpt = Annotated[float, typer.Option("--rate", help="Control loop rate in Hz (the lab's Python loops: 60-200).")]
 
@@ -69,20 +83,102 @@ def open_from_options(
     return open_car(car, world=world, seed=seed, realtime=realtime, params=params, **extra)
 
 
+def student_blocks(model: Any, use: list[Path] | None, block: list[str] | None) -> dict[str, Any]:
+    """The student's blocks for a lab model class from --use/--block; says on stderr which are used."""
+    from qcarlab.blocks import resolve_student_blocks
+
+    found = resolve_student_blocks(model.specs(), model.lab, use or (), block or ())
+    if found:
+        listed = ", ".join(f"{name} ({b.source})" for name, b in found.items())
+        stderr.print(f"{model.lab}: your blocks: {listed}", markup=False)
+    return found
+
+
+def lab_section(params: Path | None) -> dict[str, Any]:
+    """The ``lab:`` section of a --params file (the lab's tunables), or {}."""
+    if params is None:
+        return {}
+    from qcarlab.yamlio import load_yaml
+
+    data = load_yaml(params, "parameter file")
+    lab = data.get("lab") if isinstance(data, dict) else None
+    if lab is None:
+        return {}
+    if not isinstance(lab, dict):
+        raise InputError(f"{params}: lab: expected a mapping of tunable: value, got {type(lab).__name__}")
+    return lab
+
+
+def apply_tunables(cfg: Any, params: Path | None, ctx: typer.Context | None, ignore: tuple[str, ...] = ()) -> Any:
+    """Set the config's fields from the --params file's ``lab:`` section; an option typed on the
+    command line wins over the file. Unknown names are refused with the known ones listed."""
+    import dataclasses
+
+    lab = lab_section(params)
+    if not lab:
+        return cfg
+    known = {f.name: f for f in dataclasses.fields(cfg) if f.name not in ignore}
+    for key, value in lab.items():
+        name = str(key).replace("-", "_")
+        if name not in known:
+            raise InputError(f"{params}: lab: unknown tunable {key!r} (known: {', '.join(known)})")
+        if ctx is not None:
+            try:
+                source = ctx.get_parameter_source(name)
+            except Exception:  # noqa: BLE001 - not a CLI option of this command
+                source = None
+            if getattr(source, "name", None) == "COMMANDLINE":  # click's enum (typer may vendor click)
+                continue
+        current = getattr(cfg, name)
+        if isinstance(current, tuple) and isinstance(value, list):
+            value = tuple(value)
+        if isinstance(current, bool) and not isinstance(value, bool):
+            raise InputError(f"{params}: lab: {key} must be true or false, got {value!r}")
+        if isinstance(current, (int, float)) and not isinstance(current, bool) and (
+                isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise InputError(f"{params}: lab: {key} must be a number, got {value!r}")
+        if isinstance(current, float) and isinstance(value, int):
+            value = float(value)
+        setattr(cfg, name, value)
+    return cfg
+
+
 def interactive(json_out: bool) -> bool:
     """Live views and progress bars only on a terminal, never with --json."""
     return not json_out and sys.stdout.isatty()
 
 
 def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
-    """Save to --out, then print JSON (with --json) or the human summary."""
+    """Save to --out, then print JSON (with --json) or the human summary; then the exit code.
+
+    A run that missed its goal (``goal_reached`` false: time limit, collision, left the world,
+    stopped past the sign) says why on stderr and exits 1; an interrupted run exits 130 after
+    its results were saved. Student blocks slower than the tick on a real-time car are reported.
+    """
     written = result.save(out) if out is not None else []
+    m = result.metrics
     if json_out:
-        sys.stdout.write(dumps(result.metrics) + "\n")
-        return
-    summary(result)
-    if written:
-        stdout.print(f"wrote {len(written)} file(s) to {out}: " + ", ".join(p.name for p in written))
+        sys.stdout.write(dumps(m) + "\n")
+    else:
+        summary(result)
+        if written:
+            stdout.print(f"wrote {len(written)} file(s) to {out}: " + ", ".join(p.name for p in written))
+    name = m.get("experiment", result.name)
+    for block, timing in (m.get("student_blocks") or {}).items():
+        if timing.get("over_budget"):
+            stderr.print(f"{name}: warning: your {block} took longer than the {timing['budget_s'] * 1000:.1f} ms tick "
+                         f"{timing['over_budget']} time(s) (worst {timing['worst_s'] * 1000:.1f} ms)", markup=False)
+    loop = m.get("loop") or {}
+    if loop.get("overruns"):
+        stderr.print(f"{name}: warning: {loop['overruns']} tick(s) started late (worst gap "
+                     f"{loop['worst_tick_s'] * 1000:.0f} ms); the blocks were given the real dt", markup=False)
+    if m.get("interrupted"):
+        stderr.print(f"qcarlab {name}: interrupted; the car was stopped"
+                     + (f"; the run so far was saved to {out}" if written else ""), markup=False)
+        raise typer.Exit(130)
+    if m.get("goal_reached") is False:
+        stderr.print(f"qcarlab {name}: goal missed: {m.get('failure') or 'see the results'}", markup=False)
+        raise typer.Exit(1)
 
 
 def summary_table(title: str) -> Table:
@@ -92,6 +188,7 @@ def summary_table(title: str) -> Table:
     table.add_column("value", justify="right")
     return table
 
+from qcarlab.control.speed import KFF, KI, KP  # noqa: E402,F401  (the gains' defaults, written once)
 
 KpOpt = Annotated[float, typer.Option("--kp", help="speed_controller proportional gain.")]
 KiOpt = Annotated[float, typer.Option("--ki", help="speed_controller integral gain.")]
@@ -117,7 +214,7 @@ def sim_world(car: str, world: str | None, start: str | None, default: str, para
         if world is not None or pose is not None:
             raise InputError("--world and --start apply to the simulator only; a remote car is where it is")
         return None, None
-    from qcarlab.sim.world import load_world
+    from qcarlab.experiments.worlds import load_world
 
     return load_world(world or default, load_params(params)), pose
 
