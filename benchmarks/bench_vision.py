@@ -21,10 +21,12 @@ sheet's red threshold with the largest blob (``sheet``: no shape check, S and V 
 lab model), ``qcarlab detect stop-sign --method hsv`` and ``--method hough``.
 
 Speed (one core, medians of alternating batches): at 640 x 480, on the simulator's track frames
-and on the real photos resized to 640 x 480, the lab's ``detect_lane`` (yellow line, white
-backup) and ``detect_lane_lines`` (both lines) against the plain OpenCV chain (whole-frame HSV,
-``inRange``, rows below 2/3 of the height, ``findNonZero`` + ``fitLine``) and that chain cropped
-first.
+and on the real photos resized to 640 x 480, ``detect_lane`` (the yellow line, the white backup;
+the region cropped before one HSV conversion), the lab model's blocks called one by one on full
+frames (``image_selector`` -> ``color_thresholding_hsv`` -> ``linear_poly_fit``, the white edge
+line when that finds nothing) and ``detect_lane_lines`` (both lines) against the plain OpenCV
+chain (whole-frame HSV, ``inRange``, rows below 2/3 of the height, ``findNonZero`` +
+``fitLine``) and that chain cropped first.
 """
 
 from __future__ import annotations
@@ -242,8 +244,16 @@ def speed(batches: int) -> dict[str, dict[str, float]]:
             if n.endswith(".jpg")] if SHARED.is_dir() else []
     if real:
         sets["road photos"] = [cv2.resize(im, (640, 480), interpolation=cv2.INTER_AREA) for im in real]
+    from qcarlab.experiments.lane_follow import white_edge_mask
+    from qcarlab.perception.lane import image_selector, linear_poly_fit
+
+    def block_chain(im):  # the lab model's diagram, block by block (full frames, as a student's would be)
+        fit = linear_poly_fit(color_thresholding_hsv(image_selector(im), YELLOW_HSV_MIN, YELLOW_HSV_MAX))
+        return fit if fit is not None else linear_poly_fit(white_edge_mask(im, "right"))
+
     chains = {
-        "qcarlab detect_lane (lab: yellow, white backup)": lambda im: detect_lane(im),
+        "qcarlab detect_lane (yellow, white backup; crops first)": lambda im: detect_lane(im),
+        "the lab model's blocks, one by one (full frames)": block_chain,
         "qcarlab detect_lane_lines (both lines)": lambda im: detect_lane_lines(im),
         "plain OpenCV chain": lambda im: plain_chain(im),
         "plain OpenCV chain, cropped first": lambda im: plain_chain(im, crop=True),

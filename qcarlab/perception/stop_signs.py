@@ -14,8 +14,10 @@ again: a sign in the shade or against the light reads V 70..110 on the car's CSI
 range given by the user is used as it is, alone.
 
 ``method="hough"`` (the race-car report's, seed 003): circles in the grey image
-(``cv2.HoughCircles``, 5x5 Gaussian blur first), and for each the share of red pixels (the dim
-range) inside 0.85 of its radius; a circle wholly in view with at least :data:`MIN_RED_SHARE` red is a sign
+(``cv2.HoughCircles``, 5x5 Gaussian blur first; at half size when the image is 400 px or more
+on its short side: the accumulator's cost grows with the radii searched), and for each of the
+:data:`MAX_CIRCLES` best-voted the share of red pixels (the dim range) inside 0.85 of its
+radius; a circle wholly in view with at least :data:`MIN_RED_SHARE` red is a sign
 (the letters and the rim are white: a sign's share is 0.6..0.95; a big circle must keep some
 white: at most :data:`~qcarlab.perception.sign_shape.MAX_RED_FILL`), and at most
 :data:`MAX_RED_AROUND` red in a ring just outside it (1.1..1.35 radii): a sign stands out from
@@ -34,7 +36,7 @@ import cv2
 import numpy as np
 
 from qcarlab.errors import InputError
-from qcarlab.perception.sign_shape import LETTER_SIZE, MAX_RED_FILL, blob_shape, sign_score, sign_shape_ok
+from qcarlab.perception.sign_shape import ASPECT, LETTER_SIZE, MAX_RED_FILL, blob_shape, sign_score, sign_shape_ok
 from qcarlab.perception.stop_sign import (
     RED_HSV_MAX,
     RED_HSV_MIN,
@@ -53,6 +55,7 @@ MIN_AREA = 150  # px, the sheet's (more on an image larger than 640 x 480, scale
 MIN_SCORE = 0.7  # hsv: a blob must score this on sign_score (cut blobs can, just)
 MIN_RED_SHARE = 0.5  # hough: the share of red inside a circle that makes it a sign ...
 RING = (1.1, 1.35)  # ... and round it (this ring, in radii) at most
+MAX_CIRCLES = 40  # hough: the best-voted circles looked at
 MAX_RED_AROUND = 0.3  # this share: a sign stands out from what is behind it, a red floor does not
 
 
@@ -103,8 +106,12 @@ def sign_blobs(mask: np.ndarray, min_area: int) -> list[SignBox]:
     """The blobs of a red ``mask`` with at least ``min_area`` pixels shaped like a stop sign."""
     n, labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
     found = []
+    H, W = mask.shape
     for k in np.nonzero(stats[1:, cv2.CC_STAT_AREA] >= min_area)[0] + 1:
         x, y, w, h, area = (int(v) for v in stats[k])
+        cut = x <= 0 or y <= 0 or x + w >= W or y + h >= H
+        if not cut and not ASPECT[0] <= w / h <= ASPECT[1]:  # cheap first: no outline needed
+            continue
         shape = blob_shape(labels, int(k), (x, y, w, h), area)
         if sign_shape_ok(shape) and sign_score(shape) >= MIN_SCORE:
             found.append(SignBox((x, y, w, h), (float(centroids[k][0]), float(centroids[k][1])), sign_score(shape),
@@ -114,15 +121,21 @@ def sign_blobs(mask: np.ndarray, min_area: int) -> list[SignBox]:
 
 def _hough(img: np.ndarray, red: np.ndarray, min_area: int) -> list[SignBox]:
     h, w = img.shape[:2]
-    grey = cv2.GaussianBlur(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), (5, 5), 1.5)
-    side = min(h, w)
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    k = 2 if min(h, w) >= 400 else 1  # the accumulator is costly: big images are searched at half size
+    if k > 1:
+        grey = cv2.resize(grey, (w // k, h // k), interpolation=cv2.INTER_AREA)
+    grey = cv2.GaussianBlur(grey, (5, 5), 1.5)
+    side = min(grey.shape)
     r_min = max(5, side // 50)
     circles = cv2.HoughCircles(grey, cv2.HOUGH_GRADIENT, dp=1.2, minDist=max(8, side // 12), param1=120,
                                param2=22, minRadius=r_min, maxRadius=max(r_min + 1, side // 2))
     if circles is None:
         return []
+    circles = np.asarray(circles, np.float64).reshape(-1, 3) * k
     found = []
-    for cx, cy, r in np.asarray(circles, np.float64).reshape(-1, 3):
+    # OpenCV returns the circles best-voted first: the first MAX_CIRCLES are plenty for the signs
+    for cx, cy, r in circles[:MAX_CIRCLES]:
         if cx - r < -1 or cy - r < -1 or cx + r > w or cy + r > h:  # the whole sign must be in view
             continue
         R = RING[1] * r
@@ -130,20 +143,24 @@ def _hough(img: np.ndarray, red: np.ndarray, min_area: int) -> list[SignBox]:
         x1, y1 = min(w, int(np.ceil(cx + R)) + 1), min(h, int(np.ceil(cy + R)) + 1)
         if x1 - x0 < 3 or y1 - y0 < 3:
             continue
-        yy, xx = np.mgrid[y0:y1, x0:x1]
-        d2 = (xx - cx) ** 2 + (yy - cy) ** 2
+        dy = (np.arange(y0, y1) - cy) ** 2
+        dx = (np.arange(x0, x1) - cx) ** 2
+        d2 = dy[:, None] + dx[None, :]
         red_here = red[y0:y1, x0:x1] != 0
         disc = d2 <= (0.85 * r) ** 2
         ring = (d2 >= (RING[0] * r) ** 2) & (d2 <= R * R)
-        if not disc.any():
+        n_disc = int(np.count_nonzero(disc))
+        if n_disc == 0:
             continue
-        share = float(np.count_nonzero(red_here[disc])) / int(disc.sum())
-        around = float(np.count_nonzero(red_here[ring])) / max(1, int(ring.sum()))
-        if share < MIN_RED_SHARE or around > MAX_RED_AROUND or (2 * r >= LETTER_SIZE and share > MAX_RED_FILL):
+        red_in = int(np.count_nonzero(red_here & disc))
+        share = red_in / n_disc
+        if share < MIN_RED_SHARE or (2 * r >= LETTER_SIZE and share > MAX_RED_FILL):
+            continue
+        around = np.count_nonzero(red_here & ring) / max(1, int(np.count_nonzero(ring)))
+        if around > MAX_RED_AROUND:
             continue
         box = (int(round(cx - r)), int(round(cy - r)), int(round(2 * r)), int(round(2 * r)))
-        found.append(SignBox(box, (float(cx), float(cy)), round(share, 3), int(np.count_nonzero(red_here[disc])),
-                             "hough"))
+        found.append(SignBox(box, (float(cx), float(cy)), round(share, 3), red_in, "hough"))
     return _suppress(found)
 
 
