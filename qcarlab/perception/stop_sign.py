@@ -89,6 +89,17 @@ def color_thresholding_hsv(
     img = np.asarray(image_bgr)
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
         raise InputError(f"expected a BGR uint8 image (H, W, 3), got {img.dtype} {img.shape}")
+    if lo[2] > 0 and img.shape[0] > 8:
+        # black (V = 0) is never kept: rows that are all black above and below (image_selector's
+        # zeros) need no conversion
+        rows = np.flatnonzero(img.reshape(img.shape[0], -1).max(axis=1))
+        if len(rows) == 0:
+            return np.zeros(img.shape[:2], np.uint8)
+        r0, r1 = int(rows[0]), int(rows[-1]) + 1
+        if r1 - r0 < img.shape[0]:
+            out = np.zeros(img.shape[:2], np.uint8)
+            out[r0:r1] = in_hsv_range(cv2.cvtColor(img[r0:r1], cv2.COLOR_BGR2HSV), lo, hi)
+            return out
     return in_hsv_range(cv2.cvtColor(img, cv2.COLOR_BGR2HSV), lo, hi)
 
 
