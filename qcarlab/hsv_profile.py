@@ -24,7 +24,6 @@ A wrong file is one line naming the file and the key (exit 2).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from qcarlab.errors import InputError

@@ -141,8 +141,11 @@ def test_stop_sign_json_methods_and_depth(cli, tmp_path):
         assert list(sign) == ["box", "score"]
         x, y, w, h = sign["box"]
         assert abs(x + w / 2 - 400) < 4 and abs(y + h / 2 - 180) < 4 and 70 < w < 90
-    code, out, _ = cli("detect", "stop-sign", str(path), "--depth", str(tmp_path / "depth.npy"), "--json")
+    code, out, _ = cli("detect", "stop-sign", str(path), "--depth", str(tmp_path / "depth.npy"), "--json",
+                       "--out", str(tmp_path / "o"))
     assert json_lines(out)[0]["signs"][0]["distance"] == pytest.approx(0.8)
+    overlay = cv2.imread(str(tmp_path / "o" / "sign.png"))
+    assert overlay is not None and overlay.shape[0] > 480 and (tmp_path / "o" / "detections.jsonl").is_file()
     mm = (depth * 1000).astype(np.uint16)
     cv2.imwrite(str(tmp_path / "depth.png"), mm)
     code, out, _ = cli("detect", "stop-sign", str(path), "--depth", str(tmp_path / "depth.png"), "--json")

@@ -30,7 +30,7 @@ from qcarlab.hsv_profile import load_hsv_profile
 from qcarlab.media import Source, VideoOut, expand_paths, frames_of, read_depth, video_fps
 from qcarlab.perception.hsv_range import HsvProfile
 from qcarlab.perception.lane_lines import ROI_TOP, detect_lane_lines, lane_lines_image
-from qcarlab.perception.stop_signs import METHODS, SignBox, detect_stop_signs
+from qcarlab.perception.stop_signs import METHODS, detect_stop_signs, signs_image
 
 detect_app = typer.Typer(
     help="Run the lab's perception on your own photos and videos: lane lines, stop signs.",
@@ -210,22 +210,6 @@ def lanes_cmd(
 
 
 # --------------------------------------------------------------------------------------- stop signs
-def sign_overlay(frame: np.ndarray, signs: list[SignBox], method: str) -> np.ndarray:
-    """The frame with a box, score (and distance) per sign, and a caption bar. BGR uint8."""
-    img = np.ascontiguousarray(frame).copy()
-    h, w = img.shape[:2]
-    thick = max(2, w // 320)
-    for s in signs:
-        x, y, bw, bh = s.bbox
-        cv2.rectangle(img, (x, y), (x + bw - 1, y + bh - 1), (0, 255, 0), thick)
-        label = f"{s.score:.2f}" + (f" {s.distance:.2f} m" if s.distance else "")
-        cv2.putText(img, label, (x, max(12, y - 4)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 255, 0), 1, cv2.LINE_AA)
-    bar = np.full((28, w, 3), 255, np.uint8)
-    text = f"{len(signs)} stop sign{'s' if len(signs) != 1 else ''} ({method})" if signs else f"no stop sign ({method})"
-    cv2.putText(bar, text, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
-    return np.vstack([bar, img])
-
-
 def _signs_summary(rows: list[dict], outputs: _Outputs, method: str) -> None:
     table = Table(title=f"stop signs ({method}; box = x, y, w, h in pixels)", title_justify="left")
     for col in ("file", "frame", "signs"):
@@ -294,7 +278,7 @@ def stop_sign_cmd(
         return {"signs": [s.as_dict() for s in signs]}, signs
 
     try:
-        _run(sources, every, outputs, detect, lambda frame, signs: sign_overlay(frame, signs, method))
+        _run(sources, every, outputs, detect, lambda frame, signs: signs_image(frame, signs, method))
     finally:
         outputs.close()
     if not json_out:

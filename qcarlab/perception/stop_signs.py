@@ -46,7 +46,7 @@ from qcarlab.perception.stop_sign import (
     in_hsv_range,
 )
 
-__all__ = ["DIM_HSV_MAX", "DIM_HSV_MIN", "METHODS", "SignBox", "detect_stop_signs", "sign_blobs"]
+__all__ = ["DIM_HSV_MAX", "DIM_HSV_MIN", "METHODS", "SignBox", "detect_stop_signs", "sign_blobs", "signs_image"]
 
 METHODS = ("hsv", "hough")
 DIM_HSV_MIN = (168, 60, 40)  # the dim pass: red or orange-red, weakly saturated, dark
@@ -208,3 +208,19 @@ def detect_stop_signs(
             out.append(SignBox(s.bbox, s.centre, s.score, s.area, s.method, dist))
         found = out
     return found
+
+
+def signs_image(frame: np.ndarray, signs: list[SignBox], method: str) -> np.ndarray:
+    """The frame with a box, score (and distance) per sign, and a caption bar. BGR uint8."""
+    img = np.ascontiguousarray(frame).copy()
+    h, w = img.shape[:2]
+    thick = max(2, w // 320)
+    for s in signs:
+        x, y, bw, bh = s.bbox
+        cv2.rectangle(img, (x, y), (x + bw - 1, y + bh - 1), (0, 255, 0), thick)
+        label = f"{s.score:.2f}" + (f" {s.distance:.2f} m" if s.distance else "")
+        cv2.putText(img, label, (x, max(12, y - 4)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 255, 0), 1, cv2.LINE_AA)
+    bar = np.full((28, w, 3), 255, np.uint8)
+    text = f"{len(signs)} stop sign{'s' if len(signs) != 1 else ''} ({method})" if signs else f"no stop sign ({method})"
+    cv2.putText(bar, text, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([bar, img])
