@@ -16,6 +16,7 @@ from qcarlab.cli import lane_follow  # noqa: F401  (lane-follow)
 from qcarlab.cli import avoid  # noqa: F401  (avoid)
 from qcarlab.cli import grade  # noqa: F401  (grade)
 from qcarlab.cli import lab  # noqa: F401  (blocks, template)
+from qcarlab.cli import replay  # noqa: F401  (replay info)
 from qcarlab.cli import detect  # noqa: F401  (detect lanes, detect stop-sign)
 
 __all__ = ["app", "main"]

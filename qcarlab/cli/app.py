@@ -33,6 +33,7 @@ app = typer.Typer(
 )
 
 stderr = Console(stderr=True, highlight=False, soft_wrap=True)
+interrupt_reported = False  # set when a command has said "interrupted" itself (cli.common.emit)
 
 
 class _OneLineHandler(logging.Handler):
@@ -76,6 +77,8 @@ def main(argv: list[str] | None = None) -> None:
     name = _command_name(argv)
     if not argv:
         argv = ["--help"]
+    global interrupt_reported
+    interrupt_reported = False
     previous = _term_as_interrupt()
     try:
         code = app(args=argv, prog_name="qcarlab", standalone_mode=False)
@@ -94,7 +97,10 @@ def main(argv: list[str] | None = None) -> None:
         # typer's parser errors (click's, vendored or not), recognised by their class names
         kinds = {cls.__name__ for cls in type(exc).__mro__}
         if "Exit" in kinds:
-            sys.exit(getattr(exc, "exit_code", 0))
+            code = getattr(exc, "exit_code", 0)
+            if code == 130 and not interrupt_reported:  # typer's own Ctrl-C handling exits 130 silently
+                stderr.print(f"{name}: interrupted; the car was stopped", markup=False)
+            sys.exit(code)
         if "Abort" in kinds:
             stderr.print(f"{name}: interrupted; the car was stopped", markup=False)
             sys.exit(130)
