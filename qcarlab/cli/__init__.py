@@ -18,5 +18,6 @@ from qcarlab.cli import grade  # noqa: F401  (grade)
 from qcarlab.cli import lab  # noqa: F401  (blocks, template)
 from qcarlab.cli import replay  # noqa: F401  (replay info)
 from qcarlab.cli import onboard  # noqa: F401  (onboard, deploy)
+from qcarlab.cli import detect  # noqa: F401  (detect lanes, detect stop-sign)
 
 __all__ = ["app", "main"]

@@ -119,7 +119,11 @@ def lane_follow_cmd(
         for spot in tune_spots(lane_centre(world_obj, s0), s0):
             with open_from_options(car, world_obj, seed, realtime, params, start=spot) as qcar:
                 frames.append((spot, qcar.read_rgbd()))
+        from qcarlab.cli.hsv_tune import run_hsv_tuner, tuned_metrics  # the sheet's tuner (issue 10)
+        tuned = run_hsv_tuner([f.color for _, f in frames], None, out / "hsv.yaml" if out else None,
+                              None if json_out else stdout, lane=lane, start=(cfg.hsv_min, cfg.hsv_max))
         result = hsv_tune(frames, cfg)
+        result.metrics["tuned"] = tuned_metrics(tuned, out / "hsv.yaml" if out else None)
     else:
         with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
             result = run_lane_follow(qcar, cfg, world_obj, blocks=mine)
