@@ -40,8 +40,10 @@ def _jsonable(value: Any) -> Any:
     return text if len(text) <= 200 else text[:197] + "..."
 
 
-def lab_only_params(source: Path, target: Path) -> None:
-    """Write ``target`` with only the ``lab:`` section of the student's parameter file."""
+def lab_only_params(source: Path, target: Path, argv: list[str] = ()) -> None:
+    """Write ``target`` with only the ``lab:`` section of the student's parameter file, less the
+    tunables the task's command sets itself (an option on the command line wins over the file,
+    and a look-ahead sweep refuses a file that sets the look-ahead)."""
     import yaml
 
     from qcarlab.errors import InputError
@@ -55,6 +57,8 @@ def lab_only_params(source: Path, target: Path) -> None:
     lab = data.get("lab") or {}
     if not isinstance(lab, dict):
         raise InputError(f"{source.name}: lab: expected a mapping of tunable: value")
+    given = {w.split("=", 1)[0] for w in argv if w.startswith("--")}
+    lab = {k: v for k, v in lab.items() if "--" + str(k).replace("_", "-") not in given}
     target.write_text(yaml.safe_dump({"lab": lab}, sort_keys=False), encoding="utf-8")
 
 
@@ -65,7 +69,7 @@ def run_scenario(spec: dict[str, Any]) -> None:
     argv = list(spec["argv"])
     if spec.get("params"):
         try:
-            lab_only_params(Path(spec["params"]), Path("grader-params.yaml"))
+            lab_only_params(Path(spec["params"]), Path("grader-params.yaml"), argv)
         except QcarlabError as exc:
             sys.stderr.write(f"error: {exc}\n")
             sys.exit(2)

@@ -145,7 +145,10 @@ def _saved(task: Task, folder: Path) -> tuple[dict | None, str]:
 
 def _used(task: Task, results: dict) -> str | None:
     """Why the run did not grade the student's blocks the task names (None when it did)."""
-    mine = results.get("student_blocks") or {}
+    mine = results.get("student_blocks")
+    if mine is None and isinstance(results.get("best"), dict):  # a sweep: its best run's blocks
+        mine = results["best"].get("student_blocks")
+    mine = mine or {}
     for name in task.uses:
         timing = mine.get(name)
         if not isinstance(timing, dict):
