@@ -292,7 +292,8 @@ def labs_cmd(
             sys.stdout.write(dumps({"sheets": rows}) + "\n")
             return
         table = Table(title="Lab sheets (qcarlab grade NAME; qcarlab labs NAME for the tasks)", title_justify="left")
-        for col in ("name", "section", "title", "blocks of", "tasks", "points"):
+        table.add_column("name", no_wrap=True, min_width=max((len(r["name"]) for r in rows), default=4))
+        for col in ("section", "title", "blocks of", "tasks", "points"):
             table.add_column(col)
         for r in rows:
             table.add_row(r["name"], r["section"], r["title"], r["lab"] or "-", str(r["tasks"]), f"{r['points']:g}")

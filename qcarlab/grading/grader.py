@@ -115,12 +115,23 @@ def _plan_one(student: str, sheet: Sheet, task: Task, sub: Submission | None, op
     return p
 
 
+def _folder_names(sheet: Sheet) -> list[str | None]:
+    names: list[str | None] = [sheet.name, sheet.extends]
+    if sheet.lab is not None:
+        from qcarlab.experiments.labs import find_lab
+
+        lab = find_lab(sheet.lab)
+        names += [lab.sheet, lab.command]
+    return names
+
+
 def make_plan(sheets: list[Sheet], tasks: list[Task], students: list[tuple[str, Path | None]], opts: Options,
               commands: Commands) -> list[Planned]:
     """Every (student, task) in order: students in the given order, then the sheets' tasks."""
     plan = []
     for name, root in students:
-        subs = {s.name: (read_submission(root, s.name, s.lab, name) if root is not None else None) for s in sheets}
+        subs = {s.name: (read_submission(root, _folder_names(s), name) if root is not None else None)
+                for s in sheets}
         for sheet in sheets:
             for task in tasks:
                 if task in sheet.tasks:

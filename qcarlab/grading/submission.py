@@ -3,7 +3,8 @@
 A submission is the folder ``qcarlab template LAB --out DIR`` made and the student filled: their
 block files (``stop_sign.py``, ...), ``params.yaml`` (the ``lab:`` tunables) and ``answers.md``.
 A repository with several labs keeps one folder per sheet, named like the sheet or the lab
-(``stop-sign/``, ``path-following/`` or ``path-follow/``); :func:`folder_for` picks it.
+(``stop-sign/``, ``path-following/`` or ``path-follow/``); :func:`folder_for` picks it (an
+instructor's sheet that ``extends`` one finds the folder of the sheet it extends).
 
 The grader reads the top-level ``*.py`` files (each at most 1 MB), ``params.yaml`` and
 ``answers.md``; it finds the blocks by parsing the files (``ast``), never by importing them: which
@@ -105,22 +106,23 @@ def _is_stub(tree: ast.Module, name: str) -> bool:
     return False
 
 
-def folder_for(root: Path, sheet: str, lab: str | None) -> Path:
-    """The submission's folder for a sheet: ROOT/SHEET or ROOT/LAB when there is one, else ROOT."""
-    for name in (sheet, lab):
+def folder_for(root: Path, names: list[str | None]) -> Path:
+    """The submission's folder for a sheet: ROOT/NAME for the first of ``names`` (the sheet's name,
+    the sheet it extends, the lab's sheet and command) that is a folder there, else ROOT."""
+    for name in names:
         if name and (root / name).is_dir():
             return root / name
     return root
 
 
-def read_submission(root: str | Path, sheet: str, lab: str | None, name: str | None = None) -> Submission:
-    """The submission in ``root`` for ``sheet`` (see :func:`folder_for`); files too large are left
+def read_submission(root: str | Path, names: list[str | None], student: str | None = None) -> Submission:
+    """The submission in ``root`` for a sheet (see :func:`folder_for`); files too large are left
     out and said so."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(f"--submission {root}: not a folder")
-    folder = folder_for(root, sheet, lab)
-    sub = Submission(name or root.resolve().name, folder)
+    folder = folder_for(root, names)
+    sub = Submission(student or root.resolve().name, folder)
     total = 0
     for path in sorted(folder.iterdir()):
         if not path.is_file() or path.name.startswith("."):
