@@ -86,7 +86,7 @@ def _plan_one(student: str, sheet: Sheet, task: Task, sub: Submission | None, op
     limits = opts.limits.as_dict()
     if task.kind == "block":
         if sub is None:
-            p.problem = "a block task grades a submission: give --submission DIR"
+            p.skipped = "a block task grades a student's block: give --submission DIR"
             return p
         p.job = Job(p.key, "block", limits, lab=sheet.lab, block=task.block, file=sub.defined()[task.block],
                     cases=[{"args": list(c.args), "calls": [list(a) for a in c.calls]} for c in task.criteria
