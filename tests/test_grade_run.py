@@ -240,3 +240,26 @@ def test_a_correct_submission_passes_all_five_lab_sheets_and_a_wrong_block_fails
         [(t["id"], t["problem"]) for t in right["tasks"] if not t["passed"]]
     failed = [t["id"] for t in by["wrong_stop"]["tasks"] if not t["passed"]]
     assert failed == ["5.2-task1-block", "5.2-task1-stopsign", "5.2-task3-faster"]
+
+
+HARD_CODED = """\
+PUBLIC = {(0.30, 0.5): 0.0, (0.02, 0.5): 0.5, (0.45, 0.5): 0.5, (0.0, 0.3): 0.3, (0.10, 0.3): 0.0, (1.5, 1.0): 1.0}
+
+def stop_sign(distance_to_sign, desired_speed):
+    return PUBLIC.get((distance_to_sign, desired_speed), desired_speed)
+"""
+
+
+def test_an_instructors_hidden_tasks_catch_a_hard_coded_block(cli, tmp_path):
+    private = Path(__file__).resolve().parents[1] / "docs" / "grading" / "private-stop-sign.yaml"
+    klass = tmp_path / "class"
+    correct_submission(klass / "honest", ("stop-sign",))
+    correct_submission(klass / "hard_coded", ("stop-sign",))
+    write_block(klass / "hard_coded" / "stop-sign", "stop_sign.py", HARD_CODED)
+    code, out, err = cli("grade", private, "--class", klass, "--task", "5.2-task1-block", "--task", "hidden-block",
+                         "--jobs", "2", "--out", tmp_path / "g", "--json")
+    assert code == 1, err
+    by = {s["student"]: {t["id"]: t for t in s["tasks"]} for s in json.loads(out)["students"]}
+    assert by["honest"]["5.2-task1-block"]["passed"] and by["honest"]["hidden-block"]["passed"]
+    assert by["hard_coded"]["5.2-task1-block"]["passed"] and not by["hard_coded"]["hidden-block"]["passed"]
+    assert by["hard_coded"]["hidden-block"]["earned"] == 3  # the cases where the desired speed is right

@@ -4,6 +4,7 @@ its criteria, and the reference blocks pass every block task's cases."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -13,13 +14,17 @@ from qcarlab.grading.sheet import shipped_sheets
 from tests.grading_submissions import REFERENCE, correct_submission
 
 SHEETS = shipped_sheets()
+EXAMPLE = Path(__file__).resolve().parents[1] / "docs" / "grading" / "private-stop-sign.yaml"  # an instructor's
 
 
 def tasks(kind: str):
-    for sheet in SHEETS:
-        for task in load_sheet(sheet).tasks:
-            if task.kind == kind and not task.needs_car:
-                yield pytest.param(sheet.stem, task, id=f"{sheet.stem}:{task.id}")
+    seen = set()
+    for sheet in [*SHEETS, EXAMPLE]:
+        loaded = load_sheet(sheet)
+        for task in loaded.tasks:
+            if task.kind == kind and not task.needs_car and (task.command, task.block, task.id) not in seen:
+                seen.add((task.command, task.block, task.id))
+                yield pytest.param(loaded.extends or sheet.stem, task, id=f"{sheet.stem}:{task.id}")
 
 
 @pytest.mark.parametrize(("sheet", "task"), list(tasks("scenario")))
@@ -35,7 +40,7 @@ def test_task_command_meets_its_criteria(cli, sheet, task, tmp_path, monkeypatch
 def test_reference_blocks_pass_the_block_tasks(tmp_path, sheet, task):
     assert sheet in REFERENCE, f"tests/grading_submissions.py has no reference blocks for {sheet}"
     folder = correct_submission(tmp_path, (sheet,)) / sheet
-    lab = load_sheet(next(p for p in SHEETS if p.stem == sheet)).lab
+    lab = load_sheet(next(p for p in SHEETS if p.stem == sheet)).lab  # (an extending sheet's lab is its base's)
     file = next(f for f in REFERENCE[sheet] if f == f"{task.block}.py")
     results = tmp_path / "cases.jsonl"
     run_block({"lab": lab, "block": task.block, "file": str(folder / file), "results": str(results),
