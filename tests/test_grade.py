@@ -69,7 +69,7 @@ def test_every_shipped_sheet_loads_and_its_commands_parse():
         assert sheet.tasks and sheet.points > 0
         for t in sheet.tasks:
             if t.command:
-                name, params = commands.parse(t.argv("tcp://127.0.0.1:1"))
+                name, params, _ = commands.parse(t.argv("tcp://127.0.0.1:1"))
                 assert name == t.argv()[0] and params
     assert find_sheet("5.3").stem == "lane-following" and find_sheet("6.1").stem == "obstacle-avoidance"
 
@@ -212,3 +212,16 @@ def test_a_results_file_records_its_command_and_files(cli, tmp_path):
     inv = json.loads(out)["invocation"]
     assert inv["command"] == "io-test" and inv["params"]["duration"] == 0.2
     assert inv["files"]["params"]["path"] == str(params) and len(inv["files"]["params"]["sha256"]) == 64
+
+
+def test_a_run_of_another_path_is_refused_naming_the_path(cli, tmp_path):
+    from qcarlab.cli.grade import CliCommands
+    from qcarlab.grading.invocation import verify
+
+    code, out, err = cli("path-follow", "line", "--length", "3", "--points", "4", "--max-time", "0.5", "--json")
+    p1 = json.loads(out)
+    name, want, labels = CliCommands().parse(["path-follow", "butterfly", "--size", "4"])
+    assert verify(p1, name, want, None, labels) == "the results were made with PATH line, the task's command has butterfly"
+    name, want, labels = CliCommands().parse(["path-follow", "line", "--points", "4", "--length", "3",
+                                              "--max-time", "0.5", "--out", "x"])
+    assert verify(p1, name, want, None, labels) is None  # order and --out do not matter

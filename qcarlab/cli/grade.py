@@ -22,7 +22,7 @@ from qcarlab.record import dumps, write_json
 class CliCommands:
     """The CLI's own parser, for the grader (which does not import the CLI)."""
 
-    def parse(self, argv: list[str]) -> tuple[str, dict[str, Any]]:
+    def parse(self, argv: list[str]) -> tuple[str, dict[str, Any], dict[str, str]]:
         from qcarlab.cli.invocation import parse_command
 
         return parse_command(argv)

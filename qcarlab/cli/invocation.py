@@ -46,8 +46,9 @@ def record_invocation(metrics: dict[str, Any]) -> None:
                              "qcarlab": __version__}
 
 
-def parse_command(argv: list[str]) -> tuple[str, dict[str, Any]]:
-    """A task's command words (after ``qcarlab``) parsed by the command's own parser: (name, params)."""
+def parse_command(argv: list[str]) -> tuple[str, dict[str, Any], dict[str, str]]:
+    """A task's command words (after ``qcarlab``) parsed by the command's own parser: its name, its
+    parameters in the command's order, and how each is written (``--speed``, ``PATH``)."""
     import typer.main
 
     from qcarlab.cli import app
@@ -62,7 +63,16 @@ def parse_command(argv: list[str]) -> tuple[str, dict[str, Any]]:
         ctx = sub.make_context(argv[0], list(argv[1:]), resilient_parsing=True)
     except Exception as exc:  # noqa: BLE001 - click's (vendored) usage errors
         raise InputError(f"qcarlab {' '.join(argv)}: {exc}") from None
-    return argv[0], jsonable(dict(ctx.params))
+    params, labels = {}, {}
+    for param in sub.params:
+        if param.name in ctx.params:
+            params[param.name] = ctx.params[param.name]
+            longs = [o for o in getattr(param, "opts", []) if o.startswith("--")]
+            if getattr(param, "param_type_name", "") == "option" and longs:
+                labels[param.name] = longs[0]
+            else:
+                labels[param.name] = str(getattr(param, "metavar", None) or param.name).strip("{}[]").upper()
+    return argv[0], jsonable(params), labels
 
 
 def command_accepts(argv: list[str], option: str) -> bool:

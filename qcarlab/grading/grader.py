@@ -26,7 +26,7 @@ from qcarlab.grading.submission import Submission, read_submission
 
 
 class Commands(Protocol):
-    def parse(self, argv: list[str]) -> tuple[str, dict[str, Any]]: ...
+    def parse(self, argv: list[str]) -> tuple[str, dict[str, Any], dict[str, str]]: ...
 
     def accepts(self, argv: list[str], option: str) -> bool: ...
 
@@ -173,8 +173,8 @@ def _grade_saved(p: Planned, commands: Commands, folder: Path) -> tuple[str | No
     data, why = _saved(p.task, folder)
     if data is None:
         return why, None
-    name, want = commands.parse(p.task.argv())
-    problem = verify(data, name, want, p.submission.files if p.submission else None)
+    name, want, labels = commands.parse(p.task.argv())
+    problem = verify(data, name, want, p.submission.files if p.submission else None, labels)
     problem = problem or (_used(p.task, data) if p.submission is not None else None)
     if problem:
         return problem, None
@@ -186,8 +186,8 @@ def _grade_results(p: Planned, outcome: dict[str, Any], commands: Commands,
     if outcome.get("reason"):
         return outcome["reason"], None
     data = outcome.get("results") or {}
-    name, want = commands.parse(p.task.argv())
-    problem = verify(data, name, want) if "invocation" in data else None
+    name, want, labels = commands.parse(p.task.argv())
+    problem = verify(data, name, want, None, labels) if "invocation" in data else None
     problem = problem or (_used(p.task, data) if p.submission is not None else None)
     if problem:
         return problem, None

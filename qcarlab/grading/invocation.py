@@ -81,7 +81,7 @@ def files_of(params: dict[str, Any]) -> dict[str, Any]:
 
 
 def verify(results: dict[str, Any], name: str, want: dict[str, Any],
-           submission_files: dict[str, bytes] | None = None) -> str | None:
+           submission_files: dict[str, bytes] | None = None, labels: dict[str, str] | None = None) -> str | None:
     """None when ``results`` were made by the task's command, else the one-line reason. ``name``
     and ``want`` are the task's command and its parsed parameters (``qcarlab.cli.invocation``).
 
@@ -93,11 +93,11 @@ def verify(results: dict[str, Any], name: str, want: dict[str, Any],
     if inv.get("command") != name:
         return f"the results are of 'qcarlab {inv.get('command')}', not of the task's 'qcarlab {name}'"
     got = inv["params"]
-    for key in sorted(set(want) | set(got)):
+    for key in [*want, *sorted(set(got) - set(want))]:  # the command's own order: its arguments first
         if key in FREE:
             continue
         if jsonable(want.get(key)) != got.get(key):
-            option = "--" + key.replace("_", "-")
+            option = (labels or {}).get(key) or "--" + key.replace("_", "-")
             return (f"the results were made with {option} {_show(got.get(key))}, the task's command has "
                     f"{_show(want.get(key))}")
     if submission_files is not None:
