@@ -6,8 +6,9 @@
 
 Every figure is the wall time of ``qcarlab grade`` as a user types it (a fresh process), the
 median over ``--reps`` runs, the configurations alternated so that a change of the machine's
-load hits both. The load average is printed with each batch: on a shared machine the figures
-move with it. The submissions are synthetic (tests/grading_submissions.py): the reference
+load hits both. The load average is printed with each batch: on a shared machine the wall figures
+move with it; the CPU seconds (the grader and all its task processes) hardly do, and CPU / cores
+is what the wall time would be on an idle machine with --jobs = cores. The submissions are synthetic (tests/grading_submissions.py): the reference
 blocks, and for the class every third student with a wrong stop window, every fifth with a
 stop_sign that raises.
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -34,10 +36,17 @@ WRONG = "def stop_sign(distance_to_sign, desired_speed):\n    return 0.0 if 0.5 
 RAISES = "def stop_sign(distance_to_sign, desired_speed):\n    return desired_speed / (distance_to_sign * 0)\n"
 
 
+CPU: list[float] = []  # CPU seconds (user + system) of each grade run and all its task processes
+
+
 def grade(args: list[str]) -> float:
+    """Wall seconds of one ``qcarlab grade`` run; its CPU seconds go to CPU."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "qcarlab", "grade", *args], capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    CPU.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
     if done.returncode not in (0, 1):
         raise SystemExit(f"qcarlab grade {' '.join(args)} failed ({done.returncode}): {done.stderr[-500:]}")
     return wall
@@ -55,7 +64,8 @@ def student(reps: int, tmp: Path) -> None:
             before = load()
             wall = grade([*FIVE, "--submission", str(sub), "--jobs", str(jobs), "--out", str(tmp / f"s{jobs}")])
             times[jobs].append(wall)
-            print(f"  one student, five sheets, --jobs {jobs}: {wall:6.1f} s   ({before} -> {load()})", flush=True)
+            print(f"  one student, five sheets, --jobs {jobs}: {wall:6.1f} s wall, {CPU[-1]:6.1f} s CPU   "
+                  f"({before} -> {load()})", flush=True)
     for jobs, t in times.items():
         print(f"one student, all five lab sheets (24 tasks), --jobs {jobs}: median {statistics.median(t):.1f} s "
               f"over {len(t)} run(s)")
@@ -78,7 +88,8 @@ def klass(size: int, reps: int, tmp: Path) -> None:
             wall = grade(["stop-sign", "--class", str(root), *CLASS_TASKS, "--jobs", str(jobs), "--out", str(out)])
             times[jobs].append(wall)
             books[jobs] = (out / "gradebook.csv").read_text()
-            print(f"  class of {size}, 2 tasks each, --jobs {jobs}: {wall:6.1f} s   ({before} -> {load()})", flush=True)
+            print(f"  class of {size}, 2 tasks each, --jobs {jobs}: {wall:6.1f} s wall, {CPU[-1]:6.1f} s CPU   "
+                  f"({before} -> {load()})", flush=True)
     serial, parallel = statistics.median(times[1]), statistics.median(times[2])
     print(f"class of {size} (stop-sign block task + a stop-sign run each): --jobs 1 median {serial:.1f} s, "
           f"--jobs 2 median {parallel:.1f} s, speed-up {serial / parallel:.2f}x; "

@@ -225,3 +225,25 @@ def test_a_run_of_another_path_is_refused_naming_the_path(cli, tmp_path):
     name, want, labels = CliCommands().parse(["path-follow", "line", "--points", "4", "--length", "3",
                                               "--max-time", "0.5", "--out", "x"])
     assert verify(p1, name, want, None, labels) is None  # order and --out do not matter
+
+
+def test_saved_runs_must_be_made_with_the_submissions_own_files(cli, tmp_path):
+    from tests.grading_submissions import correct_submission
+
+    sub = correct_submission(tmp_path / "me", ("basic-io",)) / "basic-io"
+    runs = tmp_path / "runs"
+    run = ("io-test", "--on-floor", "--throttle", "0.1", "--duration", "2", "--out", runs / "task2-outputs")
+    code, _, err = cli(*run, "--use", sub, "--params", sub / "params.yaml")
+    assert code == 0, err
+    grade = ("grade", "basic-io", "--task", "task2-outputs", "--results", runs, "--submission", sub, "--json")
+    code, out, _ = cli(*grade)
+    assert code == 0 and json.loads(out)["tasks"][0]["passed"], out
+    with open(sub / "basic_speed_estimation.py", "a") as f:
+        f.write("# changed after the run\n")
+    code, out, _ = cli(*grade)
+    assert code == 1
+    assert json.loads(out)["tasks"][0]["problem"] == \
+        "the results were made with another basic_speed_estimation.py than the submission's"
+    code, _, err = cli(*run, "--params", sub / "params.yaml")  # qcarlab's own block, not the student's
+    code, out, _ = cli(*grade)
+    assert code == 1 and json.loads(out)["tasks"][0]["problem"] == "the run did not use your basic_speed_estimation"

@@ -85,7 +85,7 @@ def test_a_class_survives_every_kind_of_broken_block(cli, tmp_path):
     # the HTML report: self-contained, every student, the answers as text
     page = (out / "report.html").read_text(encoding="utf-8")
     assert "<script>alert" not in page and "&lt;script&gt;alert(1)&lt;/script&gt;" in page
-    assert all(f"id='s-{name}'" in page for name in by) and "http" not in page.split("<body>")[1][:0] + ""
+    assert all(f"id='s-{name}'" in page for name in by) and "src='http" not in page and "<link" not in page
     # JUnit: one testcase per criterion and student, failures for the broken ones
     suites = ET.parse(tmp_path / "r.xml").getroot()
     cases = suites.findall("./testsuite/testcase")
@@ -95,6 +95,12 @@ def test_a_class_survives_every_kind_of_broken_block(cli, tmp_path):
     assert good and all(not list(c) or c[0].tag == "system-out" for c in good)
     hung = [c for c in cases if c.get("classname").startswith("hangs.")]
     assert all(c.find("error") is not None or c.find("failure") is not None for c in hung)
+    stats = {s.get("name"): s for s in suites.findall("./testsuite")}
+    assert stats["good: stop-sign"].get("tests") == "6" and stats["good: stop-sign"].get("failures") == "0"
+    assert int(stats["raises: stop-sign"].get("failures")) + int(stats["raises: stop-sign"].get("errors")) == 6
+    from junitparser import JUnitXml
+
+    assert sum(1 for suite in JUnitXml.fromfile(str(tmp_path / "r.xml")) for _ in suite) == len(cases)
 
 
 def avoid_sheet(path: Path) -> Path:
@@ -156,6 +162,8 @@ def test_one_wrong_block_fails_exactly_the_tasks_that_use_it(cli, tmp_path):
     # the figures of each run are kept beside its results
     assert (tmp_path / "g" / "right" / "quick" / "stop-run" / "results.json").exists()
     assert list((tmp_path / "g" / "right" / "quick" / "stop-run").glob("*.png"))
+    page = (tmp_path / "g" / "report.html").read_text()
+    assert page.count("src='data:image/jpeg;base64,") >= 2 and "My answers for obstacle-avoidance." in page
 
 
 def grade_json(path: Path) -> dict:

@@ -98,8 +98,9 @@ def grade_cmd(
     class_dir: Annotated[Path | None, typer.Option("--class", help="A class: one sub-folder per student "
                                                    "(each a submission). Writes gradebook.csv, report.html and "
                                                    "grade.json to --out.", show_default=False)] = None,
-    results: Annotated[Path | None, typer.Option(help="Grade saved runs instead: DIR/TASK-ID/results.json "
-                                                 "(run each task's command with --out DIR/TASK-ID).",
+    results: Annotated[Path | None, typer.Option(help="Grade saved runs of the scenario tasks instead: "
+                                                 "DIR/TASK-ID/results.json (each task's command run with --out "
+                                                 "DIR/TASK-ID, e.g. on the real car).",
                                                  show_default=False)] = None,
     task: Annotated[list[str] | None, typer.Option("--task", help="Grade only this task (ID or SHEET/ID; "
                                                    "repeatable).", show_default=False)] = None,
@@ -142,8 +143,6 @@ def grade_cmd(
         raise InputError(f"--results {results}: not a folder")
     if submission is not None and not submission.is_dir():
         raise InputError(f"--submission {submission}: not a folder")
-    if results is not None and ray is not None:
-        raise InputError("--results reads saved runs; there is nothing to run on Ray")
     for option, path in (("--out", out), ("--junit", junit)):
         if path is not None and path.exists() and (path.is_dir() if option == "--junit" else not path.is_dir()):
             raise InputError(f"{option} {path}: exists and is {'a folder' if option == '--junit' else 'not a folder'}")
@@ -216,8 +215,13 @@ def grade_cmd(
         written.append(write_json(out / "grade.json", report))
         if not single:
             written.append(write_gradebook(out / "gradebook.csv", report_students))
-            answers = {st["student"]: next((s.answers for s in subs.get(st["student"], []) if s.answers), None)
-                       for st in report_students}
+            answers: dict[str, list[tuple[str, str]]] = {}
+            for st in report_students:
+                seen = set()
+                for s in subs.get(st["student"], []):
+                    if s.answers and s.folder not in seen:
+                        seen.add(s.folder)
+                        answers.setdefault(st["student"], []).append((s.folder.name, s.answers))
             figs = {(st["student"], r["sheet"], r["id"]): r.get("_figures") or {}
                     for st in report_students for r in st["tasks"]}
             title = "qcarlab grade: " + ", ".join(f"{s.section} {s.title}" for s in loaded)
@@ -267,7 +271,7 @@ def _print(sheets: list[Sheet], students: list[dict[str, Any]], single: bool) ->
         first = next((f"{r['id']}: {r['problem'] or next((c['reason'] for c in r['criteria'] if not c['passed']), '')}"
                       for r in st["tasks"] if r["status"] == "failed"), "")
         table.add_row(st["student"], f"{st['passed']}/{st['total']}", f"{st['points']:g}/{st['max_points']:g}",
-                      _shown(first) if len(first) <= 40 else first[:77] + "...")
+                      first if len(first) <= 80 else first[:77] + "...")
     stdout.print(table)
 
 

@@ -36,7 +36,7 @@ class Options:
     limits: Limits = field(default_factory=Limits)
     car: str | None = None  # tcp://HOST:PORT: run the commands on this car
     figures: bool = False  # keep each run's figures (for --out / the class report)
-    results: Path | None = None  # grade saved runs: DIR/TASK-ID/results.json
+    results: Path | None = None  # grade saved runs of the scenario tasks: DIR/TASK-ID/results.json
 
 
 @dataclass
@@ -81,7 +81,7 @@ def _plan_one(student: str, sheet: Sheet, task: Task, sub: Submission | None, op
             if why:
                 p.problem = why
                 return p
-    if opts.results is not None:
+    if opts.results is not None and task.kind == "scenario":  # graded from the saved run
         return p
     limits = opts.limits.as_dict()
     if task.kind == "block":
@@ -226,7 +226,7 @@ def grade(p: Planned, outcome: dict[str, Any] | None, commands: Commands,
         return row
     problem, verdicts = p.problem, None
     if problem is None:
-        if results_dir is not None:
+        if results_dir is not None and task.kind == "scenario":
             problem, verdicts = _grade_saved(p, commands, results_dir)
         elif outcome is None:
             problem = "not run"

@@ -17,7 +17,6 @@ from __future__ import annotations
 import base64
 import csv
 import html
-import io
 from pathlib import Path
 from typing import Any
 
@@ -70,7 +69,7 @@ def write_junit(path: str | Path, students: list[dict[str, Any]], single: bool) 
                         case.result = [err]
                     elif not c["passed"]:
                         fail = Failure(c["reason"] or "criterion not met", "criterion")
-                        fail.text = text
+                        fail.text = text + (f"\n{r['detail'][-4000:]}" if r.get("detail") else "")
                         case.result = [fail]
                     case.system_out = text
                     suite.add_testcase(case)
@@ -149,8 +148,9 @@ def _cls(r: dict[str, Any]) -> str:
 
 
 def write_html(path: str | Path, title: str, students: list[dict[str, Any]], figures: dict[tuple, dict[str, bytes]],
-               answers: dict[str, str | None]) -> Path:
-    """The class report; ``figures[(student, sheet, task)]`` are PNG bytes by name."""
+               answers: dict[str, list[tuple[str, str]]]) -> Path:
+    """The class report; ``figures[(student, sheet, task)]`` are PNG bytes by name, ``answers[student]``
+    each sheet's ``answers.md`` as (sheet, text)."""
     e = html.escape
     cols = columns(students)
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{e(title)}</title><style>{_CSS}</style>"
@@ -200,24 +200,15 @@ def write_html(path: str | Path, title: str, students: list[dict[str, Any]], fig
                     parts.append(f"<img alt='{e(name)}' title='{e(name)}' "
                                  f"src='data:{mime};base64,{base64.b64encode(data).decode()}'>")
                 parts.append("</div>")
-        text = answers.get(st["student"])
-        parts.append("<h3>answers.md</h3>" + (f"<pre>{e(text)}</pre>" if text else "<p class='small'>(none)</p>"))
+        given = answers.get(st["student"]) or []
+        if not given:
+            parts.append("<h3>answers.md</h3><p class='small'>(none)</p>")
+        for sheet, text in given:
+            parts.append(f"<h3>answers.md ({e(sheet)})</h3><pre>{e(text)}</pre>")
     parts.append("</body></html>")
     out = Path(path)
     out.write_text("".join(parts), encoding="utf-8")
     return out
-
-
-def csv_text(students: list[dict[str, Any]]) -> str:
-    """The gradebook as text (for tests and --json users)."""
-    buf = io.StringIO()
-    cols = columns(students)
-    w = csv.writer(buf)
-    w.writerow(["student", *cols, "total"])
-    for st in students:
-        got = {f"{r['sheet']}/{r['id']}": r["earned"] for r in st["tasks"]}
-        w.writerow([st["student"], *[got.get(c, "") for c in cols], st["points"]])
-    return buf.getvalue()
 
 
 __all__ = ["report_dict", "thumbnail", "write_gradebook", "write_html", "write_junit"]

@@ -26,7 +26,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -102,8 +102,9 @@ def _env(results: Path) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k not in ("QCARLAB_DEBUG", "QCARLAB_RESULTS", "PYTHONSTARTUP")}
     for var in THREAD_VARS:
         env[var] = "1"
-    root = str(Path(qcarlab.__file__).resolve().parents[1])  # the qcarlab the grader runs
-    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    root = Path(qcarlab.__file__).resolve().parents[1]  # the qcarlab the grader runs, also from a checkout
+    if root.name not in ("site-packages", "dist-packages"):
+        env["PYTHONPATH"] = str(root) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     env.update({"QCARLAB_RESULTS": str(results), "MPLBACKEND": "Agg", "PYTHONDONTWRITEBYTECODE": "1",
                 "PYTHONUNBUFFERED": "1", "COLUMNS": "120", "NO_COLOR": "1", "TERM": "dumb",
                 "PYTHONHASHSEED": "0"})
@@ -249,10 +250,6 @@ def _relative(value: Any, prefix: str) -> Any:
 def _clip(text: str, limit: int = 300) -> str:
     text = " ".join(text.split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def as_dict(job: Job) -> dict[str, Any]:
-    return asdict(job)
 
 
 __all__ = ["Job", "execute"]
