@@ -57,16 +57,6 @@ class Planned:
         return (self.student, self.sheet.name, self.task.id)
 
 
-def student_blocks(sheet: Sheet, sub: Submission | None) -> dict[str, str]:
-    """The lab's blocks the submission defines and has filled in: name -> file."""
-    if sub is None or sheet.lab is None:
-        return {}
-    from qcarlab.experiments.labs import find_lab
-
-    names = {b.name for b in find_lab(sheet.lab).blocks}
-    return {n: f for n, f in sub.defined().items() if n in names and not sub.unfilled(n)}
-
-
 def _plan_one(student: str, sheet: Sheet, task: Task, sub: Submission | None, opts: Options,
               commands: Commands) -> Planned:
     from qcarlab import __version__
@@ -100,10 +90,11 @@ def _plan_one(student: str, sheet: Sheet, task: Task, sub: Submission | None, op
     shown = list(argv)
     params = None
     if sub is not None and sheet.lab is not None:
-        if commands.accepts(argv, "block"):
-            for name, fname in sorted(student_blocks(sheet, sub).items()):
-                argv += ["--block", f"{name}=submission/{fname}:{name}"]
-                shown += ["--block", f"{name}={fname}:{name}"]
+        if commands.accepts(argv, "block"):  # the student's blocks the task grades; the rest are qcarlab's
+            defined = sub.defined()
+            for name in task.uses:
+                argv += ["--block", f"{name}=submission/{defined[name]}:{name}"]
+                shown += ["--block", f"{name}={defined[name]}:{name}"]
         if "params.yaml" in sub.files and commands.accepts(argv, "params"):
             params = "params.yaml"
             shown += ["--params", "params.yaml"]
@@ -257,5 +248,5 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "max_points": round(sum(r["points"] for r in graded), 6)}
 
 
-__all__ = ["Commands", "Options", "Planned", "grade", "make_plan", "student_blocks", "summary"]
+__all__ = ["Commands", "Options", "Planned", "grade", "make_plan", "summary"]
 
