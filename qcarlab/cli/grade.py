@@ -111,7 +111,7 @@ def grade_cmd(
     max_output: Annotated[float, typer.Option(help="Output limit of each task's process, MB.")] = 10.0,
     jobs: Annotated[int, typer.Option(help="Tasks run at a time on this machine (each in its own process).")] = 1,
     ray: Annotated[str | None, typer.Option("--ray", help="Run the tasks on a Ray cluster: its address (auto, "
-                                            "ray://HOST:10001) or local; needs qcarlab[ray].",
+                                            "ray://HOST:10001) or local; needs qcarlab\\[ray] installed.",
                                             show_default=False)] = None,
     out: Annotated[Path | None, typer.Option("--out", help="Write grade.json (and each task's results and "
                                              "figures) here; with --class default: grades/.",
