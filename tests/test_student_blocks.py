@@ -325,8 +325,9 @@ def test_a_late_tick_gives_the_real_dt_and_is_counted():
     assert log.overruns >= 1 and log.worst_tick_s >= 0.19
     late = max(dts)
     assert late >= 0.19  # the block is told the real time since the last tick ...
-    after = dts[dts.index(late) + 1:][:5]
-    assert all(d > 0.005 for d in after)  # ... and no burst of catch-up ticks follows
+    after = np.cumsum(dts[dts.index(late) + 1:])
+    # ... and no burst of catch-up ticks follows: about 5 ticks in the next 50 ms, not the 20 missed
+    assert np.count_nonzero(after <= 0.05) <= 9
     assert np.asarray(log.arrays()["dt"]).max() == late
 
 
