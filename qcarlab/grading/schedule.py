@@ -80,7 +80,7 @@ def run_ray(jobs: list[Job], address: str, done: Progress | None = None) -> list
     outcomes: list[dict[str, Any] | None] = [None] * len(jobs)
     pending = list(refs)
     while pending:
-        ready, pending = ray.wait(pending, num_returns=1)
+        ready, pending = ray.wait(pending, num_returns=len(pending), timeout=0.5)  # all that are done
         for ref in ready:
             i = index[ref]
             try:
