@@ -229,7 +229,7 @@ def test_loop_drives_a_stepped_simulator_and_stops_it():
         car, cfg, keys=scripted([(0.0, ["w"] * 5 + ["a"]), (0.3, ["space"]), (0.35, ["q"])]),
         on_frame=frames.append, rate=100.0,
     )
-    assert summary.reason == "quit" and summary.ticks >= 25
+    assert summary.reason == "quit" and summary.ticks >= 10  # late ticks on a busy machine are dropped, not burst
     assert summary.distance_m > 0.02 and summary.truth_distance_m > 0.02
     assert summary.heading_change_rad > 0.0  # steered left
     assert summary.keys == 8

@@ -16,5 +16,6 @@ from qcarlab.cli import lane_follow  # noqa: F401  (lane-follow)
 from qcarlab.cli import avoid  # noqa: F401  (avoid)
 from qcarlab.cli import grade  # noqa: F401  (grade, labs)
 from qcarlab.cli import lab  # noqa: F401  (blocks, template)
+from qcarlab.cli import replay  # noqa: F401  (replay info)
 
 __all__ = ["app", "main"]

@@ -7,6 +7,7 @@ from typing import Annotated
 import typer
 
 from qcarlab.cli.app import app
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
     StartOpt, WorldOpt, sim_world, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt,
@@ -45,6 +46,7 @@ def _summary(result: Result) -> None:
 
 
 @app.command("avoid")
+@recordable
 def avoid_cmd(
     ctx: typer.Context,
     strategy: Annotated[str, typer.Option(help="stop (sheet Task 1-2: lidar_stop, speed 0 near an obstacle), "

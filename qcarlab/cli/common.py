@@ -67,6 +67,44 @@ BlockOpt = Annotated[
                  "stop_sign=mylab/stop.py:my_stop). Repeatable.", show_default=False),
 ]
 RateOpt = Annotated[float, typer.Option("--rate", help="Control loop rate in Hz (the lab's Python loops: 60-200).")]
+RecordOpt = Annotated[Path | None, typer.Option(
+    "--record", help="Record the run to FILE.mcap (opens in Foxglove; replay it with --car replay:FILE.mcap).",
+    show_default=False)]
+RecordExactOpt = Annotated[bool, typer.Option(
+    "--record-exact", help="Record camera frames losslessly, every frame (an exact replay; ~1.3 MB per RGBD frame) "
+    "instead of JPEG colour and 2 Hz depth.")]
+LiveOpt = Annotated[bool, typer.Option("--live", help="Stream the run live to Foxglove (WebSocket, port 8765).")]
+LivePortOpt = Annotated[str | None, typer.Option(
+    "--live-port", help="Live view port, or HOST:PORT (not loopback: needs QCARLAB_TOKEN).", show_default=False)]
+TopicsOpt = Annotated[str | None, typer.Option(
+    "--topics", help="--car replay:BAG: the rosbag2's topics for the car's sensors, e.g. "
+    "scan=/scan,color=/camera/color/image_raw,depth=/camera/depth/image_rect_raw.", show_default=False)]
+
+
+def recordable(command):
+    """Give a driving command --record, --record-exact, --live, --live-port and --topics (one
+    decorator line under ``@app.command``); the car it opens is then recorded or replayed."""
+    import functools
+    import inspect
+    from typing import get_type_hints
+
+    added = {"record": (RecordOpt, None), "record_exact": (RecordExactOpt, False), "live": (LiveOpt, False),
+             "live_port": (LivePortOpt, None), "topics": (TopicsOpt, None)}
+
+    @functools.wraps(command)
+    def run(*args, record=None, record_exact=False, live=False, live_port=None, topics=None, **kwargs):
+        from qcarlab.cli import recording
+
+        with recording.request(record, record_exact, live, live_port, topics):
+            return command(*args, **kwargs)
+
+    sig = inspect.signature(command, eval_str=True)
+    extra = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
+             for name, (annotation, default) in added.items()]
+    run.__signature__ = sig.replace(parameters=[*sig.parameters.values(), *extra])
+    run.__annotations__ = {**get_type_hints(command, include_extras=True),
+                           **{name: annotation for name, (annotation, _) in added.items()}}
+    return run
 
 stdout = Console(highlight=False)
 
@@ -79,8 +117,15 @@ def open_from_options(
     params: Path | None = None,
     **extra: Any,
 ) -> Car:
-    """Open the car the shared options describe."""
-    return open_car(car, world=world, seed=seed, realtime=realtime, params=params, **extra)
+    """Open the car the shared options describe; with --record/--live, wrapped to record it
+    (``path=`` is the reference path for the recording's scene)."""
+    from qcarlab.cli import recording
+
+    path = extra.pop("path", None)
+    if parse_car_uri(car)[0] == "replay":
+        extra.setdefault("topics", recording.replay_topics())
+    qcar = open_car(car, world=world, seed=seed, realtime=realtime, params=params, **extra)
+    return recording.wrap(qcar, car=car, world=world, seed=seed, path=path, start=extra.get("start"))
 
 
 def student_blocks(model: Any, use: list[Path] | None, block: list[str] | None) -> dict[str, Any]:
@@ -149,15 +194,18 @@ def interactive(json_out: bool) -> bool:
 
 
 def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
-    """Save to --out, then print JSON (with --json) or the human summary; then the exit code.
+    """Save to --out, then print JSON (with --json) or the human summary (and, after a replay,
+    what the lab would have commanded beside what was commanded); then the exit code.
 
     A run that missed its goal (``goal_reached`` false: time limit, collision, left the world,
     stopped past the sign) says why on stderr and exits 1; an interrupted run exits 130 after
     its results were saved. Student blocks slower than the tick on a real-time car are reported.
     """
+    from qcarlab.cli import recording
     from qcarlab.cli.invocation import record_invocation, write_for_grader
 
     record_invocation(result.metrics)  # the command and parameters, so qcarlab grade knows the run
+    after = recording.after_run(result)
     written = result.save(out) if out is not None else []
     m = result.metrics
     write_for_grader(m)  # $QCARLAB_RESULTS, set by qcarlab grade
@@ -165,6 +213,7 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
         sys.stdout.write(dumps(m) + "\n")
     else:
         summary(result)
+        recording.print_after(after, stdout)
         if written:
             stdout.print(f"wrote {len(written)} file(s) to {out}: " + ", ".join(p.name for p in written))
     name = m.get("experiment", result.name)
@@ -180,7 +229,7 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
         stderr.print(f"qcarlab {name}: interrupted; the car was stopped"
                      + (f"; the run so far was saved to {out}" if written else ""), markup=False)
         raise typer.Exit(130)
-    if m.get("goal_reached") is False:
+    if m.get("goal_reached") is False and "replay" not in m:  # a replay's car did what was recorded
         stderr.print(f"qcarlab {name}: goal missed: {m.get('failure') or 'see the results'}", markup=False)
         raise typer.Exit(1)
 
@@ -214,7 +263,15 @@ def parse_start(text: str | None) -> tuple[float, float, float] | None:
 def sim_world(car: str, world: str | None, start: str | None, default: str, params: Path | None):
     """Load the world for a simulated car; refuse simulator-only options for a remote car."""
     pose = parse_start(start)
-    if parse_car_uri(car)[0] != "sim":
+    scheme, where, _ = parse_car_uri(car)
+    if scheme == "replay":  # the world and start the lab scores against: given, else the recording's
+        from qcarlab.cli import recording
+
+        recorded, recorded_pose = recording.recorded_world(where, params) if world is None else (None, None)
+        from qcarlab.experiments.worlds import load_world
+
+        return (load_world(world, load_params(params)) if world is not None else recorded), pose or recorded_pose
+    if scheme != "sim":
         if world is not None or pose is not None:
             raise InputError("--world and --start apply to the simulator only; a remote car is where it is")
         return None, None

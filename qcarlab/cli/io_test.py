@@ -11,6 +11,7 @@ from rich.table import Table
 
 from qcarlab.car.lamps import known_lamp_words, lamps_on, parse_lamps
 from qcarlab.cli.app import app
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt, UseOpt, BlockOpt,
     emit, interactive, open_from_options, stdout, student_blocks, summary_table,
@@ -58,6 +59,7 @@ def _summary(result: Result) -> None:
 
 
 @app.command("io-test")
+@recordable
 def io_test_cmd(
     throttle: Annotated[float, typer.Option(help="Motor PWM duty fraction (the sheet's % / 100), limited to +-0.3.")] = 0.1,
     steering: Annotated[float, typer.Option(help="Steering angle in rad, + = left, limited to +-0.5236.")] = 0.0,

@@ -8,6 +8,7 @@ import typer
 
 from qcarlab import plots
 from qcarlab.cli.app import app
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
     StartOpt, WorldOpt, sim_world, parse_hsv, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt,
@@ -64,6 +65,7 @@ def _summary(result: Result) -> None:
 
 
 @app.command("lane-follow")
+@recordable
 def lane_follow_cmd(
     ctx: typer.Context,
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,

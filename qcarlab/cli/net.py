@@ -14,7 +14,7 @@ import typer
 
 from qcarlab.car import open_car, parse_car_uri
 from qcarlab.cli.app import app
-from qcarlab.cli.common import DebugOpt, JsonOpt, ParamsOpt, SeedOpt, WorldOpt
+from qcarlab.cli.common import DebugOpt, JsonOpt, LiveOpt, LivePortOpt, ParamsOpt, SeedOpt, WorldOpt
 from qcarlab.errors import CarError, InputError, NotBuiltError
 from qcarlab.net.protocol import DEFAULT_PORT, VERSION
 
@@ -53,6 +53,8 @@ def serve_cmd(
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     params: ParamsOpt = None,
+    live: LiveOpt = False,
+    live_port: LivePortOpt = None,
     debug: DebugOpt = False,
 ) -> None:
     """Serve a car over TCP: the simulator (real time, or --lockstep) or the physical QCar.
@@ -92,6 +94,9 @@ def serve_cmd(
             raise NotBuiltError(f"--world {world!r}: simulator worlds are not built yet ({exc})") from None
         stand = "on its stand" if on_stand else "on the floor"
         what = f"the simulated QCar (seed {seed}, {stand}{', world ' + str(world) if world else ''})"
+    from qcarlab.cli.recording import live_car
+
+    car = live_car(car, live, live_port, token)  # --live: what the served car does, streamed to Foxglove
     with car:
         server = CarServer(car, host, port, token=token, watchdog=watchdog, lockstep=lockstep, max_clients=max_clients)
         server.start()

@@ -12,6 +12,7 @@ from rich.table import Table
 
 from qcarlab import paths, plots
 from qcarlab.cli.app import app, stderr
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
     KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
     check_out,
@@ -190,6 +191,7 @@ def _step_summary(result: Result) -> None:
 
 
 @app.command("path-follow")
+@recordable
 def path_follow_cmd(
     ctx: typer.Context,
     path_spec: Annotated[str, typer.Argument(metavar="PATH", help=f"A built-in path ({SHAPES}) or a CSV/npy/YAML path file.")],
@@ -257,7 +259,7 @@ def path_follow_cmd(
     world_obj, _ = sim_world(car, world, None, "studio", params)
 
     def open_car():
-        return open_from_options(car, world_obj, seed, realtime, params)
+        return open_from_options(car, world_obj, seed, realtime, params, path=ref)
 
     if step_response_:
         cfg = FollowConfig(speed=speed, kp=kp, ki=ki, kff=kff, rate=rate)

@@ -14,6 +14,7 @@ from rich.table import Table
 from qcarlab import plots
 from qcarlab.car import parse_car_uri
 from qcarlab.cli.app import app
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
     StartOpt, WorldOpt, sim_world,
     check_out,
@@ -68,6 +69,7 @@ def _sector_table(k: int, scan) -> Table:
 
 
 @app.command("lidar-scan")
+@recordable
 def lidar_scan_cmd(
     scans: Annotated[int, typer.Option(min=1, help="How many LIDAR turns to capture (10 per second).")] = 1,
     beams: Annotated[int | None, typer.Option(min=8, max=8000, help="Beams per turn (default: the device's 800 at 10 Hz; simulator only).",
@@ -152,6 +154,7 @@ def _camera_summary(result: Result) -> None:
 
 
 @app.command("camera")
+@recordable
 def camera_cmd(
     rgbd: Annotated[bool, typer.Option("--rgbd", help="The Intel D435 RGBD pair: color.png and depth.png (sheet 3.7).")] = False,
     csi: Annotated[bool, typer.Option("--csi", help="The four CSI views and the 360 panorama (sheet 3.6).")] = False,

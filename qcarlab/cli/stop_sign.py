@@ -8,6 +8,7 @@ import typer
 
 from qcarlab import plots
 from qcarlab.cli.app import app, stderr
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
     StartOpt, WorldOpt, sim_world, parse_hsv, KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt,
@@ -66,6 +67,7 @@ def _summary(result: Result) -> None:
 
 
 @app.command("stop-sign")
+@recordable
 def stop_sign_cmd(
     ctx: typer.Context,
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,

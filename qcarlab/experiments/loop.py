@@ -121,8 +121,12 @@ def run_loop(
     dt = period
     next_wall = last_wall = time.monotonic()
     k = 0
+    recorder = getattr(car, "recorder", None)  # --record/--live (qcarlab.recording): the lab's values too
     try:
         for k in range(n_ticks):
+            if getattr(car, "ended", False):  # --car replay: the recording has run out
+                log.stopped_early = True
+                break
             readout = car.read()
             t = readout.t - t0
             out = step(t, readout, dt)
@@ -156,6 +160,8 @@ def run_loop(
                         if column is None:
                             column = cols[key] = [None] * log.ticks  # a value first logged late
                         column.append(value)
+            if recorder is not None and values:  # the lab's own values (a step's ``log``)
+                recorder.log_values(readout.t, {"t": t, **values})
             log.ticks += 1
             if values is not None and keep_rows and len(values) != len(cols) - len(base) - len(tcols):
                 _pad(cols, log.ticks)

@@ -11,7 +11,7 @@ Every lab command's results carry an ``invocation`` (added by the CLI's ``emit``
 ``params`` are the command's parsed options and arguments (defaults included), so option order
 and spelling do not matter. :func:`verify` accepts a results file for a task only when its
 command and every option that shapes the run equal the task's (``--out``, ``--json``, ``--car``,
-``--realtime``, ``--debug`` and the student's ``--use``/``--block``/``--params`` may differ; the
+``--realtime``, ``--debug``, the recording options and the student's ``--use``/``--block``/``--params`` may differ; the
 files are checked by hash against the submission when one is given). So a ``p1-line`` results
 file copied into ``p3-butterfly/`` is refused, naming the first option that differs.
 
@@ -28,7 +28,8 @@ from pathlib import Path
 from typing import Any
 
 # options that do not change what a run measures (or are checked through the files' hashes)
-FREE = frozenset({"out", "json_out", "debug", "car", "realtime", "use", "block", "params", "frames"})
+FREE = frozenset({"out", "json_out", "debug", "car", "realtime", "use", "block", "params", "frames",
+                  "record", "record_exact", "live", "live_port", "topics"})  # (recording: issue 13)
 
 
 def jsonable(value: Any) -> Any:
