@@ -202,10 +202,13 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
     its results were saved. Student blocks slower than the tick on a real-time car are reported.
     """
     from qcarlab.cli import recording
+    from qcarlab.cli.invocation import record_invocation, write_for_grader
 
+    record_invocation(result.metrics)  # the command and parameters, so qcarlab grade knows the run
     after = recording.after_run(result)
     written = result.save(out) if out is not None else []
     m = result.metrics
+    write_for_grader(m)  # $QCARLAB_RESULTS, set by qcarlab grade
     if json_out:
         sys.stdout.write(dumps(m) + "\n")
     else:
