@@ -1,7 +1,10 @@
 """The QCar's facts, in one place, in SI units.
 
 Every number the simulator, the controllers and the driver use comes from :class:`QCarParams`.
-The defaults are the Quanser QCar 1's (lab sheet section 2 and DESIGN.md section 3); a YAML file
+The defaults are the Quanser QCar 1's (lab sheet section 2 and DESIGN.md section 3);
+:data:`QCAR2_PARAMS` are a QCar 2's. Where Quanser's own documents give a figure, it is used and
+its source is written beside it ("[hw1]" = the QCar 1 hardware/user manual, pages as quoted in
+qcarlab issue 15; "[qcar.py]" = Quanser_Academic_Resources pal/products/qcar.py). A YAML file
 can override any field::
 
     # my_car.yaml
@@ -31,18 +34,18 @@ class QCarParams:
     track: float = 0.170  # m
     length: float = 0.425  # m
     width: float = 0.192  # m
-    height: float = 0.182  # m
+    height: float = 0.182  # m (QCar 2: 0.2 m, [hw2])
     mass: float = 2.7  # kg
     wheel_radius: float = 0.033  # m
     # steering servo
-    max_steering: float = 0.5236  # rad at the wheels (30 deg)
+    max_steering: float = 0.5  # rad at the wheels: the servo takes +-0.5 rad ([hw1] p.11; was 0.5236)
     steering_tau: float = 0.16  # s, first-order servo lag
     # drive train
     encoder_cpr: float = 2880.0  # counts per motor revolution (720 lines, 4x quadrature)
     gear_ratio: float = (13 * 19) / (70 * 37)  # motor rev -> wheel rev, 0.09537
-    motor_resistance: float = 0.47  # ohm
-    motor_kt: float = 0.0027  # N m / A
-    motor_kb: float = 0.0027  # V s / rad
+    motor_resistance: float = 0.47  # ohm (QCar 2: 0.4, [hw2])
+    motor_kt: float = 0.0027  # N m / A (QCar 2: 0.0047, [hw2])
+    motor_kb: float = 0.0027  # V s / rad (QCar 2: 0.0047, [hw2])
     drivetrain_inertia: float = 4.0e-6  # kg m^2 at the motor shaft (rotor, gears, wheels)
     motor_friction: float = 2.0e-4  # N m Coulomb friction at the motor shaft (on the stand too)
     motor_damping: float = 2.0e-7  # N m s / rad viscous friction at the motor shaft
@@ -64,15 +67,16 @@ class QCarParams:
     current_noise: float = 0.01  # A
     voltage_noise: float = 0.005  # V
     # sensor mounts (body frame: x forward, y left, z up, from the car's centre on the floor)
-    lidar_x: float = 0.0  # m, RPLidar A2 on the roof, over the centre
-    lidar_z: float = 0.20  # m
+    lidar_x: float = -0.0108  # m, RPLidar A2 on the roof, just behind the centre ([hw1]; was 0)
+    lidar_z: float = 0.186  # m ([hw1]; was 0.20)
     lidar_beams: int = 800  # samples per turn at 10 Hz
     lidar_rate: float = 10.0  # Hz
     lidar_min_range: float = 0.15  # m
-    lidar_max_range: float = 12.0  # m
+    lidar_max_range: float = 18.0  # m ([hw1]; Quanser's QCar lidar code keeps maxDistance = 18.0; the lab
+    # sheet's spec table says 12 m; was 12)
     lidar_noise: float = 0.005  # m, range noise standard deviation
-    rgbd_x: float = 0.19  # m, Intel D435 at the front bumper
-    rgbd_z: float = 0.14  # m
+    rgbd_x: float = 0.0822  # m, Intel D435 at the front ([hw1]; was 0.19)
+    rgbd_z: float = 0.1582  # m ([hw1]; was 0.14)
     rgbd_pitch: float = 0.0  # rad, + = looking down
     rgbd_width: int = 640
     rgbd_height: int = 480
@@ -82,8 +86,11 @@ class QCarParams:
     rgbd_vfov: float = math.radians(42.5)  # sets the focal length
     rgbd_rate: float = 30.0  # Hz
     rgbd_max_depth: float = 10.0  # m; beyond reads 0 (no data)
-    csi_x: float = 0.10  # m, the four 160 deg cameras around the roof, offset from the centre
-    csi_z: float = 0.16  # m
+    # the four 160 deg CSI cameras: front and rear on the car's axis, left and right at +-csi_side_y
+    csi_front_x: float = 0.193  # m ([hw1]; was 0.10)
+    csi_rear_x: float = -0.165  # m ([hw1]; was -0.10)
+    csi_side_y: float = 0.10  # m: NOT from Quanser (the material read gives no side offset)
+    csi_z: float = 0.0953  # m ([hw1]; was 0.16)
     csi_width: int = 820
     csi_height: int = 410
     csi_fov: float = math.radians(160.0)
@@ -99,15 +106,29 @@ class QCarParams:
 
     @property
     def min_turning_radius(self) -> float:
-        """Tightest turn of the rear axle, L / tan(delta_max) (0.443 m)."""
+        """Tightest turn of the rear axle, L / tan(delta_max) (0.469 m)."""
         return self.wheelbase / math.tan(self.max_steering)
 
 
 DEFAULT_PARAMS = QCarParams()
+QCAR1_PARAMS = DEFAULT_PARAMS
+# a QCar 2 ([hw2] = the QCar 2 user manual's specification, as quoted in qcarlab issue 15): the
+# geometry, gearing and sensors we could not find differing are the QCar 1's
+QCAR2_PARAMS = replace(DEFAULT_PARAMS, height=0.2, motor_resistance=0.4, motor_kt=0.0047, motor_kb=0.0047)
 
 _INT_FIELDS = {f.name for f in fields(QCarParams) if f.type in ("int", int)}
-_SIGNED_FIELDS = {"rgbd_pitch", "battery_soc0"}
+_SIGNED_FIELDS = {"rgbd_pitch", "battery_soc0", "lidar_x", "csi_rear_x"}
 _FIELD_NAMES = [f.name for f in fields(QCarParams)]
+
+
+def csi_mounts(p: QCarParams) -> dict[str, tuple[float, float, float, float]]:
+    """Where the four CSI cameras sit on the car: name -> (x, y, z, yaw) in the body frame (m, rad)."""
+    return {
+        "right": (0.0, -p.csi_side_y, p.csi_z, -math.pi / 2.0),
+        "rear": (p.csi_rear_x, 0.0, p.csi_z, math.pi),
+        "left": (0.0, p.csi_side_y, p.csi_z, math.pi / 2.0),
+        "front": (p.csi_front_x, 0.0, p.csi_z, 0.0),
+    }
 
 
 def params_from_mapping(data: Any, source: str = "parameters") -> QCarParams:
@@ -136,4 +157,7 @@ def load_params(path: str | Path | None) -> QCarParams:
         return DEFAULT_PARAMS
     from qcarlab.yamlio import load_yaml
 
-    return params_from_mapping(load_yaml(path, "parameter file"), str(Path(path)))
+    data = load_yaml(path, "parameter file")
+    if isinstance(data, dict):  # a lab's tunables live beside the car's, in a ``lab:`` section
+        data = {k: v for k, v in data.items() if k != "lab"}
+    return params_from_mapping(data, str(Path(path)))

@@ -119,7 +119,7 @@ def butterfly(width: float = 4.0, height: float = 4.0) -> np.ndarray:
     W and H: the path spans x in [-W, W] and y in [-H, H] (full extents 2W x 2H). This is the
     reading that agrees with the lab: its tightest radius is about W^2 / (8 H) (at the four
     extremes of y), 0.48 m for p3 (followable: the car's minimum turning radius is
-    L / tan(0.5236) = 0.443 m) and 0.24 m for p4 (too tight, at four places). Taking them as full
+    L / tan(0.5) = 0.469 m) and 0.24 m for p4 (too tight, at four places). Taking them as full
     extents would make even p3 (0.24 m) impossible to follow.
     """
     w = _positive("width", "butterfly", width)
@@ -200,7 +200,7 @@ def summary(path: np.ndarray, min_radius: float | None = None) -> dict[str, Any]
     Returns ``points``, ``length_m``, ``bbox`` ``[xmin, ymin, xmax, ymax]``, ``tightest_radius_m``
     (``1 / max|kappa|``, ``None`` for a straight path) and ``tight_spots``: one entry per run of
     consecutive vertices whose radius ``1/|kappa|`` is below ``min_radius`` (default: the car's
-    minimum turning radius L / tan(delta_max) = 0.443 m), each a dict ``index``, ``x``, ``y``,
+    minimum turning radius L / tan(delta_max) = 0.469 m), each a dict ``index``, ``x``, ``y``,
     ``radius_m`` at the tightest vertex of the run, ``turn`` (``"left"`` or ``"right"``).
     """
     p = np.asarray(path, dtype=float).reshape(-1, 2)

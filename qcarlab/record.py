@@ -1,14 +1,20 @@
 """Writing what a run produced: ``results.json``, CSV logs, into the ``--out`` folder.
 
 JSON is written with sorted-free, stable key order and plain Python numbers, so the same run
-gives byte-identical files (grades are reproducible).
+gives byte-identical files (grades are reproducible). Every file is written atomically (a
+temporary file in the same folder, then a rename), so a run killed while saving leaves either
+the old file or the complete new one, never half a file; ``Result.save`` writes ``results.json``
+last, so a ``results.json`` always describes logs that are complete.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
+import os
+import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -54,8 +60,25 @@ def prepare_out_dir(out: str | Path) -> Path:
     return path
 
 
+@contextlib.contextmanager
+def atomic_file(path: Path, mode: str = "w", **kw: Any):
+    """Open a temporary file beside ``path``; on success it replaces ``path`` in one rename."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode, **kw) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
 def write_json(path: Path, results: Mapping[str, Any]) -> Path:
-    path.write_text(dumps(results) + "\n", encoding="utf-8")
+    with atomic_file(path, "w", encoding="utf-8") as fh:
+        fh.write(dumps(results) + "\n")
     return path
 
 
@@ -66,7 +89,7 @@ def write_csv(path: Path, columns: Mapping[str, Any]) -> Path:
     lengths = {len(a) for a in arrays}
     if len(lengths) > 1:
         raise ValueError(f"columns of unequal length: {dict(zip(names, map(len, arrays)))}")
-    with path.open("w", newline="", encoding="utf-8") as fh:
+    with atomic_file(path, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(names)
         for row in zip(*(a.tolist() for a in arrays)):

@@ -151,10 +151,12 @@ def test_same_seed_same_numbers(cli):
     assert runs[0][0] == 0 and runs[0][1] == runs[1][1]
 
 
-def test_a_collision_ends_the_run(cli_json):
+def test_a_collision_ends_the_run_and_exits_1(cli):
     # the steer strategy keeps its speed: started 0.3 m from a wall, heading into it, it hits
-    m = cli_json("avoid", "--strategy", "steer", "--start", "2.5,0,0", "--duration", "5")
-    assert m["collisions"] == 1 and m["min_clearance_m"] == 0.0 and m["duration_s"] < 5.0
+    code, out, err = cli("avoid", "--strategy", "steer", "--start", "2.5,0,0", "--duration", "5", "--json")
+    assert code == 1 and "goal missed: collision at" in err
+    m = json.loads(out)
+    assert m["goal_reached"] is False and m["collisions"] == 1 and m["min_clearance_m"] == 0.0 and m["duration_s"] < 5.0
     assert m["collision"]["x"] > 2.5
 
 

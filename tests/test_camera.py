@@ -265,7 +265,7 @@ def test_csi_views_order_and_panorama():
 def test_csi_wide_angle_sees_160_degrees():
     # a narrow pillar 75 deg to the left of the front camera is inside its 160 deg view
     ang = math.radians(75)
-    cx = P.csi_x + 2 * math.cos(ang)
+    cx = P.csi_front_x + 2 * math.cos(ang)
     w = room(obstacles=[{"shape": "circle", "center": [cx, 2 * math.sin(ang)], "radius": 0.1, "height": 2.0, "color": "red"}])
     img = CSICameras(w).render_one("front", EAST)
     m = red_mask(img)

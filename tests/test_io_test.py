@@ -112,7 +112,7 @@ def test_commands_are_clamped_and_reported_once(caplog):
         try:
             with qcarlab.open_car("sim") as car:
                 assert car.write(0.9, -2.0).throttle == 0.3
-                assert car.write(0.9, -2.0).steering == pytest.approx(-0.5236)
+                assert car.write(0.9, -2.0).steering == pytest.approx(-0.5)  # the servo's +-0.5 rad
                 assert car.write(-0.5, 0.0).throttle == -0.3
         finally:
             logger.removeHandler(caplog.handler)

@@ -77,11 +77,11 @@ def test_limits_hold_however_many_keys():
     s = run_for(s, 2.0)
     assert s.throttle == pytest.approx(-0.15)
     s = press(s, *["a"] * 20)
-    assert s.target_steering == pytest.approx(0.5236)
+    assert s.target_steering == pytest.approx(0.5)
     s = press(s, *["right"] * 40)
-    assert s.target_steering == pytest.approx(-0.5236)
+    assert s.target_steering == pytest.approx(-0.5)
     s = run_for(s, 2.0)
-    assert s.steering == pytest.approx(-0.5236)
+    assert s.steering == pytest.approx(-0.5)
     # whole steps, no drift from float sums: five up and five down is exactly zero
     s = press(DriveState(CFG), *["w"] * 5, *["s"] * 5, *["a"] * 3, *["d"] * 3)
     assert s.target_throttle == 0.0 and s.target_steering == 0.0
@@ -229,7 +229,7 @@ def test_loop_drives_a_stepped_simulator_and_stops_it():
         car, cfg, keys=scripted([(0.0, ["w"] * 5 + ["a"]), (0.3, ["space"]), (0.35, ["q"])]),
         on_frame=frames.append, rate=100.0,
     )
-    assert summary.reason == "quit" and summary.ticks >= 25
+    assert summary.reason == "quit" and summary.ticks >= 10  # late ticks on a busy machine are dropped, not burst
     assert summary.distance_m > 0.02 and summary.truth_distance_m > 0.02
     assert summary.heading_change_rad > 0.0  # steered left
     assert summary.keys == 8

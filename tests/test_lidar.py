@@ -31,8 +31,9 @@ def room(**extra):
 
 
 def wall_ahead(dist: float = 2.0):
-    # the car at the origin heading -Y: a wall whose face is `dist` ahead of the LIDAR
-    y = -dist - 0.05
+    # the car at the origin heading -Y: a wall whose face is `dist` ahead of the LIDAR (which
+    # sits lidar_x = -1.08 cm ahead of the car's centre, i.e. just behind it)
+    y = -dist - 0.05 - P.lidar_x
     return room(walls=[{"points": [[-3, y], [3, y]], "thickness": 0.1, "height": 1.0}])
 
 
@@ -65,7 +66,8 @@ def test_lidar_offset_from_the_car_centre():
     params = dataclasses.replace(P, lidar_x=0.1)
     lidar = Lidar(wall_ahead(2.0), params)
     assert lidar.sensor_pose(HEAD_S) == pytest.approx((0.0, -0.1, -math.pi / 2))
-    assert lidar.scan(HEAD_S).ranges[0] == pytest.approx(1.9, abs=1e-6)
+    # the wall is 2 m ahead of the default mount; this LIDAR sits 0.1 - lidar_x further forward
+    assert lidar.scan(HEAD_S).ranges[0] == pytest.approx(2.0 - (0.1 - P.lidar_x), abs=1e-6)
 
 
 def test_box_to_the_left_shows_at_plus_90_degrees():
@@ -89,39 +91,42 @@ def test_scan_turns_with_the_car():
         # put the car 2 m from the pillar, facing it, at various headings
         pose = (2.0 - 2.0 * math.cos(yaw), -2.0 * math.sin(yaw), yaw)
         r = Lidar(w, beams=360).scan(pose).ranges
-        assert r[0] == pytest.approx(1.75, abs=1e-6)
+        assert r[0] == pytest.approx(1.75 - P.lidar_x, abs=1e-6)  # the LIDAR is lidar_x ahead of the centre
 
 
 def test_no_return_and_too_close_read_zero():
-    assert not Lidar(room(), beams=90).scan(HEAD_S).ranges.any()  # nothing within 12 m
+    assert not Lidar(room(), beams=90).scan(HEAD_S).ranges.any()  # nothing within 18 m
     w = room(obstacles=[{"shape": "circle", "center": [0.0, -0.2], "radius": 0.1, "height": 0.5}])
     r = Lidar(w, beams=360).scan(HEAD_S).ranges
     assert r[0] == 0.0  # 0.1 m away: nearer than the 0.15 m minimum
-    far = room(floor={"size": [40, 40]}, walls=[{"points": [[-5, -13], [5, -13]]}])
-    assert Lidar(far, beams=36).scan(HEAD_S).ranges[0] == 0.0  # 12.95 m: beyond 12 m
+    far = room(floor={"size": [40, 40]}, walls=[{"points": [[-5, -19], [5, -19]]}])
+    assert Lidar(far, beams=36).scan(HEAD_S).ranges[0] == 0.0  # 18.96 m: beyond 18 m
+    near = room(floor={"size": [40, 40]}, walls=[{"points": [[-5, -17], [5, -17]]}])
+    assert Lidar(near, beams=36).scan(HEAD_S).ranges[0] == pytest.approx(16.95 - P.lidar_x)  # within 18 m
 
 
 def test_low_shapes_are_below_the_scan_plane():
     w = room(obstacles=[{"shape": "box", "center": [0, -1.0], "size": [0.5, 0.2], "height": 0.15}])
     assert Lidar(w, beams=36).scan(HEAD_S).ranges[0] == 0.0
     w = room(obstacles=[{"shape": "box", "center": [0, -1.0], "size": [0.5, 0.2], "height": 0.25}])
-    assert Lidar(w, beams=36).scan(HEAD_S).ranges[0] == pytest.approx(0.9)
+    assert Lidar(w, beams=36).scan(HEAD_S).ranges[0] == pytest.approx(0.9 - P.lidar_x)
 
 
 def test_stop_sign_post_reflects():
     w = room(signs=[{"type": "stop", "position": [0.0, -1.5], "facing": "90deg", "size": 0.15, "height": 0.5}])
     r = Lidar(w, beams=3600).scan(HEAD_S).ranges
     # the plate is above the scan plane (0.425-0.575 m), the 12 mm post is not
-    assert r[0] == pytest.approx(1.5 - 0.012, abs=1e-6)
+    assert r[0] == pytest.approx(1.5 - 0.012 - P.lidar_x, abs=1e-6)
 
 
 def test_rolling_ball_is_seen_where_it_is():
     w = room(balls=[{"start": [-3.0, -1.0], "direction": 0.0, "speed": 1.0, "radius": 0.12}])
     lidar = Lidar(w, beams=360)
     assert lidar.scan(HEAD_S, t=0.0).ranges[0] == 0.0
-    # at t = 3 s the ball is at (0, -1): the scan plane (0.20 m) cuts it in a circle of
-    # radius sqrt(0.12^2 - 0.08^2)
-    assert lidar.scan(HEAD_S, t=3.0).ranges[0] == pytest.approx(1.0 - math.sqrt(0.12**2 - 0.08**2), abs=1e-9)
+    # at t = 3 s the ball is at (0, -1): the scan plane (lidar_z = 0.186 m) cuts it in a circle of
+    # radius sqrt(0.12^2 - (0.186 - 0.12)^2), seen from the LIDAR lidar_x ahead of the centre
+    cut = math.sqrt(0.12**2 - (P.lidar_z - 0.12) ** 2)
+    assert lidar.scan(HEAD_S, t=3.0).ranges[0] == pytest.approx(1.0 - P.lidar_x - cut, abs=1e-9)
 
 
 def test_same_seed_same_scan():
@@ -157,9 +162,10 @@ def test_ros_map_walls_are_exact_to_the_cell(tmp_path):
     img[:, 80] = 0  # a wall column: cells x in [4.00, 4.05)
     w = load_world(ros_world(tmp_path, img))
     s = Lidar(w, beams=360).scan((1.0, 2.5, 0.0))
-    assert s.ranges[0] == pytest.approx(3.0, abs=1e-9)
+    d = 3.0 - P.lidar_x  # the wall face at x = 4.00, the LIDAR at x = 1 + lidar_x
+    assert s.ranges[0] == pytest.approx(d, abs=1e-9)
     a = s.angles[20]
-    assert s.ranges[20] == pytest.approx(3.0 / math.cos(a), abs=1e-9)
+    assert s.ranges[20] == pytest.approx(d / math.cos(a), abs=1e-9)
 
 
 def test_scan_in_berlin_has_returns_all_around():
@@ -193,26 +199,97 @@ def test_compiled_and_python_kernels_agree():
     r = lidar._raster
     out_c = np.empty(90)
     out_p = np.empty(90)
-    args = (0.0, -1.0, -1.2, lidar._cos, lidar._sin, 12.0, r.x0, r.y0, r.res, r.label, r.dt, r.kinds,
+    args = (0.0, -1.0, -1.2, lidar._cos, lidar._sin, w.params.lidar_max_range, r.x0, r.y0, r.res, r.cells, r.tiles, r.tiles_x, r.kinds,
             r.poly_start, r.poly_count, r.verts, r.circles, np.zeros((0, 3)), np.zeros(0), 0.15, 0)
     _kernels.lidar_scan(*args, out_c)
     _kernels.lidar_scan.py_func(*args, out_p)
     assert np.allclose(out_c, out_p)
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="the rate floor is for the compiled kernels")
-def test_scan_rate_floor_in_berlin():
-    """Half the issue's targets (4,000 scans/s at 1080 beams, 10,000 at 360), so a busy CI passes."""
-    import time
+def boundary_room():
+    """A 10 x 10 m room whose raster puts the pose (0.5, 1.0) on a cell corner, with a box whose
+    top-left corner is 2 cells to the side of the beam running down the boundary x = 0.5."""
+    return room(walls=[{"points": [[-5, -5], [5, -5], [5, 5], [-5, 5]], "closed": True}],
+                obstacles=[{"shape": "box", "center": [0.755, -0.5], "size": [0.49, 1.0]}])
 
+
+def test_a_beam_along_a_cell_boundary_costs_steps_in_proportion_to_its_length():
+    """The stall case: from a pose on a cell corner, beam 600 (straight -Y) runs exactly along the
+    boundary x = 0.5 past the corner of a box. The old cell walk restarted from floor(x), landed
+    back in the cell it had just left and advanced 1e-6 cells a time (some 10^6 re-entries, 20 ms
+    for the scan instead of 0.5); now every cell looked at moves the ray on by a cell or more."""
+    w = boundary_room()
+    lidar = Lidar(w, beams=800)
+    r = lidar._raster
+    assert (0.5 - r.x0) / r.res == 1112.0 and (1.0 - r.y0) / r.res == 1212.0  # on the corner
+    ranges = lidar.true_ranges((0.5, 1.0, 0.0))
+    on_boundary = lidar.last_cell_steps
+    assert ranges[600] == pytest.approx(5.95, abs=1e-9)  # 1.0 down to the wall's face at -4.95
+    lidar.true_ranges((0.5013, 1.0013, 0.0))  # 1.3 mm off the boundary
+    off_boundary = lidar.last_cell_steps
+    assert on_boundary <= 1.5 * off_boundary
+    # and in absolute terms: at most 3 cells looked at per cell of each beam's length
+    assert on_boundary <= 3 * np.sum(np.minimum(ranges, 12.0)) / r.res + 10 * lidar.beams
+    one = Lidar(w, beams=4)  # beams 0, 90, 180, 270 deg: all four along cell boundaries
+    rr = one.true_ranges((0.5, 1.0, 0.0))
+    assert one.last_cell_steps <= 3 * np.sum(rr) / r.res + 40
+
+
+def test_sector_scanner_angles():
+    lidar = Lidar(room(), beams=1080, fov=4.7)
+    assert lidar.angles[0] == pytest.approx(-2.35) and lidar.angles[-1] == pytest.approx(2.35)
+    assert len(lidar.scan(HEAD_S).ranges) == 1080
+    with pytest.raises(InputError):
+        Lidar(room(), beams=1, fov=1.0)
+    with pytest.raises(InputError):
+        Lidar(room(), beams=10, fov=float("nan"))
+
+
+def test_tiled_map_gives_the_same_ranges_as_the_cell_map():
+    """A ROS map's LIDAR raster is marched in its one-byte tiled form: the same ranges (to 1e-9 m)
+    as the two-byte cell map, from poses all over berlin."""
     if not BERLIN.is_file():
         pytest.skip("shared/data/maps/berlin.yaml not available")
     w = load_world(BERLIN)
-    for beams, floor in ((1080, 2000.0), (360, 5000.0)):
-        lidar = Lidar(w, beams=beams, rng=np.random.default_rng(0))
-        lidar.scan(w.start)
-        t = time.perf_counter()
-        for _ in range(500):
-            lidar.scan(w.start)
-        assert 500 / (time.perf_counter() - t) > floor
+    lidar = Lidar(w, beams=360)
+    r = lidar._raster
+    assert r.tiles.size > 0 and r.tiles.size >= r.cells.size
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        g = w.grid
+        while True:
+            row, col = rng.integers(0, 600, 2)
+            if not g.occupied[row, col]:
+                break
+        pose = (g.origin[0] + (col + 0.5) * g.resolution, g.origin[1] + (row + 0.5) * g.resolution, rng.uniform(-3, 3))
+        tiled = lidar.true_ranges(pose)
+        out = np.empty(360)
+        sx, sy, syaw = lidar.sensor_pose(pose)
+        _kernels.lidar_scan(sx, sy, syaw, lidar._cos, lidar._sin, w.params.lidar_max_range, r.x0, r.y0, r.res, r.cells, np.zeros(0, np.uint8), 0,
+                            r.kinds, r.poly_start, r.poly_count, r.verts, r.circles, np.zeros((0, 3)), np.zeros(0), 0.15, -1, out)
+        fin = np.isfinite(out)
+        assert np.array_equal(np.isfinite(tiled), fin) and np.allclose(tiled[fin], out[fin], rtol=0, atol=1e-9)
+
+
+def test_a_beam_along_a_cell_boundary_of_a_ros_map_costs_steps_in_proportion(tmp_path):
+    """The same bound on a ROS map, marched in its tiled form: a 10 x 10 m map of 5 cm cells, the
+    pose on a cell corner, beam 600 running down the boundary x = 5.0 past a box corner two cells
+    to its side."""
+    img = np.full((200, 200), 254, np.uint8)
+    img[[0, -1], :] = 0
+    img[:, [0, -1]] = 0
+    img[200 - 80 : 200 - 20, 102:150] = 0  # grid rows 20..79 (image row 0 is the top), cols 102..149
+    cv2.imwrite(str(tmp_path / "box.pgm"), img)
+    (tmp_path / "box.yaml").write_text(yaml.safe_dump({"image": "box.pgm", "resolution": 0.05, "origin": [0.0, 0.0, 0.0],
+                                                       "negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.196}))
+    w = load_world(tmp_path / "box.yaml")
+    lidar = Lidar(w, beams=800)
+    r = lidar._raster
+    assert r.tiles.size > 0
+    assert (5.0 - r.x0) / r.res == pytest.approx(round((5.0 - r.x0) / r.res), abs=1e-9)  # on a boundary
+    ranges = lidar.true_ranges((5.0, 7.5, 0.0))
+    on_boundary = lidar.last_cell_steps
+    assert ranges[600] == pytest.approx(7.5 - 0.05, abs=1e-9)  # down to the bottom wall's top face
+    lidar.true_ranges((5.013, 7.513, 0.0))
+    assert on_boundary <= 1.5 * lidar.last_cell_steps
+    assert on_boundary <= 3 * np.sum(np.minimum(ranges, 12.0)) / r.res + 10 * lidar.beams

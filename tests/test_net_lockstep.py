@@ -49,6 +49,7 @@ def test_io_test_cli_with_car_tcp_matches_sim(cli):
     code2, out2, err2 = cli(*args)
     tcp, local = json.loads(out), json.loads(out2)
     assert tcp.pop("car") == server.uri and local.pop("car") == "sim"
+    assert tcp.pop("invocation")["params"]["car"] == server.uri and local.pop("invocation")["params"]["car"] == "sim"
     assert tcp == local
 
 

@@ -59,8 +59,10 @@ def test_serve_lockstep_then_io_test_and_ping(cli):
     assert "Traceback" not in err_s and "connected as control" in err_s and "car stopped" in err_s
     tcp = json.loads(out)
     tcp.pop("car")
+    tcp.pop("invocation")  # the command that made it: --car differs
     local = json.loads(cli(*args)[1])
     local.pop("car")
+    local.pop("invocation")
     assert tcp == local  # same seed, same numbers, across processes
     ping = json.loads(out_p)
     assert ping["backend"] == "sim" and ping["lockstep"] is True and ping["battery_v"] > 10

@@ -55,7 +55,7 @@ def test_butterfly_is_the_sheets_p3():
 # ---- geometry ------------------------------------------------------------------------------------
 def test_tight_spots_of_the_sheets_paths():
     rmin = DEFAULT_PARAMS.min_turning_radius
-    assert rmin == pytest.approx(0.443, abs=1e-3)
+    assert rmin == pytest.approx(0.256 / math.tan(0.5), abs=1e-9)  # 0.469 m: the servo takes +-0.5 rad
     s4 = paths.summary(paths.butterfly(2, 2), rmin)
     assert len(s4["tight_spots"]) == 4
     for spot in s4["tight_spots"]:

@@ -9,7 +9,7 @@ import pytest
 
 from qcarlab import paths
 from qcarlab.control import steering, tracking
-from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pursuit, stanley, wrap_angle
+from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pursuit, rear_axle, stanley, wrap_angle
 from qcarlab.control.tracking import cross_track_errors, progress_along
 from qcarlab.errors import InputError
 
@@ -25,30 +25,31 @@ def test_wrap_angle():
 
 
 def test_pure_pursuit_equation():
-    # target straight ahead of the start pose -> no steering
-    assert pure_pursuit(START, (0.0, -1.0), L) == 0.0
+    # pose is the rear axle; target straight ahead -> no steering
+    assert pure_pursuit(START, (0.0, -1.0), 0.5, L) == 0.0
     # target 90 deg to the left of the rear axle at distance l_d -> atan(2 L / l_d) > 0
     ld = 0.5
-    d = pure_pursuit((0.0, 0.0, 0.0), (-L / 2, ld), L)  # centre pose; rear axle at (-L/2, 0)
+    d = pure_pursuit((0.0, 0.0, 0.0), (0.0, ld), ld, L)
     assert d == pytest.approx(math.atan(2 * L / ld)) and d > 0
-    assert pure_pursuit((0.0, 0.0, 0.0), (0.0, ld), L, rear_offset=0) == pytest.approx(math.atan(2 * L / ld))
-    # heading -Y: the car's left is +X; the rear axle of the start pose is at (0, L/2)
-    assert pure_pursuit(START, (ld, L / 2), L) == pytest.approx(math.atan(2 * L / ld))
-    assert pure_pursuit(START, (-ld, L / 2), L) == pytest.approx(-math.atan(2 * L / ld))
-    # the sheet's block: fixed look-ahead in the formula instead of the measured distance
-    d45 = pure_pursuit((0, 0, 0), (1.0, 1.0), L, lookahead=2.0, rear_offset=0)
-    assert d45 == pytest.approx(math.atan(2 * L * math.sin(math.pi / 4) / 2.0))
+    # from the centre's pose through rear_axle: the axle is L/2 behind the centre
+    assert pure_pursuit(rear_axle((0.0, 0.0, 0.0), L), (-L / 2, ld), ld, L) == pytest.approx(math.atan(2 * L / ld))
+    # heading -Y: the car's left is +X
+    assert pure_pursuit(START, (ld, 0.0), ld, L) == pytest.approx(math.atan(2 * L / ld))
+    assert pure_pursuit(START, (-ld, 0.0), ld, L) == pytest.approx(-math.atan(2 * L / ld))
+    # l_d is the chord to the target (exact near the path's end, where the target is nearer)
+    d45 = pure_pursuit((0, 0, 0), (1.0, 1.0), 2.0, L)
+    assert d45 == pytest.approx(math.atan(2 * L * math.sin(math.pi / 4) / math.sqrt(2.0)))
     # clipping only when asked
-    assert pure_pursuit((0, 0, 0), (0.0, 0.1), L, rear_offset=0) > 0.5236
-    assert pure_pursuit((0, 0, 0), (0.0, 0.1), L, rear_offset=0, max_steering=0.5236) == 0.5236
-    assert pure_pursuit((0, 0, 0), (0.0, -0.1), L, rear_offset=0, max_steering=0.5236) == -0.5236
+    assert pure_pursuit((0, 0, 0), (0.0, 0.1), 0.1, L) > 0.5236
+    assert pure_pursuit((0, 0, 0), (0.0, 0.1), 0.1, L, max_steering=0.5236) == 0.5236
+    assert pure_pursuit((0, 0, 0), (0.0, -0.1), 0.1, L, max_steering=0.5236) == -0.5236
 
 
 def test_pure_pursuit_arc_passes_through_the_target():
     rear = np.array([0.3, -0.2])
     yaw = 0.7
     target = np.array([0.9, 0.6])
-    delta = pure_pursuit((*rear, yaw), target, L, rear_offset=0)
+    delta = pure_pursuit((*rear, yaw), target, 1.0, L)
     radius = L / math.tan(delta)  # rear-axle turning radius of the bicycle
     centre = rear + radius * np.array([-math.sin(yaw), math.cos(yaw)])
     assert np.hypot(*(target - centre)) == pytest.approx(abs(radius))

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from qcarlab.constants import DEFAULT_PARAMS
 from qcarlab.control.stop_sign import StopSignBehaviour, stop_sign
 from qcarlab.errors import InputError
 from qcarlab.perception.stop_sign import (
@@ -140,8 +141,10 @@ def test_sheet_mode_stops_before_the_sign(cli, speed):
     assert m["stopped"] is True
     assert 0.05 < m["stop_distance_m"] < 0.40
     assert 0.05 < m["measured_distance_m"] < 0.40
-    # the camera is 2.25 cm behind the bumper: the reading agrees with the truth to within 2 cm
-    assert abs(m["measured_distance_m"] - (m["stop_distance_m"] + 0.0225)) < 0.02
+    # the camera (rgbd_x = 8.22 cm ahead of the centre) is 13.03 cm behind the bumper (length / 2):
+    # the reading agrees with the truth to within 2 cm
+    behind = DEFAULT_PARAMS.length / 2 - DEFAULT_PARAMS.rgbd_x
+    assert abs(m["measured_distance_m"] - (m["stop_distance_m"] + behind)) < 0.02
     assert m["detected_at_m"] > 2.0 and m["min_distance_m"] > 0.05
 
 

@@ -1,7 +1,8 @@
 """Cars: the :class:`Car` interface and ``open_car``, which picks the backend from a URI.
 
 - ``"sim"``: the built-in simulator in this process (seeded, stepped time by default);
-- ``"tcp://HOST:PORT"``: a car served by ``qcarlab serve`` (simulated or physical).
+- ``"tcp://HOST:PORT"``: a car served by ``qcarlab serve`` (simulated or physical);
+- ``"replay:FILE"``: a recording (``--record``'s MCAP, or a rosbag2 with ``topics=``) played back.
 """
 
 from __future__ import annotations
@@ -17,17 +18,23 @@ __all__ = ["Car", "Command", "Identity", "Pose", "Readout", "Truth", "open_car",
 
 
 def parse_car_uri(uri: str) -> tuple[str, str | None, int | None]:
-    """Split ``sim`` / ``tcp://HOST:PORT`` into (scheme, host, port); bad URIs raise InputError."""
+    """Split ``sim`` / ``tcp://HOST:PORT`` / ``replay:FILE`` into (scheme, host or file, port);
+    bad URIs raise InputError."""
     text = (uri or "").strip()
     if text in ("sim", "sim://", "sim:"):
         return "sim", None, None
+    if text.startswith("replay:"):
+        path = text[len("replay:") :]
+        if not path:
+            raise InputError(f"car address {uri!r}: expected replay:FILE (an .mcap recording or a rosbag2)")
+        return "replay", path, None
     if text.startswith("tcp://"):
         rest = text[len("tcp://") :].rstrip("/")
         host, sep, port_text = rest.rpartition(":")
         if not sep or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
             raise InputError(f"car address {uri!r}: expected tcp://HOST:PORT with a port in 1-65535")
         return "tcp", host.strip("[]"), int(port_text)
-    raise InputError(f"car address {uri!r}: expected 'sim' or 'tcp://HOST:PORT'")
+    raise InputError(f"car address {uri!r}: expected 'sim' or 'tcp://HOST:PORT' (or 'replay:FILE', a recording)")
 
 
 def open_car(
@@ -50,6 +57,11 @@ def open_car(
     car an explicit value is checked against the served car's and a mismatch is reported.
     """
     scheme, host, port = parse_car_uri(uri)
+    if scheme == "replay":  # the recording's own parameters unless others are given
+        from qcarlab.car.replay import ReplayCar
+
+        given = params if isinstance(params, QCarParams) else (load_params(params) if params is not None else None)
+        return ReplayCar(host, topics=options.get("topics"), params=given, throttle_limit=throttle_limit)
     if not isinstance(params, QCarParams):
         params = load_params(params) if params is not None else DEFAULT_PARAMS
     if scheme == "sim":

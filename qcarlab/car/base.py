@@ -10,7 +10,7 @@ A student scripts a car in five lines::
         print(car.read().encoder_counts)
 
 ``write`` validates every command: a non-finite value raises :class:`InputError`; values outside
-the steering limit (+-0.5236 rad) or the throttle limit (0.3 by default) are clamped and the
+the steering limit (+-0.5 rad) or the throttle limit (0.3 by default) are clamped and the
 clamp is reported once per channel through the ``qcarlab`` logger, never silently.
 """
 

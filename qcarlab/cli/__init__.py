@@ -14,6 +14,10 @@ from qcarlab.cli import sensors  # noqa: F401  (lidar-scan, camera)
 from qcarlab.cli import stop_sign  # noqa: F401  (stop-sign)
 from qcarlab.cli import lane_follow  # noqa: F401  (lane-follow)
 from qcarlab.cli import avoid  # noqa: F401  (avoid)
-from qcarlab.cli import grade  # noqa: F401  (grade)
+from qcarlab.cli import grade  # noqa: F401  (grade, labs)
+from qcarlab.cli import lab  # noqa: F401  (blocks, template)
+from qcarlab.cli import replay  # noqa: F401  (replay info)
+from qcarlab.cli import onboard  # noqa: F401  (onboard, deploy)
+from qcarlab.cli import detect  # noqa: F401  (detect lanes, detect stop-sign)
 
 __all__ = ["app", "main"]

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
+import threading
 
 import typer
 from rich.console import Console
@@ -31,6 +33,7 @@ app = typer.Typer(
 )
 
 stderr = Console(stderr=True, highlight=False, soft_wrap=True)
+interrupt_reported = False  # set when a command has said "interrupted" itself (cli.common.emit)
 
 
 class _OneLineHandler(logging.Handler):
@@ -55,6 +58,17 @@ def _command_name(argv: list[str]) -> str:
     return "qcarlab"
 
 
+def _interrupt(signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _term_as_interrupt() -> object:
+    """SIGTERM ends a run like Ctrl-C: the car is stopped and the results so far are saved."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _interrupt)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point: run the app with the house error style."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -63,6 +77,9 @@ def main(argv: list[str] | None = None) -> None:
     name = _command_name(argv)
     if not argv:
         argv = ["--help"]
+    global interrupt_reported
+    interrupt_reported = False
+    previous = _term_as_interrupt()
     try:
         code = app(args=argv, prog_name="qcarlab", standalone_mode=False)
     except (KeyboardInterrupt, typer.Abort):
@@ -71,13 +88,19 @@ def main(argv: list[str] | None = None) -> None:
     except QcarlabError as exc:
         if debug:
             raise
-        stderr.print(f"{name}: error: {exc}", markup=False)
+        from qcarlab.blocks import StudentBlockError
+
+        tail = "\n(the run ended there; the car was stopped)" if isinstance(exc, StudentBlockError) else ""
+        stderr.print(f"{name}: error: {exc}{tail}", markup=False)
         sys.exit(exc.exit_code)
     except Exception as exc:
         # typer's parser errors (click's, vendored or not), recognised by their class names
         kinds = {cls.__name__ for cls in type(exc).__mro__}
         if "Exit" in kinds:
-            sys.exit(getattr(exc, "exit_code", 0))
+            code = getattr(exc, "exit_code", 0)
+            if code == 130 and not interrupt_reported:  # typer's own Ctrl-C handling exits 130 silently
+                stderr.print(f"{name}: interrupted; the car was stopped", markup=False)
+            sys.exit(code)
         if "Abort" in kinds:
             stderr.print(f"{name}: interrupted; the car was stopped", markup=False)
             sys.exit(130)
@@ -91,4 +114,7 @@ def main(argv: list[str] | None = None) -> None:
             markup=False,
         )
         sys.exit(1)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     sys.exit(code if isinstance(code, int) else 0)

@@ -7,14 +7,15 @@ from typing import Annotated
 import typer
 
 from qcarlab.cli.app import app
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
-    StartOpt, WorldOpt, sim_world,
+    StartOpt, WorldOpt, sim_world, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt,
     emit, open_from_options, stdout, summary_table,
 )
 from qcarlab.constants import load_params
 from qcarlab.errors import InputError
-from qcarlab.experiments.avoid import STRATEGIES, AvoidConfig, avoid, draw_drive
+from qcarlab.experiments.avoid import STRATEGIES, AvoidConfig, AvoidLab, avoid, draw_drive
 from qcarlab.experiments.result import Result
 
 
@@ -45,13 +46,17 @@ def _summary(result: Result) -> None:
 
 
 @app.command("avoid")
+@recordable
 def avoid_cmd(
-    strategy: Annotated[str, typer.Option(help="stop (sheet Task 1-2: speed 0 near an obstacle), steer (Task 3: "
-                                          "up to +-0.5 rad away from it, speed untouched) or combined (Task 4: "
-                                          "avoid, stop and back up before contact).")] = "combined",
+    ctx: typer.Context,
+    strategy: Annotated[str, typer.Option(help="stop (sheet Task 1-2: lidar_stop, speed 0 near an obstacle), "
+                                          "steer (Task 3: lidar_steer, up to +-0.5 rad away from it, speed "
+                                          "untouched), combined (Task 4: lidar_avoid, avoid, stop and back up "
+                                          "before contact) or student (your own lidar_avoid from --use).")]
+    = "combined",
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
     stop_distance: Annotated[float, typer.Option(help="Stop when a return in the forward window is closer than "
-                                                 "this, m from the LIDAR (0.2125 m behind the front bumper).")] = 0.4,
+                                                 "this, m from the LIDAR (0.223 m behind the front bumper).")] = 0.4,
     half_width: Annotated[float, typer.Option(help="Half width of the forward window, m (car half width 0.096 + "
                                               "margin).")] = 0.15,
     duration: Annotated[float, typer.Option(help="Run length, s (a collision ends it earlier).")] = 20.0,
@@ -64,26 +69,33 @@ def avoid_cmd(
     json_out: JsonOpt = False,
     realtime: RealtimeOpt = False,
     params: ParamsOpt = None,
+    use: UseOpt = None,
+    block: BlockOpt = None,
     debug: DebugOpt = False,
 ) -> None:
     """LIDAR obstacle detection and avoidance (sheet 6.1): stop, steer or both, with collisions checked.
 
     Examples: qcarlab avoid --strategy stop | qcarlab avoid --world hallway --duration 30 --out runs/hall |
-    qcarlab avoid --strategy steer --start 0.5,0,-1.57 --json
+    qcarlab avoid --strategy steer --start 0.5,0,-1.57 --json | qcarlab avoid --strategy student --use mylab/lidar.py
+
+    Exit 0 when the car drove the whole duration without touching anything, 1 after a collision, 2 for
+    bad input.
     """
     if strategy not in STRATEGIES:
         raise InputError(f"--strategy must be one of {', '.join(STRATEGIES)}, got {strategy!r}")
     cfg = AvoidConfig(strategy=strategy, speed=speed, stop_distance=stop_distance, half_width=half_width,
                       duration=duration, rate=rate)
+    apply_tunables(cfg, params, ctx)
     cfg.check(load_params(params))
+    mine = student_blocks(AvoidLab, use, block)
     world_obj, pose = sim_world(car, world, start, "obstacles", params)
     with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
         if pose is not None and world_obj is not None:
-            from qcarlab.experiments.avoid import Clearance
+            from qcarlab.experiments.safety import Clearance
 
             if Clearance(world_obj, qcar.params)(*pose)[0] <= 0.0:
                 raise InputError(f"--start {start}: the car would stand inside an obstacle of '{world_obj.name}'")
-        result = avoid(qcar, cfg, world=world_obj)
+        result = avoid(qcar, cfg, world=world_obj, blocks=mine)
     result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
     if world_obj is not None:
         import cv2

@@ -17,6 +17,8 @@ from qcarlab.errors import InputError
 from qcarlab.experiments.result import Result
 from qcarlab.record import dumps
 
+stderr = Console(stderr=True, highlight=False, soft_wrap=True)
+
 CarOpt = Annotated[
     str, typer.Option("--car", help="Which car: [b]sim[/b] (built-in simulator) or [b]tcp://HOST:PORT[/b].")
 ]
@@ -50,9 +52,59 @@ RealtimeOpt = Annotated[
 DebugOpt = Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")]
 ParamsOpt = Annotated[
     Path | None,
-    typer.Option("--params", help="YAML file overriding the simulated car's parameters (see qcarlab/constants.py)."),
+    typer.Option("--params", help="YAML file: the simulated car's parameters (see qcarlab/constants.py) and, in "
+                 "a lab: section, the lab's tunables (look-ahead, kp, ki, HSV ranges, ...; qcarlab template "
+                 "writes one). Options given on the command line win."),
+]
+UseOpt = Annotated[
+    list[Path] | None,
+    typer.Option("--use", help="Your blocks: a Python file whose functions or classes named like this lab's "
+                 "blocks replace them (qcarlab blocks LAB lists them). Repeatable.", show_default=False),
+]
+BlockOpt = Annotated[
+    list[str] | None,
+    typer.Option("--block", help="One block from your code: NAME=FILE.py:FUNCTION (e.g. "
+                 "stop_sign=mylab/stop.py:my_stop). Repeatable.", show_default=False),
 ]
 RateOpt = Annotated[float, typer.Option("--rate", help="Control loop rate in Hz (the lab's Python loops: 60-200).")]
+RecordOpt = Annotated[Path | None, typer.Option(
+    "--record", help="Record the run to FILE.mcap (opens in Foxglove; replay it with --car replay:FILE.mcap).",
+    show_default=False)]
+RecordExactOpt = Annotated[bool, typer.Option(
+    "--record-exact", help="Record camera frames losslessly, every frame (an exact replay; ~1.3 MB per RGBD frame) "
+    "instead of JPEG colour and 2 Hz depth.")]
+LiveOpt = Annotated[bool, typer.Option("--live", help="Stream the run live to Foxglove (WebSocket, port 8765).")]
+LivePortOpt = Annotated[str | None, typer.Option(
+    "--live-port", help="Live view port, or HOST:PORT (not loopback: needs QCARLAB_TOKEN).", show_default=False)]
+TopicsOpt = Annotated[str | None, typer.Option(
+    "--topics", help="--car replay:BAG: the rosbag2's topics for the car's sensors, e.g. "
+    "scan=/scan,color=/camera/color/image_raw,depth=/camera/depth/image_rect_raw.", show_default=False)]
+
+
+def recordable(command):
+    """Give a driving command --record, --record-exact, --live, --live-port and --topics (one
+    decorator line under ``@app.command``); the car it opens is then recorded or replayed."""
+    import functools
+    import inspect
+    from typing import get_type_hints
+
+    added = {"record": (RecordOpt, None), "record_exact": (RecordExactOpt, False), "live": (LiveOpt, False),
+             "live_port": (LivePortOpt, None), "topics": (TopicsOpt, None)}
+
+    @functools.wraps(command)
+    def run(*args, record=None, record_exact=False, live=False, live_port=None, topics=None, **kwargs):
+        from qcarlab.cli import recording
+
+        with recording.request(record, record_exact, live, live_port, topics):
+            return command(*args, **kwargs)
+
+    sig = inspect.signature(command, eval_str=True)
+    extra = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
+             for name, (annotation, default) in added.items()]
+    run.__signature__ = sig.replace(parameters=[*sig.parameters.values(), *extra])
+    run.__annotations__ = {**get_type_hints(command, include_extras=True),
+                           **{name: annotation for name, (annotation, _) in added.items()}}
+    return run
 
 stdout = Console(highlight=False)
 
@@ -65,8 +117,75 @@ def open_from_options(
     params: Path | None = None,
     **extra: Any,
 ) -> Car:
-    """Open the car the shared options describe."""
-    return open_car(car, world=world, seed=seed, realtime=realtime, params=params, **extra)
+    """Open the car the shared options describe; with --record/--live, wrapped to record it
+    (``path=`` is the reference path for the recording's scene)."""
+    from qcarlab.cli import recording
+
+    path = extra.pop("path", None)
+    if parse_car_uri(car)[0] == "replay":
+        extra.setdefault("topics", recording.replay_topics())
+    qcar = open_car(car, world=world, seed=seed, realtime=realtime, params=params, **extra)
+    return recording.wrap(qcar, car=car, world=world, seed=seed, path=path, start=extra.get("start"))
+
+
+def student_blocks(model: Any, use: list[Path] | None, block: list[str] | None) -> dict[str, Any]:
+    """The student's blocks for a lab model class from --use/--block; says on stderr which are used."""
+    from qcarlab.blocks import resolve_student_blocks
+
+    found = resolve_student_blocks(model.specs(), model.lab, use or (), block or ())
+    if found:
+        listed = ", ".join(f"{name} ({b.source})" for name, b in found.items())
+        stderr.print(f"{model.lab}: your blocks: {listed}", markup=False)
+    return found
+
+
+def lab_section(params: Path | None) -> dict[str, Any]:
+    """The ``lab:`` section of a --params file (the lab's tunables), or {}."""
+    if params is None:
+        return {}
+    from qcarlab.yamlio import load_yaml
+
+    data = load_yaml(params, "parameter file")
+    lab = data.get("lab") if isinstance(data, dict) else None
+    if lab is None:
+        return {}
+    if not isinstance(lab, dict):
+        raise InputError(f"{params}: lab: expected a mapping of tunable: value, got {type(lab).__name__}")
+    return lab
+
+
+def apply_tunables(cfg: Any, params: Path | None, ctx: typer.Context | None, ignore: tuple[str, ...] = ()) -> Any:
+    """Set the config's fields from the --params file's ``lab:`` section; an option typed on the
+    command line wins over the file. Unknown names are refused with the known ones listed."""
+    import dataclasses
+
+    lab = lab_section(params)
+    if not lab:
+        return cfg
+    known = {f.name: f for f in dataclasses.fields(cfg) if f.name not in ignore}
+    for key, value in lab.items():
+        name = str(key).replace("-", "_")
+        if name not in known:
+            raise InputError(f"{params}: lab: unknown tunable {key!r} (known: {', '.join(known)})")
+        if ctx is not None:
+            try:
+                source = ctx.get_parameter_source(name)
+            except Exception:  # noqa: BLE001 - not a CLI option of this command
+                source = None
+            if getattr(source, "name", None) == "COMMANDLINE":  # click's enum (typer may vendor click)
+                continue
+        current = getattr(cfg, name)
+        if isinstance(current, tuple) and isinstance(value, list):
+            value = tuple(value)
+        if isinstance(current, bool) and not isinstance(value, bool):
+            raise InputError(f"{params}: lab: {key} must be true or false, got {value!r}")
+        if isinstance(current, (int, float)) and not isinstance(current, bool) and (
+                isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise InputError(f"{params}: lab: {key} must be a number, got {value!r}")
+        if isinstance(current, float) and isinstance(value, int):
+            value = float(value)
+        setattr(cfg, name, value)
+    return cfg
 
 
 def interactive(json_out: bool) -> bool:
@@ -75,14 +194,47 @@ def interactive(json_out: bool) -> bool:
 
 
 def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
-    """Save to --out, then print JSON (with --json) or the human summary."""
+    """Save to --out, then print JSON (with --json) or the human summary (and, after a replay,
+    what the lab would have commanded beside what was commanded); then the exit code.
+
+    A run that missed its goal (``goal_reached`` false: time limit, collision, left the world,
+    stopped past the sign) says why on stderr and exits 1; an interrupted run exits 130 after
+    its results were saved. Student blocks slower than the tick on a real-time car are reported.
+    """
+    from qcarlab.cli import recording
+    from qcarlab.cli.invocation import record_invocation, write_for_grader
+
+    record_invocation(result.metrics)  # the command and parameters, so qcarlab grade knows the run
+    after = recording.after_run(result)
     written = result.save(out) if out is not None else []
+    m = result.metrics
+    write_for_grader(m)  # $QCARLAB_RESULTS, set by qcarlab grade
     if json_out:
-        sys.stdout.write(dumps(result.metrics) + "\n")
-        return
-    summary(result)
-    if written:
-        stdout.print(f"wrote {len(written)} file(s) to {out}: " + ", ".join(p.name for p in written))
+        sys.stdout.write(dumps(m) + "\n")
+    else:
+        summary(result)
+        recording.print_after(after, stdout)
+        if written:
+            stdout.print(f"wrote {len(written)} file(s) to {out}: " + ", ".join(p.name for p in written))
+    name = m.get("experiment", result.name)
+    for block, timing in (m.get("student_blocks") or {}).items():
+        if timing.get("over_budget"):
+            stderr.print(f"{name}: warning: your {block} took longer than the {timing['budget_s'] * 1000:.1f} ms tick "
+                         f"{timing['over_budget']} time(s) (worst {timing['worst_s'] * 1000:.1f} ms)", markup=False)
+    loop = m.get("loop") or {}
+    if loop.get("overruns"):
+        stderr.print(f"{name}: warning: {loop['overruns']} tick(s) started late (worst gap "
+                     f"{loop['worst_tick_s'] * 1000:.0f} ms); the blocks were given the real dt", markup=False)
+    if m.get("interrupted"):
+        stderr.print(f"qcarlab {name}: interrupted; the car was stopped"
+                     + (f"; the run so far was saved to {out}" if written else ""), markup=False)
+        from qcarlab.cli import app as _app
+
+        _app.interrupt_reported = True
+        raise typer.Exit(130)
+    if m.get("goal_reached") is False and "replay" not in m:  # a replay's car did what was recorded
+        stderr.print(f"qcarlab {name}: goal missed: {m.get('failure') or 'see the results'}", markup=False)
+        raise typer.Exit(1)
 
 
 def summary_table(title: str) -> Table:
@@ -92,6 +244,7 @@ def summary_table(title: str) -> Table:
     table.add_column("value", justify="right")
     return table
 
+from qcarlab.control.speed import KFF, KI, KP  # noqa: E402,F401  (the gains' defaults, written once)
 
 KpOpt = Annotated[float, typer.Option("--kp", help="speed_controller proportional gain.")]
 KiOpt = Annotated[float, typer.Option("--ki", help="speed_controller integral gain.")]
@@ -113,11 +266,19 @@ def parse_start(text: str | None) -> tuple[float, float, float] | None:
 def sim_world(car: str, world: str | None, start: str | None, default: str, params: Path | None):
     """Load the world for a simulated car; refuse simulator-only options for a remote car."""
     pose = parse_start(start)
-    if parse_car_uri(car)[0] != "sim":
+    scheme, where, _ = parse_car_uri(car)
+    if scheme == "replay":  # the world and start the lab scores against: given, else the recording's
+        from qcarlab.cli import recording
+
+        recorded, recorded_pose = recording.recorded_world(where, params) if world is None else (None, None)
+        from qcarlab.experiments.worlds import load_world
+
+        return (load_world(world, load_params(params)) if world is not None else recorded), pose or recorded_pose
+    if scheme != "sim":
         if world is not None or pose is not None:
             raise InputError("--world and --start apply to the simulator only; a remote car is where it is")
         return None, None
-    from qcarlab.sim.world import load_world
+    from qcarlab.experiments.worlds import load_world
 
     return load_world(world or default, load_params(params)), pose
 

@@ -22,6 +22,7 @@ from rich.table import Table
 from rich.text import Text
 
 from qcarlab.cli.app import app
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import CarOpt, DebugOpt, ParamsOpt, SeedOpt, WorldOpt, open_from_options, stdout
 from qcarlab.errors import CarError, InputError
 from qcarlab.experiments.keyboard_drive import (
@@ -211,6 +212,7 @@ def _map_for(world: Any, console: Console, map_wanted: bool) -> tuple[_MapView |
 
 
 @app.command("keyboard-drive")
+@recordable
 def keyboard_drive_cmd(
     max_throttle: Annotated[
         float, typer.Option(help="Most throttle the keys can give (duty fraction; the car's limit is 0.3).")
@@ -256,7 +258,7 @@ def keyboard_drive_cmd(
         max_throttle=max_throttle,
         throttle_step=min(throttle_step, max_throttle),
         throttle_ramp=ramp,
-        max_steering=0.5236,
+        max_steering=0.5,
         steering_step=steering_step,
         steering_ramp=steering_ramp,
     )

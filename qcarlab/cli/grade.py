@@ -1,114 +1,325 @@
-"""``qcarlab grade``: check runs against a lab sheet's criteria, for a student or a CI script."""
+"""``qcarlab grade``: a student's submission (or a class) against lab sheets; ``qcarlab labs``: the sheets."""
 
 from __future__ import annotations
 
-import json
-import shlex
-import subprocess
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.table import Table
 
 from qcarlab.cli.app import app
-from qcarlab.cli.common import DebugOpt, JsonOpt, check_out, stdout
+from qcarlab.cli.common import DebugOpt, JsonOpt, stderr, stdout
 from qcarlab.errors import InputError
-from qcarlab.grade import Task, check, find_sheet, load_sheet
-from qcarlab.record import dumps, prepare_out_dir, write_json
+from qcarlab.grading.grader import Options, grade, make_plan, summary
+from qcarlab.grading.limits import Limits
+from qcarlab.grading.sheet import Sheet, find_sheet, load_sheet, select_tasks, shipped_sheets
+from qcarlab.grading.submission import class_folders
+from qcarlab.record import dumps, write_json
 
 
-def _run_task(task: Task, car: str | None, timeout: float) -> tuple[dict | None, str]:
-    """Run the task's command with --json in a fresh process; (results, problem)."""
-    argv = shlex.split(task.command)[1:]
-    if "--json" not in argv:
-        argv.append("--json")
-    if car is not None and "--car" not in argv:
-        argv += ["--car", car]
-    try:
-        done = subprocess.run([sys.executable, "-m", "qcarlab", *argv], capture_output=True, text=True,
-                              timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return None, f"did not finish within {timeout:g} s"
-    if done.returncode != 0:
-        lines = done.stderr.strip().splitlines()
-        return None, lines[-1] if lines else f"exit code {done.returncode}"
-    try:
-        return json.loads(done.stdout), ""
-    except json.JSONDecodeError:
-        return None, "the command printed no JSON"
+class CliCommands:
+    """The CLI's own parser, for the grader (which does not import the CLI)."""
+
+    def parse(self, argv: list[str]) -> tuple[str, dict[str, Any], dict[str, str]]:
+        from qcarlab.cli.invocation import parse_command
+
+        return parse_command(argv)
+
+    def accepts(self, argv: list[str], option: str) -> bool:
+        from qcarlab.cli.invocation import command_accepts
+
+        return command_accepts(argv, option)
 
 
-def _read_results(task: Task, folder: Path) -> tuple[dict | None, str]:
-    """DIR/TASK-ID/results.json (what --out writes) or DIR/TASK-ID.json."""
-    for path in (folder / task.id / "results.json", folder / f"{task.id}.json"):
-        if path.exists():
-            try:
-                return json.loads(path.read_text(encoding="utf-8")), ""
-            except (OSError, json.JSONDecodeError) as exc:
-                return None, f"{path}: unreadable ({exc})"
-    return None, f"not run: no {task.id}/results.json in {folder}"
+def _shown(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if value is None:
+        return "-"
+    text = str(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _check_sheet_commands(sheets: list[Sheet], commands: CliCommands) -> None:
+    """Every scenario task's command must parse (a sheet's typo is the sheet's, exit 2)."""
+    for s in sheets:
+        for t in s.tasks:
+            if t.command is not None:
+                try:
+                    commands.parse(t.argv("tcp://127.0.0.1:1"))
+                except InputError as exc:
+                    raise InputError(f"{s.path}: task {t.id}: {exc}") from None
+
+
+def _write_artifacts(folder: Path, row: dict[str, Any]) -> list[str]:
+    written = []
+    results = row.get("_results")
+    figs = row.get("_figures") or {}
+    if not figs and results is None:
+        return written
+    folder.mkdir(parents=True, exist_ok=True)
+    if results is not None:
+        write_json(folder / "results.json", results)
+        written.append("results.json")
+    for name, data in sorted(figs.items()):
+        (folder / name).write_bytes(data)
+        written.append(name)
+    return written
+
+
+def _progress(total: int, show: bool):
+    """A progress bar on stderr (a terminal only): (advance(job, outcome), stop())."""
+    if not show or total == 0:
+        return (lambda job, outcome: None), (lambda: None)
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    bar = Progress(TextColumn("grading"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                   TextColumn("{task.description}"), console=stderr, transient=True)
+    tid = bar.add_task("", total=total)
+    bar.start()
+
+    def advance(job, outcome) -> None:
+        bar.update(tid, advance=1, description=f"{job.key[0]} {job.key[2]}")
+
+    return advance, bar.stop
 
 
 @app.command("grade")
 def grade_cmd(
-    sheet: Annotated[str, typer.Argument(help="A lab sheet: its name in labs/ (path-following, stop-sign, ...) "
-                                         "or the path of a sheet YAML.")],
-    results: Annotated[Path | None, typer.Option(help="Grade saved runs: DIR/TASK-ID/results.json (run each "
-                                                 "task's command with --out DIR/TASK-ID). Without it, grade runs "
-                                                 "each task's command now.", show_default=False)] = None,
-    task: Annotated[list[str] | None, typer.Option("--task", help="Grade only this task (repeatable).",
-                                                   show_default=False)] = None,
-    car: Annotated[str | None, typer.Option(help="Run the commands on this car (tcp://HOST:PORT).",
+    sheets: Annotated[list[str], typer.Argument(help="Lab sheets: a name (path-following, stop-sign, ...; "
+                                                "qcarlab labs lists them), a section (5.2) or a sheet YAML.",
+                                                show_default=False)],
+    submission: Annotated[Path | None, typer.Option(help="A student's folder as qcarlab template made it: their "
+                                                    "block files, params.yaml, answers.md (one sub-folder per "
+                                                    "sheet for several). Without it: qcarlab's own blocks.",
+                                                    show_default=False)] = None,
+    class_dir: Annotated[Path | None, typer.Option("--class", help="A class: one sub-folder per student "
+                                                   "(each a submission). Writes gradebook.csv, report.html and "
+                                                   "grade.json to --out.", show_default=False)] = None,
+    results: Annotated[Path | None, typer.Option(help="Grade saved runs of the scenario tasks instead: "
+                                                 "DIR/TASK-ID/results.json (each task's command run with --out "
+                                                 "DIR/TASK-ID, e.g. on the real car).",
+                                                 show_default=False)] = None,
+    task: Annotated[list[str] | None, typer.Option("--task", help="Grade only this task (ID or SHEET/ID; "
+                                                   "repeatable).", show_default=False)] = None,
+    car: Annotated[str | None, typer.Option(help="Run the commands on this car (tcp://HOST:PORT); tasks that "
+                                            "need a car are skipped without it.", show_default=False)] = None,
+    timeout: Annotated[float, typer.Option(help="Wall-time limit of each task, s.")] = 300.0,
+    memory: Annotated[float, typer.Option(help="Memory limit of each task's process, MB.")] = 2048.0,
+    max_output: Annotated[float, typer.Option(help="Output limit of each task's process, MB.")] = 10.0,
+    jobs: Annotated[int, typer.Option(help="Tasks run at a time on this machine (each in its own process).")] = 1,
+    ray: Annotated[str | None, typer.Option("--ray", help="Run the tasks on a Ray cluster: its address (auto, "
+                                            "ray://HOST:10001) or local; needs qcarlab\\[ray] installed.",
                                             show_default=False)] = None,
-    timeout: Annotated[float, typer.Option(help="Seconds a task's command may take.")] = 300.0,
-    out: Annotated[Path | None, typer.Option("--out", help="Write grade.json here.", callback=check_out,
+    out: Annotated[Path | None, typer.Option("--out", help="Write grade.json (and each task's results and "
+                                             "figures) here; with --class default: grades/.",
                                              show_default=False)] = None,
+    junit: Annotated[Path | None, typer.Option(help="Write a JUnit XML report here (one testcase per "
+                                               "criterion) for CI.", show_default=False)] = None,
+    figures: Annotated[bool | None, typer.Option("--figures/--no-figures", help="Keep each run's figures "
+                                                 "(default: with --out or --class).", show_default=False)] = None,
     json_out: JsonOpt = False,
     debug: DebugOpt = False,
 ) -> None:
-    """Grade runs against a lab sheet's criteria. Exit 0 when every task passes, 1 otherwise.
+    """Grade a submission against lab sheets: block tasks call the student's blocks on given inputs,
+    scenario tasks run the lab with the student's blocks and params.yaml. Every task runs in its
+    own process with a time, memory and output limit. Exit 0 when every task passes, 1 when one
+    fails, 2 for bad input.
 
-    Examples: qcarlab grade path-following | qcarlab grade stop-sign --results runs/ --json |
-    qcarlab grade labs/path-following.yaml --task p2-circle
+    Examples: qcarlab grade stop-sign --submission mylab | qcarlab grade stop-sign --submission . --junit
+    report.xml | qcarlab grade path-following --class submissions/ --jobs 4 --out grades/ | qcarlab grade
+    private/stop-sign-extra.yaml --class submissions/ --ray auto
     """
-    path = find_sheet(sheet)
-    title, tasks = load_sheet(path)
-    if task:
-        unknown = [t for t in task if t not in {x.id for x in tasks}]
-        if unknown:
-            raise InputError(f"--task {unknown[0]!r} is not in {path} (tasks: {', '.join(t.id for t in tasks)})")
-        tasks = [t for t in tasks if t.id in task]
+    limits = Limits(timeout, memory, max_output).check()
+    if jobs < 1 or jobs > 256:
+        raise InputError(f"--jobs must be 1..256, got {jobs}")
+    if submission is not None and class_dir is not None:
+        raise InputError("give --submission DIR (one student) or --class DIR (a class), not both")
+    if results is not None and class_dir is not None:
+        raise InputError("--results grades one student's saved runs; it does not go with --class")
     if results is not None and not results.is_dir():
         raise InputError(f"--results {results}: not a folder")
-    report = {"sheet": str(path), "title": title, "tasks": []}
-    for t in tasks:
-        data, problem = _read_results(t, results) if results is not None else _run_task(t, car, timeout)
-        verdicts = check(data, t.criteria) if data is not None else []
-        passed = data is not None and all(v.passed for v in verdicts)
-        report["tasks"].append({
-            "id": t.id, "command": t.command, "passed": passed, "problem": problem or None,
-            "criteria": [{"criterion": v.criterion.describe(), "value": v.value, "passed": v.passed,
-                          "reason": v.reason or None} for v in verdicts],
-        })
-    report["passed"] = sum(r["passed"] for r in report["tasks"])
-    report["total"] = len(report["tasks"])
+    if submission is not None and not submission.is_dir():
+        raise InputError(f"--submission {submission}: not a folder")
+    for option, path in (("--out", out), ("--junit", junit)):
+        if path is not None and path.exists() and (path.is_dir() if option == "--junit" else not path.is_dir()):
+            raise InputError(f"{option} {path}: exists and is {'a folder' if option == '--junit' else 'not a folder'}")
+    if car is not None and not car.startswith("tcp://"):
+        raise InputError(f"--car {car!r}: expected tcp://HOST:PORT (the simulator is the default)")
+    loaded = [load_sheet(find_sheet(s)) for s in sheets]
+    names = [s.name for s in loaded]
+    if len(set(names)) != len(names):
+        raise InputError(f"sheet {next(n for n in names if names.count(n) > 1)!r} is given twice")
+    chosen = select_tasks(loaded, task)
+    commands = CliCommands()
+    _check_sheet_commands(loaded, commands)
+    if class_dir is not None:
+        students: list[tuple[str, Path | None]] = list(class_folders(class_dir))
+        out = out or Path("grades")
+        if out.exists() and not out.is_dir():
+            raise InputError(f"--out {out}: exists and is not a folder")
+    elif submission is not None:
+        students = [(submission.resolve().name, submission)]
+    else:
+        students = [("qcarlab", None)]
+    keep = figures if figures is not None else (out is not None)
+    opts = Options(limits, car, keep, results)
+    plan = make_plan(loaded, chosen, students, opts, commands)
+    to_run = [p.job for p in plan if p.job is not None]
+    advance, stop = _progress(len(to_run), not json_out and sys.stderr.isatty())
+    try:
+        if ray is not None:
+            from qcarlab.grading.schedule import run_ray
+
+            outcomes = run_ray(to_run, ray, advance)
+        else:
+            from qcarlab.grading.schedule import run_local
+
+            outcomes = run_local(to_run, jobs, advance)
+    finally:
+        stop()
+    by_key = {job.key: o for job, o in zip(to_run, outcomes)}
+    rows_by_student: dict[str, list[dict[str, Any]]] = {name: [] for name, _ in students}
+    subs: dict[str, Any] = {}
+    for p in plan:
+        outcome = by_key.get(p.key)
+        row = grade(p, outcome, commands, results)
+        if outcome is not None and outcome.get("results") is not None and p.task.kind == "scenario":
+            row["_results"] = outcome["results"]
+        rows_by_student[p.student].append(row)
+        if p.submission is not None:
+            subs.setdefault(p.student, []).append(p.submission)
+    report_students = []
+    for name, root in students:
+        rows = rows_by_student[name]
+        entry: dict[str, Any] = {"student": name, "submission": str(root) if root is not None else None}
+        problems = sorted({x for s in subs.get(name, []) for x in s.problems})
+        if problems:
+            entry["submission_problems"] = problems
+        entry.update(summary(rows))
+        entry["tasks"] = rows
+        report_students.append(entry)
+    from qcarlab.grading.report import report_dict, write_gradebook, write_html, write_junit
+
+    single = class_dir is None
+    report = report_dict(loaded, report_students, single)
+    written = []
     if out is not None:
-        write_json(prepare_out_dir(out) / "grade.json", report)
+        out.mkdir(parents=True, exist_ok=True)
+        for st in report_students:
+            for r in st["tasks"]:
+                folder = out / (r["sheet"] if single else Path(st["student"]) / r["sheet"]) / r["id"]
+                _write_artifacts(folder, r)
+        written.append(write_json(out / "grade.json", report))
+        if not single:
+            written.append(write_gradebook(out / "gradebook.csv", report_students))
+            answers: dict[str, list[tuple[str, str]]] = {}
+            for st in report_students:
+                seen = set()
+                for s in subs.get(st["student"], []):
+                    if s.answers and s.folder not in seen:
+                        seen.add(s.folder)
+                        answers.setdefault(st["student"], []).append((s.folder.name, s.answers))
+            figs = {(st["student"], r["sheet"], r["id"]): r.get("_figures") or {}
+                    for st in report_students for r in st["tasks"]}
+            title = "qcarlab grade: " + ", ".join(f"{s.section} {s.title}" for s in loaded)
+            written.append(write_html(out / "report.html", title, report_students, figs, answers))
+    if junit is not None:
+        written.append(write_junit(junit, report_students, single))
     if json_out:
         sys.stdout.write(dumps(report) + "\n")
     else:
-        table = Table(title=f"{title}: {report['passed']} of {report['total']} tasks passed", title_justify="left")
-        for col in ("task", "criterion", "value", "result"):
-            table.add_column(col)
-        for r in report["tasks"]:
-            if r["problem"]:
-                table.add_row(r["id"], "-", "-", f"FAIL: {r['problem']}")
-            for c in r["criteria"]:
-                value = c["value"]
-                shown = f"{value:.4g}" if isinstance(value, (int, float)) and not isinstance(value, bool) else str(value)
-                table.add_row(r["id"], c["criterion"], shown, "pass" if c["passed"] else f"FAIL{': ' + c['reason'] if c['reason'] else ''}")
-        stdout.print(table)
-    if report["passed"] != report["total"]:
+        _print(loaded, report_students, single)
+        if written:
+            stdout.print("wrote " + ", ".join(str(w) for w in written), markup=False)
+    if any(st["passed"] != st["total"] for st in report_students):
         raise typer.Exit(1)
+
+
+def _print(sheets: list[Sheet], students: list[dict[str, Any]], single: bool) -> None:
+    title = ", ".join(s.title for s in sheets)
+    if single:
+        st = students[0]
+        table = Table(title=f"{title}: {st['passed']} of {st['total']} tasks passed, {st['points']:g} of "
+                      f"{st['max_points']:g} points" + (f" ({st['skipped']} skipped)" if st["skipped"] else ""),
+                      title_justify="left")
+        for col in ("task", "criterion", "value", "result", "points"):
+            table.add_column(col)
+        for r in st["tasks"]:
+            label = r["id"] if len(sheets) == 1 else f"{r['sheet']}/{r['id']}"
+            if r["status"] == "skipped":
+                table.add_row(label, "-", "-", f"skipped: {r['problem']}", "-")
+                continue
+            if r["problem"]:
+                table.add_row(label, "-", "-", f"FAIL: {r['problem']}", f"0/{r['points']:g}")
+                if all(c["reason"] == r["problem"] for c in r["criteria"]):
+                    continue
+            for c in r["criteria"]:
+                verdict = "pass" if c["passed"] else f"FAIL: {c['reason']}"
+                table.add_row(label, c["criterion"], _shown(c["value"]), verdict, f"{c['earned']:g}/{c['points']:g}")
+        stdout.print(table)
+        for r in st["tasks"]:
+            if r.get("detail") and r["status"] == "failed":
+                stdout.print(f"[b]{r['id']}[/b]:", r["detail"].strip()[-800:], markup=True, highlight=False)
+        return
+    table = Table(title=f"{title}: {len(students)} students", title_justify="left")
+    for col in ("student", "tasks passed", "points", "first failure"):
+        table.add_column(col)
+    for st in students:
+        first = next((f"{r['id']}: {r['problem'] or next((c['reason'] for c in r['criteria'] if not c['passed']), '')}"
+                      for r in st["tasks"] if r["status"] == "failed"), "")
+        table.add_row(st["student"], f"{st['passed']}/{st['total']}", f"{st['points']:g}/{st['max_points']:g}",
+                      first if len(first) <= 80 else first[:77] + "...")
+    stdout.print(table)
+
+
+@app.command("labs")
+def labs_cmd(
+    sheet: Annotated[str | None, typer.Argument(help="Show this sheet's tasks (a name, a section or a YAML).",
+                                                show_default=False)] = None,
+    json_out: JsonOpt = False,
+    debug: DebugOpt = False,
+) -> None:
+    """List the lab sheets qcarlab grade knows (installed with qcarlab), or one sheet's tasks.
+
+    Examples: qcarlab labs | qcarlab labs stop-sign | qcarlab labs 6.1 --json
+    """
+    if sheet is None:
+        rows = []
+        for path in shipped_sheets():
+            s = load_sheet(path)
+            rows.append({"name": s.name, "section": s.section, "title": s.title, "lab": s.lab,
+                         "tasks": len(s.tasks), "points": s.points, "path": str(path)})
+        if json_out:
+            sys.stdout.write(dumps({"sheets": rows}) + "\n")
+            return
+        table = Table(title="Lab sheets (qcarlab grade NAME; qcarlab labs NAME for the tasks)", title_justify="left")
+        table.add_column("name", no_wrap=True, min_width=max((len(r["name"]) for r in rows), default=4))
+        for col in ("section", "title", "blocks of", "tasks", "points"):
+            table.add_column(col)
+        for r in rows:
+            table.add_row(r["name"], r["section"], r["title"], r["lab"] or "-", str(r["tasks"]), f"{r['points']:g}")
+        stdout.print(table)
+        if rows:
+            stdout.print(f"from {Path(rows[0]['path']).parent}", markup=False)
+        return
+    s = load_sheet(find_sheet(sheet))
+    tasks = [{"id": t.id, "kind": t.kind, "command": t.command, "block": t.block, "uses": list(t.uses),
+              "needs_car": t.needs_car, "points": t.points, "text": t.text,
+              "criteria": [{"criterion": c.describe(), "points": c.points} for c in t.criteria]} for t in s.tasks]
+    if json_out:
+        sys.stdout.write(dumps({"name": s.name, "section": s.section, "title": s.title, "lab": s.lab,
+                                "path": str(s.path), "points": s.points, "tasks": tasks}) + "\n")
+        return
+    table = Table(title=f"{s.section} {s.title} ({s.path}): {len(tasks)} tasks, {s.points:g} points",
+                  title_justify="left")
+    for col in ("task", "runs", "criteria", "points"):
+        table.add_column(col)
+    for t in tasks:
+        runs = t["command"] if t["kind"] == "scenario" else f"your {t['block']} on {len(t['criteria'])} inputs"
+        if t["uses"]:
+            runs += f"  (with your {', '.join(t['uses'])})"
+        table.add_row(t["id"], runs, "\n".join(c["criterion"] for c in t["criteria"]), f"{t['points']:g}")
+    stdout.print(table)

@@ -11,13 +11,14 @@ from rich.table import Table
 
 from qcarlab.car.lamps import known_lamp_words, lamps_on, parse_lamps
 from qcarlab.cli.app import app
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
-    CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
-    emit, interactive, open_from_options, stdout, summary_table,
+    CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt, UseOpt, BlockOpt,
+    emit, interactive, open_from_options, stdout, student_blocks, summary_table,
 )
 from qcarlab.control.speed import basic_speed_estimation
 from qcarlab.errors import InputError
-from qcarlab.experiments.io_test import io_test
+from qcarlab.experiments.io_test import BasicIOLab, io_test
 from qcarlab.experiments.loop import check_rate
 from qcarlab.experiments.result import Result
 
@@ -58,9 +59,10 @@ def _summary(result: Result) -> None:
 
 
 @app.command("io-test")
+@recordable
 def io_test_cmd(
     throttle: Annotated[float, typer.Option(help="Motor PWM duty fraction (the sheet's % / 100), limited to +-0.3.")] = 0.1,
-    steering: Annotated[float, typer.Option(help="Steering angle in rad, + = left, limited to +-0.5236.")] = 0.0,
+    steering: Annotated[float, typer.Option(help="Steering angle in rad, + = left, limited to +-0.5.")] = 0.0,
     leds: Annotated[
         str,
         typer.Option(help="Lamps to switch on, comma separated: " + ", ".join(known_lamp_words()) + "."),
@@ -78,6 +80,8 @@ def io_test_cmd(
     json_out: JsonOpt = False,
     realtime: RealtimeOpt = False,
     params: ParamsOpt = None,
+    use: UseOpt = None,
+    block: BlockOpt = None,
     debug: DebugOpt = False,
 ) -> None:
     """Basic I/O test (sheet 3.3): hold throttle, steering and lamps; read encoder, current, battery, IMU.
@@ -88,6 +92,7 @@ def io_test_cmd(
         raise InputError(f"--duration must be a positive number of seconds, got {duration}")
     lamp_state = parse_lamps(leds)
     check_rate(rate)
+    mine = student_blocks(BasicIOLab, use, block)
     live = interactive(json_out)
     with open_from_options(car, world, seed, realtime, params, on_stand=on_stand, throttle_limit=throttle_limit) as qcar:
         qcar.validate(throttle, steering, lamp_state)
@@ -101,8 +106,8 @@ def io_test_cmd(
                         last[0] = now
                         view.update(_live_table(t, r, cmd, qcar.params))
 
-                result = io_test(qcar, throttle, steering, lamp_state, duration, rate, on_tick=show)
+                result = io_test(qcar, throttle, steering, lamp_state, duration, rate, on_tick=show, blocks=mine)
         else:
-            result = io_test(qcar, throttle, steering, lamp_state, duration, rate)
+            result = io_test(qcar, throttle, steering, lamp_state, duration, rate, blocks=mine)
         result.metrics.update({"car": car, "seed": seed, "on_stand": on_stand})
     emit(result, json_out, out, _summary)

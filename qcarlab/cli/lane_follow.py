@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import math
 from typing import Annotated
 
 import typer
 
 from qcarlab import plots
-from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
-    StartOpt, WorldOpt, sim_world, parse_hsv,
+    StartOpt, WorldOpt, sim_world, parse_hsv, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt,
     DebugOpt,
     JsonOpt,
@@ -27,7 +26,8 @@ from qcarlab.cli.common import (
 )
 from qcarlab.errors import InputError
 from qcarlab.experiments.lane_follow import (
-    LANE_HALF_WIDTH,
+    LaneFollowingLab,
+    start_in_lane,
     LaneFollowConfig,
     hsv_tune,
     lane_centre,
@@ -65,10 +65,13 @@ def _summary(result: Result) -> None:
 
 
 @app.command("lane-follow")
+@recordable
 def lane_follow_cmd(
+    ctx: typer.Context,
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
     lane: Annotated[str, typer.Option(help="Lane to drive in: right (yellow line on the car's left) or left.")] = "right",
-    duration: Annotated[float, typer.Option(help="Run for this many seconds.")] = 30.0,
+    duration: Annotated[float | None, typer.Option(help="Run for this many seconds (default 30 s, or with "
+                                                   "--laps the time those laps need).", show_default=False)] = None,
     laps: Annotated[float | None, typer.Option(help="Stop after this many laps (simulator).", show_default=False)] = None,
     hsv_tune_: Annotated[bool, typer.Option("--hsv-tune", help="Do not drive: threshold frames at 4 spots of the "
                                             "track and report/write them (hsv_tune.png with --out).")] = False,
@@ -86,36 +89,44 @@ def lane_follow_cmd(
     json_out: JsonOpt = False,
     realtime: RealtimeOpt = False,
     params: ParamsOpt = None,
+    use: UseOpt = None,
+    block: BlockOpt = None,
     debug: DebugOpt = False,
 ) -> None:
     """Follow the lane with the RGBD camera (HSV yellow line, linear fit, pure pursuit; sheet 5.3).
 
     Examples: qcarlab lane-follow | qcarlab lane-follow --laps 1 --out runs/lane |
-    qcarlab lane-follow --hsv-tune --hsv-min 20,100,100 --out runs/tune
+    qcarlab lane-follow --hsv-tune --hsv-min 20,100,100 --out runs/tune | qcarlab lane-follow --use mylab/lane.py
+
+    Exit 0 when the car stayed in its lane (and drove --laps), 1 when it did not, 2 for bad input.
     """
     if lane not in LANES:
         raise InputError(f"--lane must be one of {', '.join(LANES)}, got {lane!r}")
     cfg = LaneFollowConfig(speed=speed, lane=lane, duration=duration, laps=laps,
                            hsv_min=parse_hsv(hsv_min, "--hsv-min"), hsv_max=parse_hsv(hsv_max, "--hsv-max"),
                            lookahead=lookahead, stop_distance=stop_distance, rate=rate)
+    apply_tunables(cfg, params, ctx)
     cfg.check()
+    mine = student_blocks(LaneFollowingLab, use, block)
     world_obj, pose = sim_world(car, world, start, "track", params)
-    if world_obj is not None and pose is None and lane == "left":
-        x, y, yaw = getattr(world_obj, "start", None) or START_POSE  # the start is in the right lane
-        d = 2.0 * LANE_HALF_WIDTH
-        pose = (x - d * math.sin(yaw), y + d * math.cos(yaw), yaw)
+    if world_obj is not None:
+        pose = start_in_lane(world_obj, lane, pose)
     if hsv_tune_:
         if world_obj is None:
             raise InputError("--hsv-tune places the car at spots of the track: simulator only")
-        s0 = pose or getattr(world_obj, "start", None) or START_POSE
+        s0 = pose or world_obj.start
         frames = []
         for spot in tune_spots(lane_centre(world_obj, s0), s0):
             with open_from_options(car, world_obj, seed, realtime, params, start=spot) as qcar:
                 frames.append((spot, qcar.read_rgbd()))
+        from qcarlab.cli.hsv_tune import run_hsv_tuner, tuned_metrics  # the sheet's tuner (issue 10)
+        tuned = run_hsv_tuner([f.color for _, f in frames], None, out / "hsv.yaml" if out else None,
+                              None if json_out else stdout, lane=lane, start=(cfg.hsv_min, cfg.hsv_max))
         result = hsv_tune(frames, cfg)
+        result.metrics["tuned"] = tuned_metrics(tuned, out / "hsv.yaml" if out else None)
     else:
         with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
-            result = run_lane_follow(qcar, cfg, world_obj)
+            result = run_lane_follow(qcar, cfg, world_obj, blocks=mine)
         log = result.logs["log.csv"]
         result.figures["speed.png"] = lambda f: plots.plot_speed(log, f)
     result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})

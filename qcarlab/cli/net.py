@@ -14,7 +14,7 @@ import typer
 
 from qcarlab.car import open_car, parse_car_uri
 from qcarlab.cli.app import app
-from qcarlab.cli.common import DebugOpt, JsonOpt, ParamsOpt, SeedOpt, WorldOpt
+from qcarlab.cli.common import DebugOpt, JsonOpt, LiveOpt, LivePortOpt, ParamsOpt, SeedOpt, WorldOpt
 from qcarlab.errors import CarError, InputError, NotBuiltError
 from qcarlab.net.protocol import DEFAULT_PORT, VERSION
 
@@ -70,6 +70,8 @@ def serve_cmd(
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     params: ParamsOpt = None,
+    live: LiveOpt = False,
+    live_port: LivePortOpt = None,
     debug: DebugOpt = False,
 ) -> None:
     """Serve a car over TCP: the simulator (real time, or --lockstep) or the physical QCar.
@@ -101,6 +103,9 @@ def serve_cmd(
     previous = _catch_stop_signals(caught, servers)
     try:
         car, what = _open_served_car(backend, lockstep, world, seed, on_stand, params, throttle_limit)
+        from qcarlab.cli.recording import live_car
+
+        car = live_car(car, live, live_port, token)  # --live: what the served car does, streamed to Foxglove
         with car:
             server = CarServer(car, host, port, token=token, watchdog=watchdog, controller_timeout=controller_timeout,
                                lockstep=lockstep, max_clients=max_clients, monitor_rate=monitor_rate, prepare=True,

@@ -12,15 +12,16 @@ from rich.table import Table
 
 from qcarlab import paths, plots
 from qcarlab.cli.app import app, stderr
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
-    KpOpt, KiOpt, KffOpt,
+    KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
     check_out,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
-    emit, open_from_options, stdout, summary_table,
+    emit, open_from_options, sim_world, stdout, summary_table,
 )
 from qcarlab.constants import DEFAULT_PARAMS
 from qcarlab.errors import InputError
-from qcarlab.experiments.path_follow import CONTROLLERS, POSE_SOURCES, FollowConfig, follow_path
+from qcarlab.experiments.path_follow import CONTROLLERS, POSE_SOURCES, FollowConfig, PathFollowingLab, follow_path, lookahead_sweep
 from qcarlab.experiments.result import Result
 from qcarlab.experiments.step_response import step_response
 from qcarlab.record import dumps
@@ -190,7 +191,9 @@ def _step_summary(result: Result) -> None:
 
 
 @app.command("path-follow")
+@recordable
 def path_follow_cmd(
+    ctx: typer.Context,
     path_spec: Annotated[str, typer.Argument(metavar="PATH", help=f"A built-in path ({SHAPES}) or a CSV/npy/YAML path file.")],
     length: LengthOpt = None,
     points: PointsOpt = None,
@@ -206,9 +209,9 @@ def path_follow_cmd(
     k_carrot: Annotated[float, typer.Option(help="Follow-the-carrot gain K_carrot.")] = 1.0,
     k_stanley: Annotated[float, typer.Option(help="Stanley cross-track gain.")] = 2.0,
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.5,
-    kp: KpOpt = 0.3,
-    ki: KiOpt = 1.0,
-    kff: KffOpt = 0.1,
+    kp: KpOpt = KP,
+    ki: KiOpt = KI,
+    kff: KffOpt = KFF,
     pose: Annotated[str, typer.Option(help="Pose estimate: bicycle (encoder + steering, the sheet's model), "
                                       "gyro (encoder + gyro yaw rate) or truth (simulator only).")] = "bicycle",
     goal_tolerance: Annotated[float, typer.Option(help="Stop within this distance of the last point, m.")] = 0.1,
@@ -227,12 +230,18 @@ def path_follow_cmd(
     json_out: JsonOpt = False,
     realtime: RealtimeOpt = False,
     params: ParamsOpt = None,
+    use: UseOpt = None,
+    block: BlockOpt = None,
     debug: DebugOpt = False,
 ) -> None:
     """Follow a path with pure pursuit (or carrot, stanley) and the feed-forward PI speed controller.
 
     Examples: qcarlab path-follow circle | qcarlab path-follow butterfly --size 2 --lookahead 0.2,0.3,0.5,0.8
     | qcarlab path-follow my_path.csv --out runs/1 | qcarlab path-follow line --step-response --kp 0.5 --ki 2
+    | qcarlab path-follow butterfly --size 2 --use mylab/pure_pursuit.py --params mylab/params.yaml
+
+    Exit 0 when the car reached the end of the path, 1 when it did not (time limit, a wall, out of the
+    world), 2 for bad input.
     """
     if controller not in CONTROLLERS:
         raise InputError(f"--controller must be one of {', '.join(CONTROLLERS)}, got {controller!r}")
@@ -246,9 +255,11 @@ def path_follow_cmd(
                                                                    step=step, size=size, width=width,
                                                                    height=height).items() if v is not None}
     ref, label = _load_path(path_spec, options)
+    mine = student_blocks(PathFollowingLab, use, block)
+    world_obj, _ = sim_world(car, world, None, "studio", params)
 
     def open_car():
-        return open_from_options(car, world, seed, realtime, params)
+        return open_from_options(car, world_obj, seed, realtime, params, path=ref)
 
     if step_response_:
         cfg = FollowConfig(speed=speed, kp=kp, ki=ki, kff=kff, rate=rate)
@@ -263,9 +274,10 @@ def path_follow_cmd(
         cfg = FollowConfig(controller=controller, lookahead=la, k_carrot=k_carrot, k_stanley=k_stanley,
                            speed=speed, kp=kp, ki=ki, kff=kff, pose=pose, goal_tolerance=goal_tolerance,
                            laps=laps, rate=rate, turn_speed=turn_speed, max_time=max_time)
+        apply_tunables(cfg, params, ctx, ignore=() if len(lookaheads) == 1 else ("lookahead",))
         cfg.check()
         with open_car() as qcar:
-            res = follow_path(qcar, ref, cfg)
+            res = follow_path(qcar, ref, cfg, blocks=mine, world=world_obj)
         res.metrics["path"] = label
         res.metrics.update({"car": car, "seed": seed})
         return res
@@ -279,15 +291,8 @@ def path_follow_cmd(
         return
 
     runs = [run(la) for la in lookaheads]
-    ranked = sorted(runs, key=lambda r: (r.metrics["completion"] < 0.99, r.metrics["rms_cross_track_m"]))
-    summaries = []
-    for r in ranked:
-        m = {k: v for k, v in r.metrics.items() if k != "config"}
-        m["lookahead"] = r.metrics["config"]["lookahead"]
-        summaries.append(m)
-    sweep = Result("path-follow sweep", {"experiment": "path-follow", "path": label, "sweep": "lookahead",
-                                         "runs": summaries, "best": summaries[0]})
-    sweep.logs = {f"log_lookahead_{r.metrics['config']['lookahead']:g}.csv": r.logs["log.csv"] for r in runs}
+    sweep = lookahead_sweep(runs, label)
+    ranked = sweep.data["ranked"]
     sweep.figures["sweep.png"] = lambda f: plots.plot_sweep(ref, [(r.metrics["config"]["lookahead"], r.logs["log.csv"],
                                                                    r.metrics) for r in ranked], f)
     emit(sweep, json_out, out, _sweep_summary)

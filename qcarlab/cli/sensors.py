@@ -14,6 +14,7 @@ from rich.table import Table
 from qcarlab import plots
 from qcarlab.car import parse_car_uri
 from qcarlab.cli.app import app
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
     StartOpt, WorldOpt, sim_world,
     check_out,
@@ -23,14 +24,14 @@ from qcarlab.cli.common import (
 from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.camera import grab
-from qcarlab.experiments.lidar_scan import capture, sector_minima
+from qcarlab.experiments.lidar_scan import place_target, capture, sector_minima
 from qcarlab.experiments.result import Result
 
 SECTORS = ("ahead", "ahead-left", "left", "behind-left", "behind", "behind-right", "right", "ahead-right")
 
 
 def _list_worlds() -> None:
-    from qcarlab.sim.world import list_worlds
+    from qcarlab.experiments.worlds import list_worlds
 
     table = Table(title="shipped worlds", title_justify="left")
     table.add_column("name")
@@ -68,6 +69,7 @@ def _sector_table(k: int, scan) -> Table:
 
 
 @app.command("lidar-scan")
+@recordable
 def lidar_scan_cmd(
     scans: Annotated[int, typer.Option(min=1, help="How many LIDAR turns to capture (10 per second).")] = 1,
     beams: Annotated[int | None, typer.Option(min=8, max=8000, help="Beams per turn (default: the device's 800 at 10 Hz; simulator only).",
@@ -104,11 +106,7 @@ def lidar_scan_cmd(
         raise InputError("--target applies to the simulator only")
     world_obj, pose = sim_world(car, world, start, "studio", params)
     if target is not None:
-        x, y, yaw = pose or world_obj.start
-        p = load_params(params)
-        depth = 0.3  # the box's size along the line of sight
-        d = p.lidar_x + target + depth / 2.0
-        world_obj.add_box(x + d * math.cos(yaw), y + d * math.sin(yaw), depth, 0.6, yaw)
+        place_target(world_obj, pose or world_obj.start, target, load_params(params))
     with open_from_options(car, world_obj, seed, realtime or watch, params, start=pose) as qcar:
         if beams is not None:
             if not hasattr(qcar, "lidar_beams"):
@@ -121,7 +119,7 @@ def lidar_scan_cmd(
             result = capture(qcar, scans, drive, target)
         result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
         if world_obj is not None:
-            from qcarlab.sim.render import render_topdown
+            from qcarlab.experiments.worlds import render_topdown
 
             ppm = 50.0
             top = render_topdown(world_obj, px_per_m=ppm)
@@ -156,6 +154,7 @@ def _camera_summary(result: Result) -> None:
 
 
 @app.command("camera")
+@recordable
 def camera_cmd(
     rgbd: Annotated[bool, typer.Option("--rgbd", help="The Intel D435 RGBD pair: color.png and depth.png (sheet 3.7).")] = False,
     csi: Annotated[bool, typer.Option("--csi", help="The four CSI views and the 360 panorama (sheet 3.6).")] = False,
@@ -184,7 +183,7 @@ def camera_cmd(
         result.figures["color.png"] = lambda f: cv2.imwrite(str(f), frame.color)
         result.figures["depth.png"] = lambda f: plots.plot_depth(frame.depth, f)
     if csi:
-        from qcarlab.sim.camera import stitch_panorama
+        from qcarlab.experiments.worlds import stitch_panorama
 
         frames = result.data["csi"]
         for name, img in zip(("right", "rear", "left", "front"), frames.as_list()):

@@ -7,10 +7,10 @@ from typing import Annotated
 import typer
 
 from qcarlab import plots
-from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app, stderr
+from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
-    StartOpt, WorldOpt, sim_world, parse_hsv, KpOpt, KiOpt, KffOpt,
+    StartOpt, WorldOpt, sim_world, parse_hsv, KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt,
     DebugOpt,
     JsonOpt,
@@ -29,6 +29,7 @@ from qcarlab.experiments.result import Result
 from qcarlab.experiments.stop_sign import (
     BEHAVIOURS,
     StopSignConfig,
+    StopSignLab,
     run_stop_sign,
     sign_ahead,
 )
@@ -66,7 +67,9 @@ def _summary(result: Result) -> None:
 
 
 @app.command("stop-sign")
+@recordable
 def stop_sign_cmd(
+    ctx: typer.Context,
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
     behaviour: Annotated[str, typer.Option(help="sheet: the sheet's stopSign block (stop while 0.05 < d < 0.40 m); "
                                            "hold: slow down, stop, wait --hold s, drive on (Task 4).")] = "sheet",
@@ -75,9 +78,9 @@ def stop_sign_cmd(
                                          "H_min > H_max wraps through red's 0).")] = ",".join(map(str, RED_HSV_MIN)),
     hsv_max: Annotated[str, typer.Option(help="Upper HSV bound H,S,V.")] = ",".join(map(str, RED_HSV_MAX)),
     min_area: Annotated[int, typer.Option(help="Smallest red blob taken for a sign, pixels.")] = MIN_AREA,
-    kp: KpOpt = 0.3,
-    ki: KiOpt = 1.0,
-    kff: KffOpt = 0.1,
+    kp: KpOpt = KP,
+    ki: KiOpt = KI,
+    kff: KffOpt = KFF,
     max_time: Annotated[float | None, typer.Option(help="Give up after this many seconds (default: from the "
                                                    "distance and speed).", show_default=False)] = None,
     frames: Annotated[bool, typer.Option("--frames", help="With --out: also write annotated camera frames "
@@ -91,28 +94,34 @@ def stop_sign_cmd(
     json_out: JsonOpt = False,
     realtime: RealtimeOpt = False,
     params: ParamsOpt = None,
+    use: UseOpt = None,
+    block: BlockOpt = None,
     debug: DebugOpt = False,
 ) -> None:
     """Drive straight, detect the stop sign (HSV red + depth, sheet 5.1) and stop in front of it (5.2).
 
     Examples: qcarlab stop-sign | qcarlab stop-sign --speed 0.5 --out runs/stop |
-    qcarlab stop-sign --behaviour hold --hold 3 --json
+    qcarlab stop-sign --behaviour hold --hold 3 --json | qcarlab stop-sign --use mylab/stop_sign.py
+
+    Exit 0 when the car stopped before the sign (hold: and drove on), 1 when it did not, 2 for bad input.
     """
     if behaviour not in BEHAVIOURS:
         raise InputError(f"--behaviour must be one of {', '.join(BEHAVIOURS)}, got {behaviour!r}")
     cfg = StopSignConfig(speed=speed, behaviour=behaviour, hold=hold, hsv_min=parse_hsv(hsv_min, "--hsv-min"),
                          hsv_max=parse_hsv(hsv_max, "--hsv-max"), min_area=min_area, kp=kp, ki=ki, kff=kff,
                          rate=rate, max_time=max_time, frames=frames and out is not None)
+    apply_tunables(cfg, params, ctx, ignore=("frames",))
     cfg.check()
+    mine = student_blocks(StopSignLab, use, block)
     world_obj, pose = sim_world(car, world, start, "stop-sign", params)
     sign = None
     if world_obj is not None:
-        sign = sign_ahead(world_obj, pose or getattr(world_obj, "start", None) or START_POSE)
+        sign = sign_ahead(world_obj, pose or world_obj.start)
         if sign is None:
             stderr.print("warning: no stop sign ahead of the car in this world; the true stop distance is not "
                           "measured", markup=False)
     with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
-        result = run_stop_sign(qcar, cfg, sign)
+        result = run_stop_sign(qcar, cfg, sign, blocks=mine, world=world_obj)
     result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
     log = result.logs["log.csv"]
     result.figures["speed.png"] = lambda f: plots.plot_speed(log, f)

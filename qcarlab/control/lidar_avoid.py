@@ -4,8 +4,8 @@ blocks and the Task 4 combination. Pure: numpy in, numbers out; no car, no I/O.
 Every function takes the scan as the car gives it (:class:`qcarlab.sensors.LidarScan`): ``angles``
 in the body frame, counter-clockwise from forward (REP-103: + = left), ``ranges`` in metres from
 the LIDAR, ``0`` = no return. A return is the body-frame point ``x = r cos(theta)`` (forward),
-``y = r sin(theta)`` (left). On the QCar the LIDAR sits on the roof over the car's centre
-(``QCarParams.lidar_x = 0``), so its front bumper is ``length / 2 = 0.2125 m`` ahead of the LIDAR:
+``y = r sin(theta)`` (left). On the QCar the LIDAR sits on the roof just behind the car's centre
+(``QCarParams.lidar_x = -0.0108``), so its front bumper is ``length / 2 - lidar_x = 0.223 m`` ahead of the LIDAR:
 a stop distance is measured from the LIDAR, as the sheet's function sees it.
 
 - :func:`lidar_stop` ("LIDAR Stop.slx", Figure 60): speed only, 0 when an obstacle is near.
@@ -65,7 +65,7 @@ def lidar_stop(ranges, angles, desired_speed: float, stop_distance: float = 0.4,
 
     The forward window is :func:`forward_range`'s corridor of +-``half_width`` (m) ahead of the
     car (0.15 m: the car's half width 0.096 m plus 5 cm). ``stop_distance`` is measured from the
-    LIDAR (over the car's centre, 0.2125 m behind the front bumper). Acts on the speed only.
+    LIDAR (by the car's centre, 0.223 m behind the front bumper). Acts on the speed only.
     """
     return 0.0 if forward_range(ranges, angles, half_width) < stop_distance else float(desired_speed)
 
@@ -73,6 +73,7 @@ def lidar_stop(ranges, angles, desired_speed: float, stop_distance: float = 0.4,
 def lidar_steer(
     ranges,
     angles,
+    desired_speed: float = 0.0,
     detect_distance: float = 1.0,
     full_distance: float = 0.4,
     fov: float = math.radians(90.0),
@@ -88,8 +89,9 @@ def lidar_steer(
     so an obstacle on the left (theta* > 0) gives a right turn (delta < 0), full lock (0.5 rad)
     from ``full_distance`` in. An obstacle dead ahead (theta* = 0) is passed on the side with
     more room (the side whose nearest return in the window is farther; left on a tie). Nothing in
-    the window: 0. The speed is not this block's business (the sheet: "the speed remains
-    untouched").
+    the window: 0. ``desired_speed`` is the sheet's input (the block's fixed signature is
+    ``lidar_steer(distances, headings, desired_speed)``); the speed is not this block's business
+    (the sheet: "the speed remains untouched"), so the reference does not use it.
     """
     r = np.asarray(ranges, dtype=float)
     a = np.remainder(np.asarray(angles, dtype=float) + math.pi, 2.0 * math.pi) - math.pi
@@ -183,6 +185,15 @@ def rear_free_distance(points: np.ndarray, params: QCarParams = DEFAULT_PARAMS, 
     return float(min(horizon, (-half_len - x[sel]).min())) if sel.any() else float(horizon)
 
 
+class _Scan:
+    """A scan as :meth:`LidarAvoid.step` reads it (ranges, angles, time)."""
+
+    __slots__ = ("ranges", "angles", "t")
+
+    def __init__(self, ranges: np.ndarray, angles: np.ndarray, t: float):
+        self.ranges, self.angles, self.t = ranges, angles, t
+
+
 STATES = ("stop", "straight", "straight-left", "straight-right", "turn-left", "turn-right", "back")
 
 
@@ -251,8 +262,10 @@ class LidarAvoid:
         latency: float = 0.26,
         min_speed: float = 0.1,
         params: QCarParams = DEFAULT_PARAMS,
+        scan_period: float | None = None,
     ):
         self.params = params
+        self.scan_period = 1.0 / params.lidar_rate if scan_period is None else float(scan_period)
         self.decel, self.latency, self.min_speed = decel, latency, min_speed
         self.gap = max(stop_distance - params.length / 2.0, 0.0)
         self.turn_distance, self.clear_distance = turn_distance, clear_distance
@@ -274,6 +287,7 @@ class LidarAvoid:
         self._closing: list[float] = [0.0, 0.0]  # how fast the straight window shrank, last two scans
         self._prev_straight: float | None = None
         self.backups = 0
+        self._clock = 0.0
 
     def _windows(self, scan) -> AvoidWindows:
         pts = scan_points(scan.ranges, scan.angles, self.params.lidar_x)
@@ -300,6 +314,13 @@ class LidarAvoid:
     def _turn_side(self, w: AvoidWindows) -> float:
         left, right = w.turn_left + w.gentle_left, w.turn_right + w.gentle_right
         return 1.0 if left >= right else -1.0
+
+    def __call__(self, ranges, angles, desired_speed: float) -> tuple[float, float]:
+        """The ``lidar_avoid`` block: ``(speed_cmd m/s, steering_cmd rad)`` from one scan (the
+        block's fixed signature). Scans are taken to come ``scan_period`` s apart (10 Hz)."""
+        self._clock += self.scan_period
+        return self.step(_Scan(np.asarray(ranges, dtype=float), np.asarray(angles, dtype=float), self._clock),
+                         desired_speed)
 
     def step(self, scan, speed: float) -> tuple[float, float]:
         """One decision per LIDAR scan: ``(speed_ref m/s, steering rad)`` for desired ``speed``."""

@@ -21,40 +21,39 @@ from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 
 
 class BicyclePoseEstimator:
-    """Integrates speed and steering (or gyro yaw rate) into a pose (x, y, yaw) of the car's centre."""
+    """The ``pose_estimator`` block: integrates speed and steering (or gyro yaw rate) into a pose
+    (x, y, yaw) of the car's centre. Stateful only through the servo model (the wheel angle)::
 
-    def __init__(
-        self,
-        pose: tuple[float, float, float],
-        params: QCarParams = DEFAULT_PARAMS,
-        model_servo: bool = True,
-    ):
+        est = BicyclePoseEstimator(params)
+        pose = est(pose, speed, steering_cmd, dt, yaw_rate=None)   # every tick
+    """
+
+    def __init__(self, params: QCarParams = DEFAULT_PARAMS, model_servo: bool = True):
         self.params = params
         self.model_servo = model_servo
-        self.reset(pose)
+        self.reset()
 
-    def reset(self, pose: tuple[float, float, float]) -> None:
-        self.x, self.y, self.yaw = (float(v) for v in pose)
+    def reset(self) -> None:
         self.delta = 0.0
 
-    @property
-    def pose(self) -> tuple[float, float, float]:
-        return (self.x, self.y, self.yaw)
-
     def __call__(
-        self, speed: float, steering_cmd: float, dt: float, yaw_rate: float | None = None
+        self,
+        pose: tuple[float, float, float],
+        speed: float,
+        steering_cmd: float,
+        dt: float,
+        yaw_rate: float | None = None,
     ) -> tuple[float, float, float]:
-        """Advance by ``dt`` with the measured ``speed`` and the commanded steering; return the pose."""
+        """The pose ``dt`` s after ``pose`` at the measured ``speed`` with the commanded steering."""
         p = self.params
         if self.model_servo:
             self.delta += (steering_cmd - self.delta) * (1.0 - math.exp(-dt / p.steering_tau))
         else:
             self.delta = steering_cmd
+        x, y, yaw = pose
         tan_d = math.tan(self.delta)
         beta = math.atan(0.5 * tan_d)
         r = speed * math.cos(beta) * tan_d / p.wheelbase if yaw_rate is None else yaw_rate
-        heading = self.yaw + beta + 0.5 * r * dt  # midpoint heading over the step
-        self.x += speed * dt * math.cos(heading)
-        self.y += speed * dt * math.sin(heading)
-        self.yaw = (self.yaw + r * dt + math.pi) % (2.0 * math.pi) - math.pi
-        return self.pose
+        heading = yaw + beta + 0.5 * r * dt  # midpoint heading over the step
+        return (x + speed * dt * math.cos(heading), y + speed * dt * math.sin(heading),
+                (yaw + r * dt + math.pi) % (2.0 * math.pi) - math.pi)

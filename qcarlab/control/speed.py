@@ -9,6 +9,9 @@ import math
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 
+#: The speed controller's gains, Quanser's defaults (sheet 4.2.3): written here once.
+KP, KI, KFF = 0.3, 1.0, 0.1
+
 
 def basic_speed_estimation(counts_per_s, params: QCarParams = DEFAULT_PARAMS):
     """Car speed (m/s) from the motor encoder's rate (counts/s): the four scaling terms of block 9.
@@ -48,9 +51,9 @@ class SpeedController:
 
     def __init__(
         self,
-        kp: float = 0.3,
-        ki: float = 1.0,
-        kff: float = 0.1,
+        kp: float = KP,
+        ki: float = KI,
+        kff: float = KFF,
         throttle_limit: float = DEFAULT_PARAMS.throttle_limit,
         integral_limit: float = 0.4,
         rest_speed: float = 0.01,
@@ -77,3 +80,7 @@ class SpeedController:
         u = self.kff * desired_speed + self.kp * e + self.integral
         lim = self.throttle_limit
         return lim if u > lim else (-lim if u < -lim else u)
+
+
+#: The sheet's block name for the class (a stateful block: ``speed_controller(v_ref, v, dt)``).
+speed_controller = SpeedController

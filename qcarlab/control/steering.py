@@ -2,15 +2,16 @@
 
 All angles in rad, positions in m, world frame X right / Y up, yaw counter-clockwise from +X,
 positive steering = turn left. ``pose`` is ``(x, y, yaw)`` of the car's CENTRE (the point the
-sheet's bicycle model and the simulator report). Each controller returns the steering angle at
-the wheels ``delta``; pass ``max_steering`` (e.g. ``DEFAULT_PARAMS.max_steering`` = 0.5236) to clip
+sheet's bicycle model and the simulator report), except for :func:`pure_pursuit`, which takes the
+rear axle's (:func:`rear_axle` converts). Each controller returns the steering angle at
+the wheels ``delta``; pass ``max_steering`` (e.g. ``DEFAULT_PARAMS.max_steering`` = 0.5) to clip
 it to ``[-max_steering, max_steering]``, otherwise it is returned unclipped (the car clips too).
 
 A tick of the sheet's PathFollowing model::
 
     search = LookaheadTarget(path, lookahead=0.5)
     target, index, progress = search(pose[:2])
-    delta = pure_pursuit(pose, target, wheelbase=0.256, max_steering=0.5236)
+    delta = pure_pursuit(rear_axle(pose), target, 0.5, wheelbase=0.256, max_steering=0.5)
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ __all__ = [
     "Target",
     "follow_the_carrot",
     "pure_pursuit",
+    "rear_axle",
     "stanley",
     "wrap_angle",
 ]
@@ -51,36 +53,42 @@ def _clip(delta: float, max_steering: float | None) -> float:
 def pure_pursuit(
     pose: np.ndarray | tuple[float, float, float],
     target: np.ndarray | tuple[float, float],
-    wheelbase: float = DEFAULT_PARAMS.wheelbase,
     lookahead: float | None = None,
+    wheelbase: float = DEFAULT_PARAMS.wheelbase,
     *,
-    rear_offset: float | None = None,
     max_steering: float | None = None,
 ) -> float:
-    """Pure pursuit (sheet 4.1.4): ``delta = atan(2 L sin(alpha) / l_d)``.
+    """Pure pursuit (sheet 4.1.4, the ``pure_pursuit`` block): ``delta = atan(2 L sin(alpha) / l_d)``.
 
-    The arc is fitted from the REAR AXLE, the point of the kinematic bicycle that moves tangent to
-    the heading, so the formula is exact there: ``pose`` is the car's centre and is shifted back
-    by ``rear_offset`` (default L/2)::
+    ``pose`` is ``(x, y, yaw)`` of the REAR AXLE, the point of the kinematic bicycle that moves
+    tangent to the heading, so the arc through the target is exact there; ``target`` the
+    look-ahead point ``(x, y)`` on the path::
 
-        x_r = x - rear_offset cos(yaw),  y_r = y - rear_offset sin(yaw)
         alpha = wrap(atan2(y_t - y_r, x_t - x_r) - yaw)       # target bearing from the heading
-        l_d = |target - (x_r, y_r)|   (or the given ``lookahead``, as the sheet's block uses)
+        l_d   = |target - (x_r, y_r)|                         # the chord to the target
 
-    Pass ``rear_offset=0`` when ``pose`` is already the rear axle (or to use the sheet's centre
-    form). ``alpha > 0`` (target on the left) gives ``delta > 0``. Clipped to ``+-max_steering``
-    if given. A target on the control point itself gives 0.
+    The sheet's block divides by its LookAheadDistance parameter; this one divides by the chord
+    itself, which is that distance when the target lies ``lookahead`` from the axle and stays
+    exact near the path's end, where the target is nearer (``lookahead`` is then not needed; it
+    is used only when the target is on the axle). ``alpha > 0`` (target on the left) gives
+    ``delta > 0``. Clipped to ``+-max_steering`` if given. A target on the axle itself gives 0.
     """
-    x, y, yaw = float(pose[0]), float(pose[1]), float(pose[2])
-    off = wheelbase / 2.0 if rear_offset is None else float(rear_offset)
-    xr, yr = x - off * math.cos(yaw), y - off * math.sin(yaw)
+    xr, yr, yaw = float(pose[0]), float(pose[1]), float(pose[2])
     dx, dy = float(target[0]) - xr, float(target[1]) - yr
     dist = math.hypot(dx, dy)
-    ld = dist if lookahead is None else float(lookahead)
-    if ld <= 0.0 or dist == 0.0:
+    if dist == 0.0:
         return 0.0
+    ld = dist if dist > 0.0 else float(lookahead or 0.0)
     alpha = wrap_angle(math.atan2(dy, dx) - yaw)
     return _clip(math.atan(2.0 * wheelbase * math.sin(alpha) / ld), max_steering)
+
+
+def rear_axle(pose: np.ndarray | tuple[float, float, float], wheelbase: float = DEFAULT_PARAMS.wheelbase
+              ) -> tuple[float, float, float]:
+    """The rear axle's pose from the centre's: ``(x - L/2 cos yaw, y - L/2 sin yaw, yaw)``."""
+    x, y, yaw = float(pose[0]), float(pose[1]), float(pose[2])
+    half = wheelbase / 2.0
+    return (x - half * math.cos(yaw), y - half * math.sin(yaw), yaw)
 
 
 def follow_the_carrot(

@@ -1,14 +1,19 @@
 """LIDAR obstacle detection and avoidance (lab sheet section 6.1) on any car.
 
-Each tick (``rate``, 100 Hz by default)::
+The model, :class:`AvoidLab`, is the sheet's Figure 59; each tick (``rate``, 100 Hz)::
 
     v      = basic_speed_estimation(tach)                      # encoder -> m/s
     scan   = car.read_lidar()                                  # a new turn every 0.1 s (10 Hz)
-    on a new scan:
-        stop:     v_ref = lidar_stop(scan, speed, stop_distance), delta = 0      (Task 1-2)
-        steer:    v_ref = speed, delta = lidar_steer(scan)                      (Task 3)
-        combined: v_ref, delta = LidarAvoid.step(scan, speed)                   (Task 4)
-    u      = speed_controller(v_ref, v)                        # feed-forward PI -> throttle
+    on a new scan (distances, headings: body frame, + = left, 0 = no return):
+        stop:     v_ref = lidar_stop(d, h, speed), delta = 0               (Task 1-2)
+        steer:    v_ref = speed, delta = lidar_steer(d, h, speed)          (Task 3)
+        combined: v_ref, delta = lidar_avoid(d, h, speed)                  (Task 4, open problem)
+        student:  the same with the student's own lidar_avoid
+    u      = speed_controller(v_ref, v, dt)                    # feed-forward PI -> throttle
+    lamps  = indicator_and_lamps(delta, v_ref)
+
+Every block is looked up by its sheet name: ``--use mine.py`` with ``lidar_stop``, ``lidar_steer``
+or ``lidar_avoid`` runs the same model with the student's functions.
 
 The PI controller is disarmed (integrator reset, throttle 0) while ``v_ref = 0`` and the car is at
 rest, so a stopped car does not creep on the integrator's charge.
@@ -33,17 +38,24 @@ from typing import Any
 
 import numpy as np
 
+from collections.abc import Mapping
+from functools import partial
+
+from qcarlab.blocks import BlockSpec
 from qcarlab.car.base import Car, Command, Readout
-from qcarlab.car.lamps import parse_lamps
+from qcarlab.car.lamps import lamps_named
 from qcarlab.constants import QCarParams
 from qcarlab.control.lidar_avoid import LidarAvoid, forward_range, lidar_steer, lidar_stop
-from qcarlab.control.speed import SpeedController, basic_speed_estimation
+from qcarlab.control.speed import KFF, KI, KP, SpeedController, basic_speed_estimation
 from qcarlab.errors import InputError
 from qcarlab.experiments.lidar_scan import lidar_world_pose
-from qcarlab.experiments.loop import STOP, check_rate, run_loop
+from qcarlab.control.lamps import indicator_and_lamps
+from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
+from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, INDICATOR_AND_LAMPS, SPEED_CONTROLLER, LabModel, finish
 from qcarlab.experiments.result import Result
+from qcarlab.experiments.safety import Clearance
 
-STRATEGIES = ("stop", "steer", "combined")
+STRATEGIES = ("stop", "steer", "combined", "student")
 REST_SPEED = 0.01  # m/s: below this the car counts as at rest
 
 
@@ -53,20 +65,20 @@ class AvoidConfig:
 
     strategy: str = "combined"
     speed: float = 0.3  # m/s desired
-    stop_distance: float = 0.4  # m from the LIDAR (over the car's centre)
+    stop_distance: float = 0.4  # m from the LIDAR (by the car's centre)
     half_width: float = 0.15  # m, the stop window's half width (car half width 0.096 + 5 cm)
     duration: float = 20.0  # s
     rate: float = 100.0  # Hz
-    kp: float = 0.3
-    ki: float = 1.0
-    kff: float = 0.1
+    kp: float = KP
+    ki: float = KI
+    kff: float = KFF
 
     def check(self, params: QCarParams) -> None:
         if self.strategy not in STRATEGIES:
             raise InputError(f"--strategy must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}")
         if not (math.isfinite(self.speed) and 0.0 < self.speed <= 3.0):
             raise InputError(f"--speed must be in (0, 3] m/s, got {self.speed}")
-        front = params.length / 2.0 + params.lidar_x
+        front = params.length / 2.0 - params.lidar_x  # the bumper's distance ahead of the LIDAR
         if not (math.isfinite(self.stop_distance) and front < self.stop_distance <= params.lidar_max_range):
             raise InputError(f"--stop-distance must be in ({front:g}, {params.lidar_max_range:g}] m (measured from "
                              f"the LIDAR, {front:g} m behind the front bumper), got {self.stop_distance}")
@@ -78,203 +90,187 @@ class AvoidConfig:
 
 
 # --------------------------------------------------------------------------------------------
-# collisions: the footprint against the world, from the true pose
-# --------------------------------------------------------------------------------------------
-class Clearance:
-    """Distance (m) from the car's footprint rectangle to the nearest solid or ball of ``world``.
-
-    ``clearance(x, y, yaw, t)`` -> (distance, (x, y) of the nearest obstacle point's piece centre);
-    0 when they touch or overlap. Static geometry is flattened into edge arrays once.
-    """
-
-    def __init__(self, world: Any, params: QCarParams):
-        self.a, self.b = params.length / 2.0, params.width / 2.0
-        starts, ends, owner, circles = [], [], [], []
-        self.pieces: list[tuple[float, float]] = []  # centre of each polygon / circle (reporting)
-        for s in world.static_solids():
-            if s.z0 >= params.height:  # entirely above the car's roof
-                continue
-            if s.kind == "polygon" and s.points is not None:
-                p = np.asarray(s.points, dtype=float)
-                k = len(self.pieces)
-                starts.append(p)
-                ends.append(np.roll(p, -1, axis=0))
-                owner.append(np.full(len(p), k))
-                self.pieces.append((float(p[:, 0].mean()), float(p[:, 1].mean())))
-            elif s.center is not None:
-                circles.append((s.center[0], s.center[1], s.radius))
-        self.p0 = np.vstack(starts) if starts else np.zeros((0, 2))
-        self.p1 = np.vstack(ends) if ends else np.zeros((0, 2))
-        self.owner = np.concatenate(owner) if owner else np.zeros(0, int)
-        self.n_poly = len(self.pieces)
-        self.circles = np.asarray(circles, dtype=float).reshape(-1, 3)
-        self.world = world
-
-    def _to_body(self, pts: np.ndarray, x: float, y: float, c: float, s: float) -> np.ndarray:
-        dx, dy = pts[:, 0] - x, pts[:, 1] - y
-        return np.column_stack((c * dx + s * dy, -s * dx + c * dy))
-
-    def _point_rect(self, q: np.ndarray) -> np.ndarray:
-        return np.hypot(np.maximum(np.abs(q[:, 0]) - self.a, 0.0), np.maximum(np.abs(q[:, 1]) - self.b, 0.0))
-
-    def __call__(self, x: float, y: float, yaw: float, t: float = 0.0) -> tuple[float, tuple[float, float] | None]:
-        c, s = math.cos(yaw), math.sin(yaw)
-        best, where = math.inf, None
-        if len(self.p0):
-            A = self._to_body(self.p0, x, y, c, s)
-            B = self._to_body(self.p1, x, y, c, s)
-            m, h = (A + B) / 2.0, (B - A) / 2.0
-            # separating axes of a segment against the rectangle: x, y and the segment's normal
-            sep = (np.abs(m[:, 0]) > self.a + np.abs(h[:, 0])) | (np.abs(m[:, 1]) > self.b + np.abs(h[:, 1])) \
-                | (np.abs(h[:, 0] * m[:, 1] - h[:, 1] * m[:, 0]) > self.a * np.abs(h[:, 1]) + self.b * np.abs(h[:, 0]))
-            d = np.minimum(self._point_rect(A), self._point_rect(B))
-            corners = np.array([[self.a, self.b], [-self.a, self.b], [-self.a, -self.b], [self.a, -self.b]])
-            ab = B - A
-            L2 = np.maximum((ab * ab).sum(axis=1), 1e-18)
-            for q in corners:
-                u = np.clip(((q - A) * ab).sum(axis=1) / L2, 0.0, 1.0)
-                d = np.minimum(d, np.hypot(A[:, 0] + u * ab[:, 0] - q[0], A[:, 1] + u * ab[:, 1] - q[1]))
-            d = np.where(sep, d, 0.0)
-            # the car's centre inside a polygon (no edge crossing it): even-odd rule per polygon
-            crosses = ((A[:, 1] > 0.0) != (B[:, 1] > 0.0))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                xint = A[:, 0] + (0.0 - A[:, 1]) * ab[:, 0] / ab[:, 1]
-            hits = np.bincount(self.owner[crosses & (xint > 0.0)], minlength=self.n_poly)
-            per_poly = np.full(self.n_poly, math.inf)
-            np.minimum.at(per_poly, self.owner, d)
-            per_poly[hits % 2 == 1] = 0.0
-            k = int(np.argmin(per_poly))
-            best, where = float(per_poly[k]), self.pieces[k]
-        circles = self.circles
-        balls = self.world.obstacles_at(t)
-        if balls:
-            circles = np.vstack([circles, [(b.x, b.y, b.radius) for b in balls]])
-        if len(circles):
-            q = self._to_body(circles[:, :2], x, y, c, s)
-            d = np.maximum(self._point_rect(q) - circles[:, 2], 0.0)
-            k = int(np.argmin(d))
-            if d[k] < best:
-                best, where = float(d[k]), (float(circles[k, 0]), float(circles[k, 1]))
-        return best, where
-
-
-# --------------------------------------------------------------------------------------------
 # the run
 # --------------------------------------------------------------------------------------------
-_LAMPS: dict[str, tuple[float, ...]] = {}
+#: The blocks of the LIDAR obstacle diagram (sheet 6.1, Figures 59-61), in the sheet's order.
+BLOCKS = (
+    BASIC_SPEED_ESTIMATION,
+    BlockSpec("lidar_stop", "lidar_stop(distances, headings, desired_speed) -> speed_cmd",
+              "m (0 = no return), rad (body frame, CCW from forward, + = left), m/s -> m/s",
+              "6.1 Tasks 1-2, Figure 60", "Stop strategy: 0 when an obstacle is near ahead, else the desired "
+              "speed. Acts on the speed only.", "speed",
+              fill="The stop strategy (LIDAR Stop.slx): set the speed to 0 when the QCar is near an obstacle "
+              "ahead, else the desired speed. distances[i] is the range (m) of the return at headings[i] "
+              "(rad, counter-clockwise from forward, + = left); 0 means no return. The LIDAR is by the "
+              "car's centre: the front bumper is 0.223 m ahead of it.",
+              example="lidar_stop(np.array([0.3]), np.array([0.0]), 0.3) == 0.0 (an obstacle 0.3 m dead ahead)"),
+    BlockSpec("lidar_steer", "lidar_steer(distances, headings, desired_speed) -> steering_cmd",
+              "m, rad, m/s -> rad (+ = left, within +-0.5)", "6.1 Task 3, Figure 61",
+              "Steering strategy: up to +-0.5 rad away from the obstacle. The speed is untouched.", "steering",
+              fill="The steering strategy (LIDAR Basic.slx): set the steering angle up to 0.5 or -0.5 rad "
+              "depending on where the detected obstacle is (steer away from it). The speed remains "
+              "untouched: return the steering angle only (rad, + = left).",
+              example="lidar_steer(np.array([0.5]), np.array([0.3]), 0.3) < 0 (obstacle ahead-left: turn right)"),
+    BlockSpec("lidar_avoid", "lidar_avoid(distances, headings, desired_speed) -> (speed_cmd, steering_cmd)",
+              "m, rad, m/s -> (m/s, rad)", "6.1 Task 4 (open problem)",
+              "Both strategies combined: avoid the obstacles, stop before contact (a class may keep state).",
+              "speed_steering", stateful=True,
+              fill="Open problem: combine the speed and steering strategies. The QCar should avoid the "
+              "obstacles, and stop if it is about to make contact with one. Return (speed_cmd m/s, "
+              "steering_cmd rad). A class (with __call__ and an optional reset) may keep a state between "
+              "scans, as the race-car report's state machine does.",
+              example="lidar_avoid(np.array([0.25]), np.array([0.0]), 0.3)[0] == 0.0 (about to touch: stop)"),
+    SPEED_CONTROLLER,
+    INDICATOR_AND_LAMPS,
+)
 
 
-def _lamps(names: str) -> tuple[float, ...]:
-    if names not in _LAMPS:
-        _LAMPS[names] = parse_lamps(names)
-    return _LAMPS[names]
+class AvoidLab(LabModel):
+    """The sheet's LIDAR obstacle model (6.1) as a block diagram; see the module docstring."""
+
+    lab = "avoid"
+    BLOCKS = BLOCKS
+
+    def __init__(self, cfg: AvoidConfig, params: QCarParams, throttle_limit: float,
+                 blocks: Mapping[str, Any] | None = None):
+        self.cfg, self.p, self.throttle_limit = cfg, params, throttle_limit
+        super().__init__(blocks)
+        if cfg.strategy == "student" and "lidar_avoid" not in self.student:
+            raise InputError("--strategy student runs your own lidar_avoid: give it with --use FILE.py "
+                             "(a function or class named lidar_avoid) or --block lidar_avoid=FILE.py:FUNC")
+        self.scan_t = None
+        self.v_ref, self.delta, self.front, self.state = 0.0, 0.0, math.inf, ""
+        self.n_scans = 0
+        self.rest = None
+        self.scans: list[tuple[np.ndarray, tuple[float, float, float] | None]] = []
+        self.scan_pose = None  # (t) -> the LIDAR's world pose, on a simulator
+
+    def reference_blocks(self) -> dict[str, Any]:
+        c, p = self.cfg, self.p
+        return {
+            "basic_speed_estimation": partial(basic_speed_estimation, params=p),
+            "lidar_stop": partial(lidar_stop, stop_distance=c.stop_distance, half_width=c.half_width),
+            "lidar_steer": lidar_steer,
+            "lidar_avoid": LidarAvoid(stop_distance=c.stop_distance, params=p),
+            "speed_controller": SpeedController(c.kp, c.ki, c.kff, throttle_limit=self.throttle_limit),
+            "indicator_and_lamps": partial(indicator_and_lamps, threshold=0.2),
+        }
+
+    def step(self, t: float, r: Readout, dt: float) -> Step:
+        c = self.cfg
+        v = self.basic_speed_estimation(r.tach)
+        scan = self.read_lidar()
+        if scan is not None and scan.t != self.scan_t:
+            self.scan_t = scan.t
+            self.n_scans += 1
+            d, h = scan.ranges, scan.angles
+            self.front = forward_range(d, h, c.half_width)
+            if c.strategy == "stop":
+                self.v_ref, self.delta, self.state = self.lidar_stop(d, h, c.speed), 0.0, ""
+                self.state = "go" if self.v_ref > 0 else "stop"
+            elif c.strategy == "steer":
+                self.v_ref, self.delta, self.state = c.speed, self.lidar_steer(d, h, c.speed), "steer"
+            else:
+                self.v_ref, self.delta = self.lidar_avoid(d, h, c.speed)
+                self.state = str(getattr(self.lidar_avoid, "state", "avoid"))
+            self.scans.append((scan.points(), self.scan_pose(scan.t) if self.scan_pose else None))
+        v_ref, delta = self.v_ref, self.delta
+        if v_ref == 0.0 and abs(v) < REST_SPEED and self.rest is None and math.isfinite(self.front):
+            self.rest = {"t": t, "range_m": self.front}
+        throttle = self.speed_controller(v_ref, v, dt)  # speed_controller holds a car at rest with throttle 0
+        return Step(Command(throttle, delta, lamps_named(tuple(self.indicator_and_lamps(delta, v_ref)))),
+                    {"v_ref": v_ref, "v_meas": v, "front_range": self.front, "state": self.state})
 
 
-def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None) -> Result:
+class _Collisions:
+    """The avoid run's collision check, every tick, balls included (ends the run at contact)."""
+
+    def __init__(self, model: AvoidLab, world: Any, car: Car):
+        self.model, self.car = model, car
+        self.checker = Clearance(world, car.params)
+        self.truth0 = car.truth()
+        self.min_clear, self.collision, self.max_from_start = math.inf, None, 0.0
+
+    def start(self, car: Car, dt: float) -> None:
+        self.model.start(car, dt)
+
+    def step(self, t: float, r: Readout, dt: float):
+        tr = self.car.truth()
+        clear, where = self.checker(tr.x, tr.y, tr.yaw, tr.t)
+        self.min_clear = min(self.min_clear, clear)
+        self.max_from_start = max(self.max_from_start, math.hypot(tr.x - self.truth0.x, tr.y - self.truth0.y))
+        if clear <= 0.0:
+            self.collision = {"t": t, "x": tr.x, "y": tr.y, "yaw": tr.yaw, "obstacle": list(where) if where else None,
+                              "speed_mps": float(self.model.basic_speed_estimation(r.tach))}
+            return STOP
+        out = self.model.step(t, r, dt)
+        out.log["clearance"] = clear
+        if self.model.rest is not None and "gap_m" not in self.model.rest:
+            self.model.rest["gap_m"] = clear
+        return out
+
+
+def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
+          blocks: Mapping[str, Any] | None = None) -> Result:
     """Drive ``car`` with the LIDAR strategy ``cfg.strategy``; return metrics, the log, the scans.
 
     ``world`` (the simulator's, when local) enables the collision check and the drive figure.
+    ``blocks`` replaces any block of :data:`BLOCKS` by name.
     """
+    world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     p = car.params
     cfg.check(p)
     truth0 = car.truth()
-    checker = Clearance(world, p) if (world is not None and truth0 is not None) else None
-    pi = SpeedController(cfg.kp, cfg.ki, cfg.kff, throttle_limit=car.throttle_limit)
-    avoider = LidarAvoid(stop_distance=cfg.stop_distance, params=p) if cfg.strategy == "combined" else None
+    lab = AvoidLab(cfg, p, car.throttle_limit, blocks)
+    lab.read_lidar = car.read_lidar
+    if truth0 is not None:
+        lab.scan_pose = lambda t: lidar_world_pose(car, t)
+    guard = _Collisions(lab, world, car) if (world is not None and truth0 is not None) else None
     dt = 1.0 / cfg.rate
-    rec: dict[str, list] = {k: [] for k in ("v_ref", "v_meas", "front_range", "clearance", "state")}
-    scans: list[tuple[np.ndarray, tuple[float, float, float] | None]] = []
-    st: dict[str, Any] = {"scan_t": None, "v_ref": 0.0, "delta": 0.0, "front": math.inf, "state": "",
-                          "min_clear": math.inf, "collision": None, "rest": None, "n_scans": 0,
-                          "dist": 0.0, "d0": truth0.distance if truth0 is not None else 0.0,
-                          "max_from_start": 0.0}
-
-    def step(t: float, r: Readout) -> Command | object:
-        v = basic_speed_estimation(r.tach, p)
-        clear = math.nan
-        if checker is not None:
-            tr = car.truth()
-            clear, where = checker(tr.x, tr.y, tr.yaw, tr.t)
-            st["min_clear"] = min(st["min_clear"], clear)
-            st["max_from_start"] = max(st["max_from_start"], math.hypot(tr.x - truth0.x, tr.y - truth0.y))
-            if clear <= 0.0:
-                st["collision"] = {"t": t, "x": tr.x, "y": tr.y, "yaw": tr.yaw,
-                                   "obstacle": list(where) if where else None, "speed_mps": v}
-                return STOP
-        st["dist"] += abs(v) * dt
-        scan = car.read_lidar()
-        if scan is not None and scan.t != st["scan_t"]:
-            st["scan_t"] = scan.t
-            st["n_scans"] += 1
-            st["front"] = forward_range(scan.ranges, scan.angles, cfg.half_width)
-            if cfg.strategy == "stop":
-                st["v_ref"], st["delta"] = lidar_stop(scan.ranges, scan.angles, cfg.speed, cfg.stop_distance,
-                                                      cfg.half_width), 0.0
-                st["state"] = "go" if st["v_ref"] > 0 else "stop"
-            elif cfg.strategy == "steer":
-                st["v_ref"], st["delta"] = cfg.speed, lidar_steer(scan.ranges, scan.angles)
-                st["state"] = "steer"
-            else:
-                st["v_ref"], st["delta"] = avoider.step(scan, cfg.speed)
-                st["state"] = avoider.state
-            pose = lidar_world_pose(car, scan.t) if truth0 is not None else None
-            scans.append((scan.points(), pose))
-        v_ref, delta = st["v_ref"], st["delta"]
-        at_rest = abs(v) < REST_SPEED
-        if v_ref == 0.0 and at_rest and st["rest"] is None and math.isfinite(st["front"]):
-            st["rest"] = {"t": t, "range_m": st["front"], "gap_m": clear if math.isfinite(clear) else None}
-        throttle = pi(v_ref, v, dt)  # speed_controller holds a car at rest with throttle 0
-        lamps = "brake" if v_ref == 0.0 else ("reverse" if v_ref < 0 else "")
-        if delta > 0.2:
-            lamps += ",left-indicators"
-        elif delta < -0.2:
-            lamps += ",right-indicators"
-        for key, value in (("v_ref", v_ref), ("v_meas", v), ("front_range", st["front"]), ("clearance", clear),
-                           ("state", st["state"])):
-            rec[key].append(value)
-        return Command(throttle, delta, _lamps(lamps.strip(",")))
-
-    if avoider is not None:
-        avoider.reset()
-    log = run_loop(car, step, cfg.duration, cfg.rate, on_tick=on_tick)
+    log = run_loop(car, guard or lab, cfg.duration, cfg.rate, on_tick=on_tick)
     cols: dict[str, np.ndarray] = log.arrays()
     n = log.ticks
-    for key in rec:
-        cols[key] = np.asarray(rec[key][:n])
+    if "clearance" not in cols:
+        cols["clearance"] = np.full(n, math.nan)
     truth1 = car.truth()
     duration = n * dt
     if truth1 is not None:
-        distance = truth1.distance - st["d0"]
+        distance = truth1.distance - truth0.distance
     else:
-        distance = st["dist"]
-    rest = st["rest"]
+        distance = float(np.sum(np.abs(cols["v_meas"]))) * dt if n else 0.0
+    rest = lab.rest
     states = {}
-    if n and cfg.strategy == "combined":
-        names, counts = np.unique(cols["state"], return_counts=True)
+    if n and cfg.strategy in ("combined", "student"):
+        names, counts = np.unique(cols["state"].astype(str), return_counts=True)
         states = {str(k): float(c) * dt for k, c in zip(names, counts)}
+    collision = guard.collision if guard else None
     metrics = {
         "experiment": "avoid",
         "strategy": cfg.strategy,
-        "collisions": None if checker is None else (1 if st["collision"] else 0),
-        "collision": st["collision"],
-        "min_clearance_m": None if checker is None else float(st["min_clear"]),
+        "collisions": None if guard is None else (1 if collision else 0),
+        "collision": collision,
+        "min_clearance_m": None if guard is None else float(guard.min_clear),
         "distance_m": float(distance),
-        "max_distance_from_start_m": float(st["max_from_start"]) if checker is not None else None,
+        "max_distance_from_start_m": float(guard.max_from_start) if guard is not None else None,
         "duration_s": float(duration),
         "mean_speed_mps": float(distance / duration) if duration > 0 else 0.0,
         "stopped_before_obstacle": rest["range_m"] if rest else None,
-        "stop_gap_m": rest["gap_m"] if rest else None,
+        "stop_gap_m": rest.get("gap_m") if rest else None,
         "stopped_at_s": rest["t"] if rest else None,
-        "scans": st["n_scans"],
+        "scans": lab.n_scans,
     }
-    if avoider is not None:
-        metrics["backups"] = avoider.backups
+    if cfg.strategy in ("combined", "student"):
+        metrics["backups"] = getattr(lab.lidar_avoid, "backups", None)
         metrics["time_in_state_s"] = states
     metrics["config"] = asdict(cfg)
+    finish(metrics, log, lab, None, goal=not collision, goal_text="")
+    if collision:
+        metrics["goal_reached"], metrics["failure"] = False, (
+            f"collision at ({collision['x']:.2f}, {collision['y']:.2f}) m, t = {collision['t']:.2f} s")
     keep = ["t", "true_x", "true_y", "true_yaw", "true_speed", "throttle", "steering", "v_ref", "v_meas",
             "front_range", "clearance", "state"]
     log_cols = {k: cols[k] for k in keep if k in cols}
-    return Result("avoid", metrics, logs={"log.csv": log_cols}, data={"scans": scans, "log": cols})
+    return Result("avoid", metrics, logs={"log.csv": log_cols}, data={"scans": lab.scans, "log": cols})
 
 
 def draw_drive(world: Any, result: Result, px_per_m: float = 80.0, every: int = 2) -> np.ndarray:

@@ -1,21 +1,52 @@
 """Basic I/O test (lab sheet 3.3): hold a throttle, steering and lamps, and read every sensor.
 
 On the stand (the sheet's Task 1) the wheels turn and the encoder counts while the car stays
-put; on the floor it drives. Speed is estimated from the encoder through
-``basic_speed_estimation``; a simulated car also reports its own ground truth to compare with.
+put; on the floor it drives. The model, :class:`BasicIOLab` (BasicIO.slx), holds the command and,
+each tick, turns the tachometer into a speed with its one block, ``basic_speed_estimation`` (the
+student may give their own: ``--use``); a simulated car also reports its ground truth to compare.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from functools import partial
+from typing import Any
 
 import numpy as np
 
+from qcarlab.blocks import BlockSpec
 from qcarlab.car.base import Car, Command, Readout
 from qcarlab.car.lamps import lamps_on
 from qcarlab.control.speed import basic_speed_estimation
-from qcarlab.experiments.loop import run_loop
+from qcarlab.experiments.loop import Step, run_loop
+from qcarlab.experiments.model import LabModel, finish
 from qcarlab.experiments.result import Result
+
+BLOCKS = (
+    BlockSpec("basic_speed_estimation", "basic_speed_estimation(counts_per_s) -> speed", "counts/s -> m/s",
+              "3.3 Task 2; lane example block 9", "Car speed from the motor encoder's rate.", "speed",
+              fill="basicSpeedEstimation: turn the encoder's rate (counts/s) into the car's speed (m/s). The "
+              "encoder has 720 lines, read in 4x quadrature (2880 counts per motor revolution); the gear "
+              "ratio from the motor to the wheels is (13*19)/(70*37); the tyre radius is 0.033 m.",
+              example="basic_speed_estimation(10000.0) ~ 0.0687 m/s"),
+)
+
+
+class BasicIOLab(LabModel):
+    """BasicIO.slx (sheet 3.3): a constant command; the encoder's speed through its block."""
+
+    lab = "io-test"
+    BLOCKS = BLOCKS
+
+    def __init__(self, command: Command, params, blocks: Mapping[str, Any] | None = None):
+        self.command, self.p = command, params
+        super().__init__(blocks)
+
+    def reference_blocks(self) -> dict[str, Any]:
+        return {"basic_speed_estimation": partial(basic_speed_estimation, params=self.p)}
+
+    def step(self, t: float, r: Readout, dt: float) -> Step:
+        return Step(self.command, {"speed_mps": self.basic_speed_estimation(r.tach)})
 
 
 def io_test(
@@ -26,24 +57,27 @@ def io_test(
     duration: float,
     rate: float = 100.0,
     on_tick: Callable[[float, Readout, Command], None] | None = None,
+    *,
+    blocks: Mapping[str, Any] | None = None,
 ) -> Result:
     """Drive with a constant command for ``duration`` s; summarise the sensors."""
     command = car.validate(throttle, steering, leds)  # refuse NaN before anything moves
+    lab = BasicIOLab(command, car.params, blocks)
     truth0 = car.truth()
     start = car.read()
-    log = run_loop(car, lambda t, r: command, duration, rate, on_tick=on_tick)
+    log = run_loop(car, lab, duration, rate, on_tick=on_tick)
     end = car.read()
     elapsed = end.t - start.t
     counts = end.encoder_counts - start.encoder_counts
     p = car.params
     cols = log.arrays()
-    speed = basic_speed_estimation(cols["tach"], p)
+    speed = cols["speed_mps"].astype(float)
     metrics = {
         "experiment": "io-test",
         "command": {"throttle": command.throttle, "steering": command.steering, "leds": lamps_on(command.leds)},
         "duration_s": elapsed,
         "rate_hz": rate,
-        "mean_speed_mps": basic_speed_estimation(counts / elapsed, p),
+        "mean_speed_mps": float(lab.basic_speed_estimation(counts / elapsed)),
         "max_speed_mps": float(np.max(np.abs(speed))),
         "distance_m": counts * p.speed_per_count,
         "encoder_counts": counts,
@@ -72,4 +106,5 @@ def io_test(
     for key in ("true_x", "true_y", "true_yaw", "true_speed"):
         if key in cols:
             columns[key] = cols[key]
+    finish(metrics, log, lab, None, True, "")
     return Result("io-test", metrics, logs={"log.csv": columns})

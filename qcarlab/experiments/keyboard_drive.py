@@ -43,9 +43,11 @@ from typing import Any
 
 import numpy as np
 
-from qcarlab.car.base import Car, Readout, Truth
+from qcarlab.car.base import Car, Command, Readout, Truth
+from qcarlab.car.lamps import lamps_named
 from qcarlab.control.speed import basic_speed_estimation
 from qcarlab.errors import InputError, NotBuiltError
+from qcarlab.experiments.loop import STOP, Step, run_loop
 
 try:
     import termios
@@ -104,7 +106,7 @@ class DriveConfig:
     max_throttle: float = 0.15
     throttle_step: float = 0.03  # per key press
     throttle_ramp: float = 0.3  # duty/s: how fast the applied throttle follows its target
-    max_steering: float = 0.5236
+    max_steering: float = 0.5  # the servo's +-0.5 rad (QCarParams.max_steering)
     steering_step: float = 0.1  # rad per key press
     steering_ramp: float = 1.5  # rad/s
     blink_hz: float = 1.5  # indicators and hazard lamps
@@ -447,6 +449,82 @@ class _Signals:
             signal.signal(sig, handler)
 
 
+class KeyboardDriveLab:
+    """Keyboard drive (sheet 3.4) as a model of the one loop: keys in, command out, every tick.
+
+    ``keys(t)`` gives the keys pressed since the last call (None: end of input); the step applies
+    them and ramps the command by the tick's real ``dt``; it ends the run (STOP) on q, Ctrl-C, the
+    end of input or a signal, and says why in ``reason``.
+    """
+
+    def __init__(self, car: Car, config: DriveConfig, keys: Callable[[float], list[str] | None],
+                 on_frame: Callable[[Frame], None] | None, sigs: _Signals, rate: float,
+                 lidar_period: float, truth_period: float):
+        self.car, self.keys, self.on_frame, self.sigs = car, keys, on_frame, sigs
+        self.lidar_period, self.truth_period = lidar_period, truth_period
+        self.state = DriveState(config)
+        self.params = car.params
+        self.lidar_ok, self.nearest = True, "n/a"
+        self.truth0 = self.truth = car.truth()
+        self.distance = self.top = self.speed = 0.0
+        self.n_keys = self.ticks = 0
+        self.reason = "quit"
+        self.wall0 = time.monotonic()
+        self.last_lidar = self.last_truth = self.wall0
+        self.recent: deque[float] = deque(maxlen=max(2, int(rate)))  # tick times of the last second
+        self.rate = rate
+        self.t_car: float | None = None
+        self.readout: Readout | None = None
+
+    def read_lidar(self) -> None:
+        if not self.lidar_ok:
+            return
+        try:
+            self.nearest = nearest_obstacle(self.car.read_lidar())
+        except NotBuiltError:
+            self.lidar_ok, self.nearest = False, "n/a"
+
+    def step(self, t: float, r: Readout, dt: float) -> Step | object:
+        now = time.monotonic()
+        pressed = self.keys(now - self.wall0)
+        if pressed is None:
+            self.reason = "terminal closed"
+            return STOP
+        state = self.state
+        for key in pressed:
+            self.n_keys += 1
+            state = apply_key(state, key)
+        if state.quit is not None:
+            self.state, self.reason = state, state.quit
+            return STOP
+        if self.sigs.received is not None:
+            self.reason = "interrupted" if self.sigs.received == signal.SIGINT else "signal"
+            return STOP
+        state = self.state = apply_key(state, None, min(dt, 5.0 / self.rate) if self.ticks else 0.0)
+        self.recent.append(now)
+        recent = self.recent
+        rate_est = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] \
+            else self.rate
+        self.readout = r
+        self.speed = speed = float(basic_speed_estimation(r.tach, self.params))
+        if self.t_car is not None:
+            self.distance += abs(speed) * max(0.0, r.t - self.t_car)
+        self.t_car = r.t
+        self.top = max(self.top, abs(speed))
+        if now - self.last_lidar >= self.lidar_period:
+            self.last_lidar = now
+            self.read_lidar()
+        if self.truth0 is not None and now - self.last_truth >= self.truth_period:
+            self.last_truth = now
+            self.truth = self.car.truth()
+        self.ticks += 1
+        names = tuple(lamps(state))
+        if self.on_frame is not None:
+            self.on_frame(Frame(now - self.wall0, state, r, speed, names, self.nearest, self.truth, self.distance,
+                                rate_est))
+        return Step(Command(state.throttle, state.steering, lamps_named(names)))
+
+
 def keyboard_drive(
     car: Car,
     config: DriveConfig = DriveConfig(),
@@ -464,103 +542,38 @@ def keyboard_drive(
     for end of input; for tests). ``on_frame`` gets a :class:`Frame` every tick and must be quick.
     SIGINT, SIGTERM and SIGHUP end the drive like ``q`` does (reason ``interrupted`` or
     ``signal``). A :class:`~qcarlab.errors.CarError` (a lost connection) propagates after the
-    stop was tried.
+    stop was tried. The drive runs on the one loop of every lab, paced in real time.
     """
     if not (math.isfinite(rate) and 1.0 <= rate <= 1000.0):
         raise InputError(f"--rate must be between 1 and 1000 Hz, got {rate}")
     if key_fd is None and keys is None:
         raise InputError("keyboard_drive needs key_fd or keys")
-    dt = 1.0 / rate
     decoder = KeyDecoder()
-    state = DriveState(config)
-    params = car.params
-    lidar_ok = True
-    nearest: tuple[float, float] | str = "n/a"
+    if keys is None:
+        def keys(_t: float) -> list[str] | None:
+            return read_keys(key_fd, decoder, time.monotonic())  # type: ignore[arg-type]
 
-    def read_lidar() -> None:
-        nonlocal lidar_ok, nearest
-        if not lidar_ok:
-            return
-        try:
-            nearest = nearest_obstacle(car.read_lidar())
-        except NotBuiltError:
-            lidar_ok, nearest = False, "n/a"
-
-    read_lidar()  # once before driving: a first scan may be slow (compilation, a cold cache)
-    truth0 = car.truth()
-    truth = truth0
-    r = car.read()
-    t_car = r.t
-    distance = top = speed = 0.0
-    n_keys = ticks = 0
-    reason = "quit"
-    wall0 = time.monotonic()
-    deadline = wall0
-    last_lidar = last_truth = wall0
-    last_tick = wall0
-    recent: deque[float] = deque(maxlen=max(2, int(rate)))  # tick times of the last second
-    try:
-        with _Signals() as sigs:
-            while True:
-                now = time.monotonic()
-                pressed = keys(now - wall0) if keys is not None else read_keys(key_fd, decoder, now)  # type: ignore[arg-type]
-                if pressed is None:
-                    reason = "terminal closed"
-                    break
-                for key in pressed:
-                    n_keys += 1
-                    state = apply_key(state, key)
-                if state.quit is not None:
-                    reason = state.quit
-                    break
-                if sigs.received is not None:
-                    reason = "interrupted" if sigs.received == signal.SIGINT else "signal"
-                    break
-                step = min(now - last_tick, 5 * dt) if ticks else 0.0
-                last_tick = now
-                recent.append(now)
-                rate_est = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else rate
-                state = apply_key(state, None, step)
-                car.write(state.throttle, state.steering, lamps(state))
-                if car.stepped:
-                    car.advance(dt)
-                r = car.read()
-                speed = float(basic_speed_estimation(r.tach, params))
-                distance += abs(speed) * max(0.0, r.t - t_car)
-                t_car = r.t
-                top = max(top, abs(speed))
-                if now - last_lidar >= lidar_period:
-                    last_lidar = now
-                    read_lidar()
-                if truth0 is not None and now - last_truth >= truth_period:
-                    last_truth = now
-                    truth = car.truth()
-                ticks += 1
-                if on_frame is not None:
-                    on_frame(Frame(now - wall0, state, r, speed, tuple(lamps(state)), nearest, truth, distance, rate_est))
-                deadline += dt
-                wait = deadline - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
-                elif wait < -5 * dt:  # far behind (a slow read, a suspended process): do not burst
-                    deadline = time.monotonic()
-        final_truth = car.truth() if truth0 is not None else None
-    finally:
-        _stop_quietly(car)
+    with _Signals() as sigs:
+        lab = KeyboardDriveLab(car, config, keys, on_frame, sigs, rate, lidar_period, truth_period)
+        lab.read_lidar()  # once before driving: a first scan may be slow (compilation, a cold cache)
+        lab.wall0 = time.monotonic()
+        log = run_loop(car, lab, 7 * 24 * 3600.0, rate, record_truth=False, pace=True, keep_rows=False)
+    final_truth = car.truth() if lab.truth0 is not None else None
+    r = lab.readout if lab.readout is not None else car.read()
     summary = DriveSummary(
-        reason=reason,
-        duration_s=time.monotonic() - wall0,
-        distance_m=distance,
-        top_speed_mps=top,
-        final_speed_mps=speed,
-        ticks=ticks,
-        keys=n_keys,
+        reason="interrupted" if log.interrupted else lab.reason,
+        duration_s=time.monotonic() - lab.wall0,
+        distance_m=lab.distance,
+        top_speed_mps=lab.top,
+        final_speed_mps=lab.speed,
+        ticks=lab.ticks,
+        keys=lab.n_keys,
         battery_v=float(r.battery_voltage),
         signal=sigs.received,
     )
-    if truth0 is not None and final_truth is not None:
-        summary.truth_distance_m = final_truth.distance - truth0.distance
-        dyaw = final_truth.yaw - truth0.yaw
+    if lab.truth0 is not None and final_truth is not None:
+        summary.truth_distance_m = final_truth.distance - lab.truth0.distance
+        dyaw = final_truth.yaw - lab.truth0.yaw
         summary.heading_change_rad = math.atan2(math.sin(dyaw), math.cos(dyaw))
     return summary
 

@@ -1,16 +1,21 @@
 """Vision lane following (lab sheet 5.3, the *Autonomous Driving* / lane example model) on any car.
 
-Each tick (``rate``, 100 Hz by default)::
+The model, :class:`LaneFollowingLab`, is the lane example's diagram; each tick (100 Hz)::
 
     v     = basic_speed_estimation(tach)                         # encoder -> m/s
     on each new RGBD frame (30 Hz):
-        det   = detect_lane(color, lane, hsv_min, hsv_max)       # imageSelector, colorThresholdingHSV,
-                                                                 # linearPolyFit (white edge line as backup)
-        delta = steering_calculation(det.fit, line_offset(lane, det.source))
+        roi   = image_selector(color)                            # the region the line is expected in
+        mask  = color_thresholding_hsv(roi)                      # the yellow centre line
+        fit   = linear_poly_fit(mask)                            # u = slope v + intercept (or None)
+              (no yellow: the white edge line, the same way, as a backup)
+        delta = steering_calculation(fit, line_offset(lane, line))
         box   = draw_box(depth.shape, delta); d_obs = calculate_distance(depth, box)
-    v_ref = automated_driving(v_desired, d_obs, stop_distance)
+    v_ref = automated_driving(v_desired, d_obs)                  # slower, then 0, before an obstacle
     v_ref = turn_speed_handling(v_ref, delta)                    # cos(delta)^8, clipped to 0.5..1
-    u     = speed_controller(v_ref, v)                           # feed-forward PI -> throttle
+    u     = speed_controller(v_ref, v, dt)                       # feed-forward PI -> throttle
+    lamps = indicator_and_lamps(delta, v_ref)
+
+Every block is looked up by its sheet name; ``--use`` replaces any of them.
 
 The steering is held between frames (zero-order hold); a frame with no line keeps the last steering
 for up to ``hold_lost`` s (a curve goes on), then steers straight.
@@ -33,14 +38,20 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
+from collections.abc import Mapping
+from functools import partial
+from typing import Any
+
+from qcarlab.blocks import BlockSpec
 from qcarlab.car.base import Car, Command
-from qcarlab.car.lamps import ALL_OFF, parse_lamps
+from qcarlab.car.lamps import lamps_named
 from qcarlab.control.lane import (
     LaneCamera,
     automated_driving,
     line_offset,
     steering_calculation,
 )
+from qcarlab.control.speed import KFF, KI, KP
 from qcarlab.control.speed import (
     SpeedController,
     basic_speed_estimation,
@@ -48,10 +59,16 @@ from qcarlab.control.speed import (
 )
 from qcarlab.control.tracking import Polyline
 from qcarlab.errors import InputError
-from qcarlab.experiments.loop import STOP, check_rate, run_loop
+from qcarlab.constants import QCarParams
+from qcarlab.control.lamps import indicator_and_lamps
+from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
+from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, INDICATOR_AND_LAMPS, SPEED_CONTROLLER, TURN_SPEED_HANDLING, LabModel, finish
+from qcarlab.experiments.safety import WorldWatch
 from qcarlab.experiments.result import Result
 from qcarlab.perception.lane import (
     LANES,
+    white_line_mask,
+    linear_poly_fit,
     MIN_PIXELS,
     YELLOW_HSV_MAX,
     YELLOW_HSV_MIN,
@@ -76,7 +93,7 @@ class LaneFollowConfig:
 
     speed: float = 0.3  # m/s desired
     lane: str = "right"
-    duration: float = 30.0  # s
+    duration: float | None = None  # s; None: 30 s, or with laps the time they need
     laps: float | None = None  # stop after this many laps (simulator)
     hsv_min: tuple[int, int, int] = YELLOW_HSV_MIN
     hsv_max: tuple[int, int, int] = YELLOW_HSV_MAX
@@ -86,9 +103,9 @@ class LaneFollowConfig:
     turn_speed: bool = True
     stop_distance: float = 0.6  # m
     hold_lost: float = 1.0  # s the last steering is kept when the line is lost
-    kp: float = 0.3
-    ki: float = 1.0
-    kff: float = 0.1
+    kp: float = KP
+    ki: float = KI
+    kff: float = KFF
     rate: float = 100.0
 
     def check(self) -> None:
@@ -96,7 +113,7 @@ class LaneFollowConfig:
             raise InputError(f"--lane must be one of {', '.join(LANES)}, got {self.lane!r}")
         if not (math.isfinite(self.speed) and 0.0 < self.speed <= 3.0):
             raise InputError(f"--speed must be a number of m/s in (0, 3], got {self.speed}")
-        if not (math.isfinite(self.duration) and 0.0 < self.duration <= 3600.0):
+        if self.duration is not None and not (math.isfinite(self.duration) and 0.0 < self.duration <= 3600.0):
             raise InputError(f"--duration must be 0..3600 s, got {self.duration}")
         if self.laps is not None and not (math.isfinite(self.laps) and 0.0 < self.laps <= 100.0):
             raise InputError(f"--laps must be a positive number (at most 100), got {self.laps}")
@@ -129,6 +146,16 @@ def _yellow_line(world) -> np.ndarray | None:
     if best.closed or np.allclose(pts[0], pts[-1]):
         pts = np.vstack([pts, pts[:1]]) if not np.allclose(pts[0], pts[-1]) else pts
     return pts
+
+
+def start_in_lane(world, lane: str, pose: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+    """The start pose for ``lane``: ``pose`` when given; in the left lane, the world's start (which
+    is in the right lane) moved one lane width (0.4 m) to the car's left; else None (the world's)."""
+    if pose is not None or lane != "left":
+        return pose
+    x, y, yaw = world.start
+    d = 2.0 * LANE_HALF_WIDTH
+    return (x - d * math.sin(yaw), y + d * math.cos(yaw), yaw)
 
 
 def lane_centre(world, start: tuple[float, float, float], half_width: float = LANE_HALF_WIDTH) -> np.ndarray | None:
@@ -173,66 +200,167 @@ def lane_metrics(xy: np.ndarray, centre: np.ndarray, dt: float, half_width: floa
 
 
 # ------------------------------------------------------------------------------- the run
-def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None) -> Result:
-    """Follow the lane at ``cfg.speed`` for ``cfg.duration`` s (or ``cfg.laps`` laps)."""
+#: The blocks of the lane example (sheet 5.3 and the lane-following block list), in its order.
+BLOCKS = (
+    BASIC_SPEED_ESTIMATION,
+    BlockSpec("image_selector", "image_selector(image) -> image", "BGR (H, W, 3) -> the same, zero outside",
+              "lane example block 1", "Keep the region where the tracked line is expected (same shape)."),
+    BlockSpec("color_thresholding_hsv", "color_thresholding_hsv(image_bgr) -> mask", "BGR uint8 -> uint8 0/255",
+              "5.3 Task, lane example block 2", "Keep the yellow paint (the HSV ranges you tuned)."),
+    BlockSpec("linear_poly_fit", "linear_poly_fit(mask) -> LineFit | None",
+              "mask -> slope, intercept of u = slope v + intercept (px), pixels, rows", "lane example block 3",
+              "A straight line through the line's pixels; None when there are too few."),
+    BlockSpec("steering_calculation", "steering_calculation(fit, offset) -> steering",
+              "LineFit | None, m (where the line lies from the lane centre, + = left) -> rad",
+              "lane example block 4", "Steer onto the lane centre from the fitted line.", "steering"),
+    BlockSpec("draw_box", "draw_box(shape, steering) -> (x0, y0, x1, y1)", "image shape, rad -> px",
+              "lane example block 5 (obstacleDetection)", "The obstacle window, shifted where the car turns."),
+    BlockSpec("calculate_distance", "calculate_distance(depth, box) -> distance", "m image, px -> m (0 = nothing)",
+              "lane example block 5 (obstacleDetection)", "Mean depth of the obstacle window within 2 m."),
+    BlockSpec("automated_driving", "automated_driving(desired_speed, obstacle_distance) -> speed", "m/s, m -> m/s",
+              "lane example block 7", "Adaptive cruise: slower as an obstacle nears, 0 at the stop distance.",
+              "speed"),
+    TURN_SPEED_HANDLING,
+    SPEED_CONTROLLER,
+    INDICATOR_AND_LAMPS,
+)
+
+
+class LaneFollowingLab(LabModel):
+    """The lane example's diagram (sheet 5.3) as a block diagram; see the module docstring."""
+
+    lab = "lane-follow"
+    BLOCKS = BLOCKS
+
+    def __init__(self, cfg: LaneFollowConfig, params: QCarParams, throttle_limit: float,
+                 blocks: Mapping[str, Any] | None = None):
+        self.cfg, self.p, self.throttle_limit = cfg, params, throttle_limit
+        self.cam = LaneCamera.from_params(params)
+        super().__init__(blocks)
+        self.frame_dt = 1.0 / params.rgbd_rate
+        self.next_frame = 0.0
+        self.delta, self.last_seen, self.d_obs = 0.0, 0.0, 0.0
+        self.det = LaneDetection(None, None)
+        self.frame = self.box = self.shown = None
+        self.frames = self.lost = self.white = 0
+
+    def reference_blocks(self) -> dict[str, Any]:
+        c = self.cfg
+        return {
+            "basic_speed_estimation": partial(basic_speed_estimation, params=self.p),
+            "image_selector": partial(image_selector, lane=c.lane),
+            "color_thresholding_hsv": partial(color_thresholding_hsv, hsv_min=c.hsv_min, hsv_max=c.hsv_max),
+            "linear_poly_fit": partial(linear_poly_fit, min_pixels=c.min_pixels),
+            "steering_calculation": partial(steering_calculation, cam=self.cam, lookahead=c.lookahead),
+            "draw_box": draw_box,
+            "calculate_distance": calculate_distance,
+            "automated_driving": partial(automated_driving, stop_distance=c.stop_distance),
+            "turn_speed_handling": turn_speed_handling,
+            "speed_controller": SpeedController(c.kp, c.ki, c.kff, throttle_limit=self.throttle_limit),
+            "indicator_and_lamps": indicator_and_lamps,
+        }
+
+    def detect(self, color: np.ndarray) -> LaneDetection:
+        """The vision half of the diagram: the yellow line, else (backup) the lane's white edge line."""
+        yellow = self.color_thresholding_hsv(self.image_selector(color))
+        fit = self.linear_poly_fit(yellow)
+        ny = int(np.count_nonzero(yellow))
+        if fit is not None or not self.cfg.white_backup:
+            return LaneDetection(fit, "yellow" if fit is not None else None, ny, 0, yellow, yellow)
+        white = white_edge_mask(color, self.cfg.lane)
+        fit = self.linear_poly_fit(white)
+        return LaneDetection(fit, "white" if fit is not None else None, ny, int(np.count_nonzero(white)),
+                             white if fit is not None else yellow, yellow)
+
+    def step(self, t: float, r, dt: float) -> Step | object:
+        c = self.cfg
+        v = self.basic_speed_estimation(r.tach)
+        if t + 1e-9 >= self.next_frame:
+            frame = self.read_rgbd()
+            self.next_frame = (math.floor((t + 1e-9) / self.frame_dt) + 1) * self.frame_dt
+            det = self.detect(frame.color)
+            self.frames += 1
+            if det.fit is not None:
+                self.delta = self.steering_calculation(det.fit, line_offset(c.lane, det.source))
+                self.last_seen = t
+                self.white += det.source == "white"
+            else:
+                self.lost += 1
+                if t - self.last_seen > c.hold_lost:
+                    self.delta = 0.0
+            box = self.draw_box(frame.depth.shape, self.delta)
+            self.d_obs, self.box, self.det, self.frame = float(self.calculate_distance(frame.depth, box)), box, det, frame
+            if self.shown is None and det.source == "yellow" and t >= 1.0:
+                self.shown = (frame, det, box)
+        delta = self.delta
+        v_ref = self.automated_driving(c.speed, self.d_obs)
+        v_ref = self.turn_speed_handling(v_ref, delta) if c.turn_speed else v_ref
+        throttle = self.speed_controller(v_ref, v, dt)
+        lamps = lamps_named(tuple(self.indicator_and_lamps(delta, v_ref)))
+        return Step(Command(throttle, delta, lamps), {"v_ref": v_ref, "v_meas": v, "line": self.det.source or "none",
+                                                      "obstacle_distance": self.d_obs})
+
+
+def white_edge_mask(color: np.ndarray, lane: str) -> np.ndarray:
+    """The backup line: the lane's own white edge line (on the far side of the yellow line's region)."""
+    white = image_selector(white_line_mask(color), lane, line="white")
+    w = white.shape[1]
+    if lane == "right":
+        white[:, : int(0.15 * w)] = 0
+    else:
+        white[:, int(0.85 * w):] = 0
+    return white
+
+
+class _Laps:
+    """Ends a lane-follow run after ``laps`` laps of the lane centre (simulator)."""
+
+    def __init__(self, model: LaneFollowingLab, car: Car, poly: Polyline, laps: float):
+        self.model, self.car, self.poly, self.laps = model, car, poly, laps
+        tr = car.truth()
+        self.s = float(poly.nearest(np.array([[tr.x, tr.y]]))[1][0])
+        self.along = 0.0
+
+    def start(self, car: Car, dt: float) -> None:
+        self.model.start(car, dt)
+
+    def step(self, t: float, r, dt: float):
+        out = self.model.step(t, r, dt)
+        tr = self.car.truth()
+        s = float(self.poly.nearest(np.array([[tr.x, tr.y]]))[1][0])
+        L = self.poly.length
+        self.along += abs((s - self.s + L / 2.0) % L - L / 2.0)
+        self.s = s
+        return STOP if self.along >= self.laps * L else out
+
+
+def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapping[str, Any] | None = None
+                    ) -> Result:
+    """Follow the lane at ``cfg.speed`` for ``cfg.duration`` s (or ``cfg.laps`` laps).
+
+    ``blocks`` replaces any block of :data:`BLOCKS` by name.
+    """
+    world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     cfg.check()
     p = car.params
     dt = 1.0 / cfg.rate
-    frame_dt = 1.0 / p.rgbd_rate
-    cam = LaneCamera.from_params(p)
-    pi = SpeedController(cfg.kp, cfg.ki, cfg.kff, throttle_limit=car.throttle_limit)
+    lab = LaneFollowingLab(cfg, p, car.throttle_limit, blocks)
+    lab.read_rgbd = car.read_rgbd
     truth0 = car.truth()
     centre = lane_centre(world, (truth0.x, truth0.y, truth0.yaw)) if (world is not None and truth0 is not None) else None
-    lap_poly = Polyline(centre) if centre is not None else None
-    rec: dict[str, list] = {k: [] for k in ("v_ref", "v_meas", "line", "obstacle_distance")}
-    st = {"next_frame": 0.0, "delta": 0.0, "det": LaneDetection(None, None), "frame": None, "frames": 0,
-          "lost": 0, "white": 0, "last_seen": 0.0, "d_obs": 0.0, "box": None, "along": 0.0, "s": None,
-          "shown": None}
-    if lap_poly is not None:
-        st["s"] = float(lap_poly.nearest(np.array([[truth0.x, truth0.y]]))[1][0])
-
-    def step(t: float, r) -> Command | object:
-        v = basic_speed_estimation(r.tach, p)
-        if t + 1e-9 >= st["next_frame"]:
-            frame = car.read_rgbd()
-            st["next_frame"] = (math.floor((t + 1e-9) / frame_dt) + 1) * frame_dt
-            det = detect_lane(frame.color, cfg.lane, cfg.hsv_min, cfg.hsv_max, cfg.min_pixels, cfg.white_backup)
-            st["frames"] += 1
-            if det.fit is not None:
-                st["delta"] = steering_calculation(det.fit, line_offset(cfg.lane, det.source), cam, cfg.lookahead)
-                st["last_seen"] = t
-                if det.source == "white":
-                    st["white"] += 1
-            else:
-                st["lost"] += 1
-                if t - st["last_seen"] > cfg.hold_lost:
-                    st["delta"] = 0.0
-            box = draw_box(frame.depth.shape, st["delta"])
-            st["d_obs"], st["box"], st["det"], st["frame"] = calculate_distance(frame.depth, box), box, det, frame
-            if st["shown"] is None and det.source == "yellow" and t >= 1.0:
-                st["shown"] = (frame, det, box)
-        delta = st["delta"]
-        v_ref = automated_driving(cfg.speed, st["d_obs"], cfg.stop_distance)
-        v_ref = turn_speed_handling(v_ref, delta, cfg.turn_speed)
-        throttle = pi(v_ref, v, dt)
-        for key, value in (("v_ref", v_ref), ("v_meas", v), ("line", st["det"].source or "none"),
-                           ("obstacle_distance", st["d_obs"])):
-            rec[key].append(value)
-        if cfg.laps is not None and lap_poly is not None:
-            tr = car.truth()
-            s = float(lap_poly.nearest(np.array([[tr.x, tr.y]]))[1][0])
-            L = lap_poly.length
-            st["along"] += abs((s - st["s"] + L / 2.0) % L - L / 2.0)
-            st["s"] = s
-            if st["along"] >= cfg.laps * L:
-                return STOP
-        return Command(throttle, delta, _lamps(delta, v_ref))
-
-    log = run_loop(car, step, cfg.duration, cfg.rate)
-    cols = {k: np.asarray(v) for k, v in log.arrays().items()}
+    model: Any = lab
+    if cfg.laps is not None and centre is not None:
+        model = _Laps(lab, car, Polyline(centre), cfg.laps)
+    watch = WorldWatch.for_car(car, world)
+    if watch is not None:
+        model = watch.wrap(model)
+    duration = cfg.duration
+    if duration is None:  # --laps sets the time it needs (half as much again, for the turns)
+        duration = min(3600.0, 1.5 * cfg.laps * Polyline(centre).length / cfg.speed + 10.0) \
+            if (cfg.laps is not None and centre is not None) else 30.0
+    log = run_loop(car, model, duration, cfg.rate)
+    cols = log.arrays()
     n = log.ticks
-    for key in rec:
-        cols[key] = np.asarray(rec[key][:n])
     duration = n * dt
     metrics: dict = {"experiment": "lane-follow", "lane": cfg.lane, "speed_mps": cfg.speed}
     if centre is not None and "true_x" in cols and n:
@@ -247,15 +375,21 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None) -> Result:
         "duration_s": duration,
         "mean_speed_mps": float(np.mean(cols["true_speed"])) if "true_speed" in cols and n
         else (float(np.mean(cols["v_meas"])) if n else 0.0),
-        "frames": st["frames"],
-        "frames_line_lost": st["lost"],
-        "frames_white_backup": st["white"],
+        "frames": lab.frames,
+        "frames_line_lost": lab.lost,
+        "frames_white_backup": lab.white,
         "stopped_for_obstacle_s": float(np.count_nonzero(cols["v_ref"] == 0.0) * dt) if n else 0.0,
     })
     metrics["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()}
+    goal, why = True, ""
+    if cfg.laps is not None and metrics["laps"] is not None and metrics["laps"] < cfg.laps - 0.02:
+        goal, why = False, f"drove {metrics['laps']:.2f} of {cfg.laps:g} laps in the time limit"
+    elif metrics["time_out_of_lane_s"]:
+        goal, why = False, f"out of the lane for {metrics['time_out_of_lane_s']:.2f} s"
+    finish(metrics, log, lab, watch, goal, why)
 
     result = Result("lane-follow", metrics, logs={"log.csv": _log_columns(cols)}, figures={})
-    shown = st["shown"] or ((st["frame"], st["det"], st["box"]) if st["frame"] is not None else None)
+    shown = lab.shown or ((lab.frame, lab.det, lab.box) if lab.frame is not None else None)
     if shown is not None:
         frame, det, box = shown
         result.data["frame"] = shown
@@ -266,18 +400,6 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None) -> Result:
     return result
 
 
-_LEFT, _RIGHT = parse_lamps(["left-indicators"]), parse_lamps(["right-indicators"])
-
-
-def _lamps(delta: float, v_ref: float):
-    """indicatorAndLamps: indicators beyond 0.3 rad of steering, brake when stopped."""
-    if v_ref == 0.0:
-        return parse_lamps(["brake"])
-    if delta > 0.3:
-        return _LEFT
-    if delta < -0.3:
-        return _RIGHT
-    return ALL_OFF
 
 
 def _topdown(file, world, poses: np.ndarray, centre) -> None:

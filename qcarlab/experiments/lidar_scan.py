@@ -67,12 +67,22 @@ def lidar_world_pose(car: Car, t: float) -> tuple[float, float, float] | None:
     return (x + lx * math.cos(yaw), y + lx * math.sin(yaw), yaw)
 
 
+def place_target(world, pose: tuple[float, float, float], target: float, params) -> None:
+    """Put a 0.3 m deep, 0.6 m wide box ``target`` m in front of the LIDAR at ``pose`` (the sheet's
+    carton box, for the range check of ``lidar-scan --target``)."""
+    x, y, yaw = pose
+    depth = 0.3  # the box's size along the line of sight
+    d = params.lidar_x + target + depth / 2.0
+    world.add_box(x + d * math.cos(yaw), y + d * math.sin(yaw), depth, 0.6, yaw)
+
+
 def capture(car: Car, scans: int = 1, drive: bool = False, target: float | None = None,
             on_scan=None) -> Result:
     """Take ``scans`` LIDAR turns; return the summary, the last scan and the world point cloud."""
     rate = car.params.lidar_rate
     tick = 0.01
     clouds, poses = [], []
+    ahead = []  # with a target: the range straight ahead in each scan (its precision over the scans)
     scan = None
     for k in range(scans):
         if k > 0 or drive:
@@ -87,6 +97,8 @@ def capture(car: Car, scans: int = 1, drive: bool = False, target: float | None 
             poses.append(pose)
         if on_scan is not None:
             on_scan(k, scan)
+        if target is not None and (r := range_ahead(scan)) is not None:
+            ahead.append(r)
     car.stop()
     near = nearest_obstacle(scan)
     valid = scan.ranges[scan.valid]
@@ -108,6 +120,8 @@ def capture(car: Car, scans: int = 1, drive: bool = False, target: float | None 
     if target is not None:
         measured = range_ahead(scan)
         metrics["target"] = {"true_m": target, "measured_m": measured,
-                             "error_m": None if measured is None else measured - target}
+                             "error_m": None if measured is None else measured - target,
+                             "scans_with_return": len(ahead), "mean_m": float(np.mean(ahead)) if ahead else None,
+                             "std_m": float(np.std(ahead)) if ahead else None}
     return Result("lidar-scan", metrics, logs={"scan.csv": {"angle_rad": scan.angles, "range_m": scan.ranges}},
                   data={"scan": scan, "cloud": np.vstack(clouds) if clouds else np.zeros((0, 2)), "poses": poses})

@@ -1,14 +1,22 @@
 """The one control loop every lab uses: read the sensors, call the lab's step, write, wait.
 
-    def step(t, readout):             # the lab's logic, pure or a small stateful object
-        return Command(0.1, 0.0)      # or the STOP sentinel to end the run early
+    class MyLab:                                  # or any model of qcarlab.experiments.models
+        def step(self, t, readout, dt):           # the lab's diagram, once per tick
+            return Step(Command(0.1, 0.0), log={"v": 0.0})   # or STOP to end the run
 
-    log = run_loop(car, step, duration=5.0, rate=100.0)
+    log = run_loop(car, MyLab(), duration=5.0, rate=100.0)
 
-The clock follows the car: a stepped simulator is advanced by exactly 1/rate per tick (as fast
-as the CPU allows, deterministic); anything else (a real car, a realtime simulator, a TCP car) is
-paced against the wall clock with deadlines that do not drift. Whatever happens, a run that ends
-(normally, by an exception, by Ctrl-C) leaves the car stopped.
+A plain function ``step(t, readout) -> Command`` works too (the five-line scripts of the API).
+``Step.log`` holds the lab's own values (v_ref, cross-track error, state, ...): the loop records
+them beside what it logs itself, one row per tick, so no lab keeps state dicts of its own logs.
+
+The clock follows the car: a stepped simulator is advanced by exactly ``dt = 1/rate`` per tick
+(as fast as the CPU allows, deterministic); anything else (a real car, a real-time simulator, a
+TCP car) is paced against the wall clock. A late tick on a paced car is not followed by a burst
+of catch-up ticks: the schedule restarts from now, the step is told the real ``dt`` since the
+last tick, and the late ticks are counted (``overruns``, ``worst_tick_s``). Whatever happens (the
+end, an exception, a student's block failing, Ctrl-C) the car is left stopped; Ctrl-C returns the
+log so far with ``interrupted`` set, so the run's results can still be saved.
 """
 
 from __future__ import annotations
@@ -17,6 +25,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -26,20 +35,32 @@ from qcarlab.errors import InputError
 STOP = object()  # returned by a step function to end the run
 
 
+@dataclass(slots=True)
+class Step:
+    """What a lab's step returns: the command for the car and the values to log this tick."""
+
+    command: Command
+    log: dict[str, Any] | None = None
+
+
 @dataclass
 class LoopLog:
     """What the loop saw and did, one row per tick (SI units)."""
 
-    columns: dict[str, list[float]] = field(default_factory=dict)
+    columns: dict[str, list[Any]] = field(default_factory=dict)
     ticks: int = 0
-    stopped_early: bool = False
+    stopped_early: bool = False  # the step returned STOP
+    interrupted: bool = False  # Ctrl-C (or SIGTERM through the CLI) ended the run
+    overruns: int = 0  # paced cars: ticks that started more than one period late
+    worst_tick_s: float = 0.0  # paced cars: the longest gap between two ticks
 
-    def add(self, **values: float) -> None:
+    def add(self, **values: Any) -> None:
         for key, value in values.items():
             self.columns.setdefault(key, []).append(value)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {k: np.asarray(v) for k, v in self.columns.items()}
+        n = self.ticks
+        return {k: np.asarray(v[:n]) for k, v in self.columns.items()}
 
 
 def check_rate(rate: float) -> float:
@@ -48,60 +69,143 @@ def check_rate(rate: float) -> float:
     return float(rate)
 
 
+def _caller(model: Any) -> Callable[[float, Readout, float], Any]:
+    step = getattr(model, "step", None)
+    if callable(step):
+        return step
+    if callable(model):
+        return lambda t, r, dt: model(t, r)
+    raise InputError(f"run_loop: expected a lab model with step(t, readout, dt) or a function, got {model!r}")
+
+
 def run_loop(
     car: Car,
-    step: Callable[[float, Readout], Command | object],
+    model: Any,
     duration: float,
     rate: float = 100.0,
     on_tick: Callable[[float, Readout, Command], None] | None = None,
     record_truth: bool = True,
+    pace: bool = False,
+    keep_rows: bool = True,
 ) -> LoopLog:
-    """Run ``step`` at ``rate`` Hz for ``duration`` s (or until it returns STOP); return the log.
+    """Run the model at ``rate`` Hz for ``duration`` s (or until its step returns STOP).
 
-    Each tick logs: t, the applied throttle and steering, encoder counts, tach (counts/s),
-    motor current, battery voltage, gyro z and, on a simulator, the true pose and speed.
+    Each tick logs: t, the applied throttle and steering, encoder counts, tach (counts/s), motor
+    current, battery voltage, gyro z, on a simulator the true pose and speed, and the step's own
+    values (``Step.log``). ``model`` is a lab model (``step(t, readout, dt)``, with optional
+    ``start(car, dt)``) or a function ``(t, readout) -> Command | Step | STOP``. ``pace`` paces
+    even a stepped simulator against the wall clock (keyboard drive: a person is in the loop);
+    ``keep_rows=False`` keeps only the counts (a drive of hours needs no per-tick log).
     """
     if not (math.isfinite(duration) and duration > 0.0):
         raise InputError(f"duration must be a positive number of seconds, got {duration}")
-    dt = 1.0 / check_rate(rate)
+    period = 1.0 / check_rate(rate)
     n_ticks = max(1, round(duration * rate))
     log = LoopLog()
+    cols = log.columns
+    step = _caller(model)
+    start = getattr(model, "start", None)
+    if callable(start):
+        start(car, period)
     has_truth = record_truth and car.truth() is not None
     stepped = car.stepped
+    truth = car.truth
+    base = ("t", "throttle", "steering", "encoder_counts", "tach", "motor_current", "battery_voltage", "gyro_z")
+    tcols = ("true_x", "true_y", "true_yaw", "true_speed", "true_steering") if has_truth else ()
+    for key in (base + tcols) if keep_rows else ():
+        cols[key] = []
+    c_t, c_th, c_st, c_enc, c_tach, c_cur, c_bat, c_gz = (cols.get(k) for k in base)
+    if has_truth and keep_rows:
+        c_x, c_y, c_yaw, c_v, c_d = (cols[k] for k in tcols)
     t0 = car.time
-    wall0 = time.monotonic()
+    dt = period
+    next_wall = last_wall = time.monotonic()
+    k = 0
+    recorder = getattr(car, "recorder", None)  # --record/--live (qcarlab.recording): the lab's values too
     try:
         for k in range(n_ticks):
+            if getattr(car, "ended", False):  # --car replay: the recording has run out
+                log.stopped_early = True
+                break
             readout = car.read()
             t = readout.t - t0
-            out = step(t, readout)
+            out = step(t, readout, dt)
             if out is STOP:
                 log.stopped_early = True
                 break
+            if type(out) is Step:
+                values, out = out.log, out.command
+            else:
+                values = None
             cmd = car.write(out.throttle, out.steering, out.leds)
-            row = dict(
-                t=t,
-                throttle=cmd.throttle,
-                steering=cmd.steering,
-                encoder_counts=readout.encoder_counts,
-                tach=readout.tach,
-                motor_current=readout.motor_current,
-                battery_voltage=readout.battery_voltage,
-                gyro_z=float(readout.gyro[2]),
-            )
-            if has_truth:
-                tr = car.truth()
-                row.update(true_x=tr.x, true_y=tr.y, true_yaw=tr.yaw, true_speed=tr.speed, true_steering=tr.steering)
-            log.add(**row)
+            if keep_rows:
+                c_t.append(t)
+                c_th.append(cmd.throttle)
+                c_st.append(cmd.steering)
+                c_enc.append(readout.encoder_counts)
+                c_tach.append(readout.tach)
+                c_cur.append(readout.motor_current)
+                c_bat.append(readout.battery_voltage)
+                c_gz.append(float(readout.gyro[2]))
+                if has_truth:
+                    tr = truth()
+                    c_x.append(tr.x)
+                    c_y.append(tr.y)
+                    c_yaw.append(tr.yaw)
+                    c_v.append(tr.speed)
+                    c_d.append(tr.steering)
+                if values:
+                    for key, value in values.items():
+                        column = cols.get(key)
+                        if column is None:
+                            column = cols[key] = [None] * log.ticks  # a value first logged late
+                        column.append(value)
+            if recorder is not None and values:  # the lab's own values (a step's ``log``)
+                recorder.log_values(readout.t, {"t": t, **values})
             log.ticks += 1
+            if values is not None and keep_rows and len(values) != len(cols) - len(base) - len(tcols):
+                _pad(cols, log.ticks)
             if on_tick is not None:
                 on_tick(t, readout, cmd)
             if stepped:
-                car.advance(dt)
-            else:
-                delay = wall0 + (k + 1) * dt - time.monotonic()
-                if delay > 0.0:
-                    time.sleep(delay)
-    finally:
-        car.stop()
+                car.advance(period)
+            if pace or not stepped:
+                next_wall += period
+                now = time.monotonic()
+                if now < next_wall:
+                    time.sleep(next_wall - now)
+                now = time.monotonic()
+                if not stepped:  # a stepped car's time moved by exactly one period
+                    dt = now - last_wall
+                gap = now - last_wall
+                last_wall = now
+                if gap > log.worst_tick_s:
+                    log.worst_tick_s = gap
+                if now - next_wall > period:  # more than a period late: no burst of catch-up ticks
+                    log.overruns += 1
+                    next_wall = now
+    except KeyboardInterrupt:
+        log.interrupted = True
+    except BaseException:
+        _stop_quietly(car)  # the error in flight is the one to report, not a failing stop
+        raise
+    car.stop()
+    if keep_rows:
+        _pad(cols, log.ticks)
     return log
+
+
+def _stop_quietly(car: Car) -> None:
+    """Stop the car after an error; when that fails too (the connection is gone), a served car's
+    watchdog or the server's drop detection stops it."""
+    try:
+        car.stop()
+    except Exception:  # noqa: BLE001
+        pass
+
+
+def _pad(cols: dict[str, list[Any]], n: int) -> None:
+    """Columns the step did not fill this tick (a value logged only sometimes) get None."""
+    for column in cols.values():
+        if len(column) < n:
+            column.extend([None] * (n - len(column)))

@@ -1,36 +1,46 @@
 """Path following (lab sheet section 4): the PathFollowing model on any car.
 
-Each tick (``--rate``, 100 Hz by default)::
+The model, :class:`PathFollowingLab`, is the sheet's diagram; each tick (``--rate``, 100 Hz)::
 
-    v      = basic_speed_estimation(tach)                     # encoder -> m/s
-    pose   = estimator(v, last steering, dt [, gyro z])        # bicycle model (or truth)
-    target = LookaheadTarget(path)(pose)                       # forward-only look-ahead point
-    delta  = pure_pursuit | follow_the_carrot | stanley        # steering
-    v_ref  = min(v_desired, sqrt(2 a_stop s_remaining))        # slows down to stop at the goal
-    u      = speed_controller(v_ref, v)                        # feed-forward PI -> throttle
+    v      = basic_speed_estimation(tach)                          # encoder -> m/s
+    pose   = pose_estimator(pose, v, last steering, dt, gyro z)    # bicycle model (or truth)
+    target = LookaheadTarget(path)(pose)                           # forward-only look-ahead point
+    delta  = pure_pursuit(rear_axle(pose), target, lookahead, L)   # or follow_the_carrot, stanley
+    v_ref  = turn_speed_handling(v_desired, delta)                 # (when --turn-speed)
+    v_ref  = min(v_ref, sqrt(2 a_stop s_remaining))                # slows down to stop at the goal
+    u      = speed_controller(v_ref, v, dt)                        # feed-forward PI -> throttle
 
-The sheet's model never stops (its stated limitation); here the car brakes along a profile and
-stops within ``goal_tolerance`` of the last point. On a simulator the run is scored against the
-true pose: RMS and max cross-track error to the reference polyline, completion, speed tracking,
-final distance to the goal and the dead-reckoning drift.
+Every block is looked up by its sheet name, so ``blocks={"pure_pursuit": my_fn}`` (or ``--use``)
+runs the same model with the student's function. The sheet's model never stops (its stated
+limitation); here the car brakes along a profile and stops within ``goal_tolerance`` of the last
+point. On a simulator the run is scored against the true pose: RMS and max cross-track error to
+the reference polyline, completion, speed tracking, final distance to the goal, the dead-reckoning
+drift, and whether the car hit a wall or left the world (then the run stops: a goal missed).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
+from functools import partial
+from typing import Any
 
 import numpy as np
 
+from qcarlab.blocks import BlockSpec
 from qcarlab.car.base import Car, Command, Readout
 from qcarlab.car.lamps import ALL_OFF, parse_lamps
+from qcarlab.constants import QCarParams
 from qcarlab.control.pose import BicyclePoseEstimator
-from qcarlab.control.speed import SpeedController, basic_speed_estimation, turn_speed_handling
-from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pursuit, stanley
+from qcarlab.control.speed import KFF, KI, KP, SpeedController, basic_speed_estimation, turn_speed_handling
+from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pursuit, rear_axle, stanley
 from qcarlab.control.tracking import Polyline, cross_track_errors, progress_along
 from qcarlab.errors import InputError
-from qcarlab.experiments.loop import STOP, check_rate, run_loop
+from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
+from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, TURN_SPEED_HANDLING, LabModel, finish
 from qcarlab.experiments.result import Result
+from qcarlab.experiments.safety import WorldWatch
 
 CONTROLLERS = ("pure-pursuit", "carrot", "stanley")
 POSE_SOURCES = ("bicycle", "gyro", "truth")
@@ -47,9 +57,9 @@ class FollowConfig:
     k_carrot: float = 1.0
     k_stanley: float = 2.0
     speed: float = 0.5  # m/s desired
-    kp: float = 0.3
-    ki: float = 1.0
-    kff: float = 0.1
+    kp: float = KP
+    ki: float = KI
+    kff: float = KFF
     pose: str = "bicycle"
     goal_tolerance: float = 0.1  # m
     laps: int = 1
@@ -88,73 +98,155 @@ def repeat_laps(path: np.ndarray, laps: int) -> np.ndarray:
     return np.vstack([path] + [path[1:]] * (laps - 1))
 
 
-def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None) -> Result:
-    """Drive ``path`` with ``car``; return metrics, the log and the figures."""
-    cfg.check()
-    route = repeat_laps(np.asarray(path, dtype=float), cfg.laps)
-    poly = Polyline(route)
-    p = car.params
-    truth0 = car.truth()
-    if cfg.pose == "truth" and truth0 is None:
-        raise InputError("--pose truth needs the simulator (a real car has no ground truth)")
-    start = (truth0.x, truth0.y, truth0.yaw) if truth0 is not None else (route[0, 0], route[0, 1], _heading(route))
-    estimator = BicyclePoseEstimator(start, p)
-    search = LookaheadTarget(poly, cfg.lookahead)
-    pi = SpeedController(cfg.kp, cfg.ki, cfg.kff, throttle_limit=car.throttle_limit)
-    dt = 1.0 / cfg.rate
-    goal = route[-1]
-    end_zone = poly.length - max(cfg.goal_tolerance, cfg.lookahead) - 0.05
-    max_time = cfg.max_time or (1.5 * poly.length / cfg.speed + 10.0)
-    rec: dict[str, list[float]] = {k: [] for k in ("est_x", "est_y", "est_yaw", "v_ref", "v_meas", "target_x", "target_y")}
-    state = {"steer": 0.0, "arrived": False, "first": True}
+#: The blocks of the path-following diagram (sheet 4, Figures 34-43), in the sheet's order.
+BLOCKS = (
+    BASIC_SPEED_ESTIMATION,
+    BlockSpec("pose_estimator", "pose_estimator(pose, speed, steering, dt, yaw_rate) -> pose",
+              "(m, m, rad), m/s, rad, s, rad/s or None -> (m, m, rad)", "4.1.1, Figure 34",
+              "Dead reckoning: the pose dt later by the kinematic bicycle (yaw_rate: the gyro's, "
+              "with --pose gyro, else None).", "pose", stateful=True),
+    BlockSpec("pure_pursuit", "pure_pursuit(pose, target, lookahead, wheelbase) -> steering",
+              "(m, m, rad) of the rear axle, (m, m), m, m -> rad (+ = left)", "4.1.4, 4.2.2 Tasks 3-4",
+              "Steering onto the look-ahead point: atan(2 L sin(alpha) / l_d).", "steering",
+              fill="Pure pursuit: steer the car so that its rear axle drives the circular arc through the "
+              "look-ahead point. alpha = the target's bearing from the heading, l_d = the look-ahead "
+              "distance; delta = atan(2 L sin(alpha) / l_d). Then tune the look-ahead (Tasks 3-4).",
+              example="pure_pursuit((0, 0, 0), (0.0, 0.5), 0.5, 0.256) == atan(2 * 0.256 / 0.5) ~ 0.797"),
+    BlockSpec("follow_the_carrot", "follow_the_carrot(pose, target, k_carrot) -> steering",
+              "(m, m, rad) of the centre, (m, m), 1 -> rad", "4.1.3", "Steering K * heading error to the "
+              "carrot (--controller carrot).", "steering"),
+    BlockSpec("stanley", "stanley(pose, path, index, speed, k, wheelbase) -> steering",
+              "(m, m, rad), Polyline, segment, m/s, 1, m -> rad", "beyond the sheet (Thrun 2006)",
+              "Front-axle path tracking (--controller stanley).", "steering"),
+    TURN_SPEED_HANDLING,
+    BlockSpec("speed_controller", "speed_controller(v_ref, v_measured, dt) -> throttle",
+              "m/s, m/s, s -> duty fraction", "4.2.3, Figure 43",
+              "Feed-forward PI from the desired speed to the throttle (a class: it integrates).", "throttle",
+              stateful=True,
+              fill="The speed controller: a feed-forward PI. e = v_ref - v; throttle = K_ff v_ref + K_p e + "
+              "K_i integral(e dt), limited to +-0.3. A class keeps the integral between calls. Then tune "
+              "K_p and K_i (4.2.3) and explain your choice.",
+              example="SpeedController()(0.5, 0.0, 0.01) -> 0.1 * 0.5 + 0.3 * 0.5 + 1.0 * 0.5 * 0.01 = 0.205"),
+)
 
-    def step(t: float, r: Readout) -> Command | object:
-        v = basic_speed_estimation(r.tach, p)
-        if state["first"]:
-            state["first"] = False
-        elif cfg.pose == "gyro":
-            estimator(v, state["steer"], dt, yaw_rate=float(r.gyro[2]))
+
+class PathFollowingLab(LabModel):
+    """The sheet's PathFollowing model (section 4) as a block diagram; see the module docstring."""
+
+    lab = "path-follow"
+    BLOCKS = BLOCKS
+
+    def __init__(self, route: np.ndarray, cfg: FollowConfig, params: QCarParams, throttle_limit: float,
+                 start: tuple[float, float, float], truth=None, blocks: Mapping[str, Any] | None = None):
+        self.cfg, self.p, self.throttle_limit = cfg, params, throttle_limit
+        super().__init__(blocks)
+        self.poly = Polyline(route)
+        self.search = LookaheadTarget(self.poly, cfg.lookahead)
+        self.goal = route[-1]
+        self.end_zone = self.poly.length - max(cfg.goal_tolerance, cfg.lookahead) - 0.05
+        self.truth = truth  # the simulator's truth(), for --pose truth
+        self.pose = tuple(start)
+        self.steer = 0.0
+        self.arrived = False
+        self.first = True
+
+    def reference_blocks(self) -> dict[str, Any]:
+        c, p = self.cfg, self.p
+        return {
+            "basic_speed_estimation": partial(basic_speed_estimation, params=p),
+            "pose_estimator": BicyclePoseEstimator(p),
+            "pure_pursuit": partial(pure_pursuit, max_steering=p.max_steering),
+            "follow_the_carrot": partial(follow_the_carrot, max_steering=p.max_steering),
+            "stanley": partial(stanley, max_steering=p.max_steering),
+            "turn_speed_handling": turn_speed_handling,
+            "speed_controller": SpeedController(c.kp, c.ki, c.kff, throttle_limit=self.throttle_limit),
+        }
+
+    def step(self, t: float, r: Readout, dt: float) -> Step | object:
+        c, p = self.cfg, self.p
+        v = self.basic_speed_estimation(r.tach)
+        if self.first:
+            self.first = False
         else:
-            estimator(v, state["steer"], dt)
-        if cfg.pose == "truth":
-            tr = car.truth()
+            yaw_rate = float(r.gyro[2]) if c.pose == "gyro" else None
+            self.pose = self.pose_estimator(self.pose, v, self.steer, dt, yaw_rate)
+        est = self.pose
+        if c.pose == "truth":
+            tr = self.truth()
             pose = (tr.x, tr.y, tr.yaw)
         else:
-            pose = estimator.pose
-        target, index, progress = search(pose)
-        remaining = poly.length - progress
-        if not state["arrived"] and (
-            remaining <= 0.0 or (progress >= end_zone and math.dist(pose[:2], goal) <= cfg.goal_tolerance)
+            pose = est
+        target, index, progress = self.search(pose)
+        remaining = self.poly.length - progress
+        if not self.arrived and (
+            remaining <= 0.0 or (progress >= self.end_zone and math.dist(pose[:2], self.goal) <= c.goal_tolerance)
         ):
-            state["arrived"] = True
-        if state["arrived"]:
+            self.arrived = True
+        if self.arrived:
             delta, v_ref = 0.0, 0.0
             if abs(v) < 0.01:
                 return STOP
         else:
-            if cfg.controller == "pure-pursuit":
-                delta = pure_pursuit(pose, target, p.wheelbase, max_steering=p.max_steering)
-            elif cfg.controller == "carrot":
-                delta = follow_the_carrot(pose, target, cfg.k_carrot, max_steering=p.max_steering)
+            if c.controller == "pure-pursuit":
+                delta = self.pure_pursuit(rear_axle(pose, p.wheelbase), target, c.lookahead, p.wheelbase)
+            elif c.controller == "carrot":
+                delta = self.follow_the_carrot(pose, target, c.k_carrot)
             else:
-                delta = stanley(pose, poly, index, v, cfg.k_stanley, p.wheelbase, max_steering=p.max_steering)
-            v_ref = turn_speed_handling(cfg.speed, delta, cfg.turn_speed)
-            v_ref = min(v_ref, math.sqrt(2.0 * A_STOP * max(remaining - 0.5 * cfg.goal_tolerance, 0.0)))
-        throttle = pi(v_ref, v, dt)
-        state["steer"] = delta
-        for key, value in (("est_x", pose[0]), ("est_y", pose[1]), ("est_yaw", pose[2]), ("v_ref", v_ref),
-                           ("v_meas", v), ("target_x", target[0]), ("target_y", target[1])):
-            rec[key].append(value)
-        return Command(throttle, delta, _BRAKE if state["arrived"] else ALL_OFF)
+                delta = self.stanley(pose, self.poly, index, v, c.k_stanley, p.wheelbase)
+            delta = min(max(delta, -p.max_steering), p.max_steering)
+            v_ref = self.turn_speed_handling(c.speed, delta) if c.turn_speed else c.speed
+            v_ref = min(v_ref, math.sqrt(2.0 * A_STOP * max(remaining - 0.5 * c.goal_tolerance, 0.0)))
+        throttle = self.speed_controller(v_ref, v, dt)
+        self.steer = delta
+        return Step(Command(throttle, delta, _BRAKE if self.arrived else ALL_OFF),
+                    {"est_x": est[0], "est_y": est[1], "est_yaw": est[2], "v_ref": v_ref, "v_meas": v,
+                     "target_x": float(target[0]), "target_y": float(target[1])})
 
-    log = run_loop(car, step, max_time, cfg.rate, on_tick=on_tick)
-    cols = {k: np.asarray(v) for k, v in log.arrays().items()}
-    n = log.ticks
-    for key in rec:
-        cols[key] = np.asarray(rec[key][:n])
-    metrics = score_run(cols, route, cfg, truth=truth0 is not None, stopped=log.stopped_early)
+
+def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
+                blocks: Mapping[str, Any] | None = None, world: Any = None) -> Result:
+    """Drive ``path`` with ``car``; return metrics, the log and the figures.
+
+    ``blocks`` replaces any block of :data:`BLOCKS` by name (a function or class);
+    ``world`` (a simulated car's, when local) ends the run when the car hits a wall or leaves it.
+    """
+    world = world if world is not None else getattr(car, "world", None)  # a local simulator's
+    cfg.check()
+    route = repeat_laps(np.asarray(path, dtype=float), cfg.laps)
+    truth0 = car.truth()
+    if cfg.pose == "truth" and truth0 is None:
+        raise InputError("--pose truth needs the simulator (a real car has no ground truth)")
+    start = (truth0.x, truth0.y, truth0.yaw) if truth0 is not None else (route[0, 0], route[0, 1], _heading(route))
+    lab = PathFollowingLab(route, cfg, car.params, car.throttle_limit, start, car.truth, blocks)
+    watch = WorldWatch.for_car(car, world)
+    model = watch.wrap(lab) if watch is not None else lab
+    max_time = cfg.max_time or (1.5 * lab.poly.length / cfg.speed + 10.0)
+    log = run_loop(car, model, max_time, cfg.rate, on_tick=on_tick)
+    cols = log.arrays()
+    metrics = score_run(cols, route, cfg, truth=truth0 is not None, stopped=log.stopped_early and not
+                        (watch and watch.event))
     metrics["config"] = asdict(cfg)
+    finish(metrics, log, lab, watch, goal=metrics["completion"] >= 0.999 or metrics["stopped_at_goal"],
+           goal_text="the car did not reach the end of the path")
     return Result("path-follow", metrics, logs={"log.csv": _log_columns(cols)}, figures={})
+
+
+def lookahead_sweep(runs: list[Result], label: str) -> Result:
+    """The runs of a look-ahead sweep (sheet 4.2.2 Tasks 3-4) ranked: the ones that completed the
+    path first, then by RMS cross-track error; ``best`` is the first. Its goal: the best completed."""
+    ranked = sorted(runs, key=lambda r: (r.metrics["completion"] < 0.99, r.metrics["rms_cross_track_m"]))
+    summaries = []
+    for r in ranked:
+        m = {k: v for k, v in r.metrics.items() if k != "config"}
+        m["lookahead"] = r.metrics["config"]["lookahead"]
+        summaries.append(m)
+    best = summaries[0]
+    metrics = {"experiment": "path-follow", "path": label, "sweep": "lookahead", "runs": summaries, "best": best,
+               "goal_reached": bool(best.get("goal_reached", True)),
+               "failure": None if best.get("goal_reached", True) else "no look-ahead of the sweep reached the goal"}
+    sweep = Result("path-follow sweep", metrics, data={"ranked": ranked})
+    sweep.logs = {f"log_lookahead_{r.metrics['config']['lookahead']:g}.csv": r.logs["log.csv"] for r in runs}
+    return sweep
 
 
 def _heading(path: np.ndarray) -> float:

@@ -22,12 +22,20 @@ class Result:
     data: dict[str, Any] = field(default_factory=dict)  # in-memory artefacts (frames, scans), not saved
 
     def save(self, out: str | Path) -> list[Path]:
-        """Write results.json, the CSV logs and the figures into ``out``; return the paths."""
+        """Write the CSV logs, the figures and, last, results.json into ``out``; return the paths.
+
+        Each file is written atomically; results.json comes last, so when it is there the logs it
+        describes are complete (a run killed while saving leaves no results.json claiming them).
+        """
         folder = prepare_out_dir(out)
-        written = [write_json(folder / "results.json", self.metrics)]
+        stale = folder / "results.json"
+        if stale.exists():
+            stale.unlink()  # a results.json of an earlier run must not describe this run's logs
+        written = []
         for filename, columns in self.logs.items():
             written.append(write_csv(folder / filename, columns))
         for filename, draw in self.figures.items():
             draw(folder / filename)
             written.append(folder / filename)
+        written.append(write_json(folder / "results.json", self.metrics))
         return written

@@ -1,17 +1,21 @@
 """Stop at a stop sign (lab sheet 5.1-5.2): the *Stop.slx* model on any car.
 
-Each tick (``rate``, 100 Hz by default)::
+The model, :class:`StopSignLab`, is the sheet's Figure 50; each tick (``rate``, 100 Hz)::
 
     v     = basic_speed_estimation(tach)                      # encoder -> m/s
-    det   = detect_stop_sign(color, depth)                    # on each new RGBD frame (30 Hz)
-    v_ref = stop_sign(det.distance, v_desired)                # the sheet's block (behaviour "sheet")
-          | StopSignBehaviour.step(t, v, det.distance)        # slow, stop, hold, go ("hold")
-    u     = speed_controller(v_ref, v)                        # feed-forward PI -> throttle
+    on each new RGBD frame (30 Hz):
+        mask  = color_thresholding_hsv(color)                 # the sheet's red
+        obj   = find_objects(mask)                            # the largest red blob (or None)
+        d     = calculate_distance(depth, obj.centroid, mask) # depth at the sign, 0 = no sign
+    v_ref = stop_sign(d, v_desired)                           # the sheet's block (behaviour "sheet")
+          | StopSignBehaviour.step(t, v, d)                   # slow, stop, hold, go ("hold")
+    u     = speed_controller(v_ref, v, dt)                    # feed-forward PI -> throttle
     steering = 0                                              # the road is straight
 
-Between frames the last frame's distance is held (as Simulink's zero-order hold does). Once the
-car is at rest with v_ref = 0 the speed controller is disarmed (throttle 0, integrator reset): with
-the PI alone the integral wound up while braking backs the car away from the sign at ~3 cm/s.
+Every block is looked up by its sheet name: ``--use mylab/stop_sign.py`` runs the same model with
+the student's ``stop_sign``. Between frames the last frame's distance is held (as Simulink's
+zero-order hold does). Once the car is at rest with v_ref = 0 the speed controller gives throttle
+0 and resets its integrator, so the integral wound up while braking does not back the car away.
 
 The run ends: in the sheet mode when the car has stood still for ``settle`` seconds after
 stopping for the sign (the sheet's car would wait there for ever); in the hold mode when the
@@ -21,20 +25,26 @@ Scoring (simulator only) uses the true pose and the world's sign: ``stop_distanc
 distance **from the car's front bumper** (centre + length / 2 along the heading) to the sign's
 plate, measured along the heading, when the car came to rest. The camera is 2.25 cm behind the
 bumper (``rgbd_x`` = 0.19 m), so the camera's own reading (``measured_distance_m``, the D435's
-z-depth) is that much larger.
+z-depth) is that much larger. The goal is reached when the car came to rest before the sign
+(and, in the hold mode, drove on past it); a run that hits something or leaves the world fails.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
+from functools import partial
+from typing import Any
 
 import cv2
 import numpy as np
 
+from qcarlab.blocks import BlockSpec
 from qcarlab.car.base import Car, Command, Readout
 from qcarlab.car.lamps import ALL_OFF, parse_lamps
-from qcarlab.control.speed import SpeedController, basic_speed_estimation
+from qcarlab.constants import QCarParams
+from qcarlab.control.speed import KFF, KI, KP, SpeedController, basic_speed_estimation
 from qcarlab.control.stop_sign import (
     FAR,
     NEAR,
@@ -43,16 +53,20 @@ from qcarlab.control.stop_sign import (
     stop_sign,
 )
 from qcarlab.errors import InputError
-from qcarlab.experiments.loop import STOP, check_rate, run_loop
+from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
+from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, SPEED_CONTROLLER, LabModel, finish
 from qcarlab.experiments.result import Result
+from qcarlab.experiments.safety import WorldWatch
 from qcarlab.perception.stop_sign import (
     MIN_AREA,
     RED_HSV_MAX,
     RED_HSV_MIN,
     StopSignDetection,
+    calculate_distance,
     check_hsv,
-    detect_stop_sign,
+    color_thresholding_hsv,
     detection_image,
+    find_objects,
 )
 
 BEHAVIOURS = ("sheet", "hold")
@@ -70,14 +84,16 @@ class StopSignConfig:
     hsv_min: tuple[int, int, int] = RED_HSV_MIN
     hsv_max: tuple[int, int, int] = RED_HSV_MAX
     min_area: int = MIN_AREA  # px
-    kp: float = 0.3
-    ki: float = 1.0
-    kff: float = 0.1
+    kp: float = KP
+    ki: float = KI
+    kff: float = KFF
     rate: float = 100.0  # Hz
     max_time: float | None = None  # s; default from the speed
     settle: float = 1.0  # s standing still that ends a sheet-mode run
     pass_margin: float = 0.3  # m past the sign that ends a hold-mode run
     frames: bool = False  # keep annotated camera frames for --out DIR/frames/
+    near: float = NEAR  # m: the stop window of the sheet's block, near ..
+    far: float = FAR  # m: .. far
 
     def check(self) -> None:
         if self.behaviour not in BEHAVIOURS:
@@ -100,6 +116,8 @@ class StopSignConfig:
                 raise InputError(f"--{name} must be a non-negative number, got {value}")
         if self.max_time is not None and not (math.isfinite(self.max_time) and self.max_time > 0):
             raise InputError(f"--max-time must be a positive number of seconds, got {self.max_time}")
+        if not (math.isfinite(self.near) and math.isfinite(self.far) and 0.0 <= self.near < self.far <= 10.0):
+            raise InputError(f"the stop window must be 0 <= near < far <= 10 m, got near {self.near}, far {self.far}")
         check_rate(self.rate)
 
 
@@ -127,107 +145,164 @@ def bumper_distance(pose: tuple[float, float, float], plate: tuple[float, float]
     return (plate[0] - x) * math.cos(yaw) + (plate[1] - y) * math.sin(yaw) - half_length
 
 
-def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None) -> Result:
+def sign_distance(depth: np.ndarray, centroid, mask: np.ndarray | None = None) -> float:
+    """The stop-sign lab's ``calculate_distance``: the median depth (m) of the red pixels around the
+    sign's centroid, or of every valid pixel there when no red pixel has depth; 0 = unknown."""
+    if centroid is None:
+        return 0.0
+    d = calculate_distance(depth, centroid, mask=mask)
+    return d if d > 0.0 else calculate_distance(depth, centroid)
+
+
+#: The blocks of the Stop.slx diagram (sheet 5.2, Figure 50), in the sheet's order.
+BLOCKS = (
+    BASIC_SPEED_ESTIMATION,
+    BlockSpec("color_thresholding_hsv", "color_thresholding_hsv(image_bgr) -> mask", "BGR uint8 -> uint8 0/255",
+              "5.1, Figure 47", "Keep the pixels whose HSV is the sign's red (hue wraps through 0)."),
+    BlockSpec("find_objects", "find_objects(mask) -> ImageObject | None", "mask -> centroid (u, v) px, bbox, area",
+              "5.1, Image Find Objects", "The largest blob of the mask: the sign."),
+    BlockSpec("calculate_distance", "calculate_distance(depth, centroid, mask) -> distance", "m image, px, mask -> m",
+              "5.1, Figure 48", "Depth at the sign's centroid; 0 when unknown (the camera reads 0)."),
+    BlockSpec("stop_sign", "stop_sign(distance_to_sign, desired_speed) -> speed_cmd", "m, m/s -> m/s",
+              "5.2 Task 1, Figure 51", "0 while the sign is between 0.05 and 0.40 m, else the desired speed.",
+              "speed",
+              fill="Fill the stopSign function: make the QCar stop if the sign is between 5 and 40 cm, and "
+              "make the speed output equal to the desired speed input if the sign is not in that range. "
+              "(Not between 0 and 40 cm: the sensor gives a distance of 0 when it does not find the sign.)",
+              example="stop_sign(0.30, 0.5) == 0.0; stop_sign(0.02, 0.5) == 0.5; stop_sign(0.45, 0.5) == 0.5"),
+    SPEED_CONTROLLER,
+)
+
+
+class StopSignLab(LabModel):
+    """The sheet's Stop.slx (Figure 50) as a block diagram; see the module docstring."""
+
+    lab = "stop-sign"
+    BLOCKS = BLOCKS
+
+    def __init__(self, cfg: StopSignConfig, params: QCarParams, throttle_limit: float, true_distance=None,
+                 sign_length: float = 0.0, blocks: Mapping[str, Any] | None = None):
+        self.cfg, self.p, self.throttle_limit = cfg, params, throttle_limit
+        super().__init__(blocks)
+        self.behaviour = StopSignBehaviour(cfg.speed, hold=cfg.hold) if cfg.behaviour == "hold" else None
+        self.true_distance = true_distance  # () -> bumper-to-plate distance (m) or None (a real car)
+        self.past = -(params.length + sign_length)  # true distance once the rear bumper is past the sign
+        self.frame_dt = 1.0 / params.rgbd_rate
+        self.next_frame = 0.0
+        self.det = StopSignDetection(False)
+        self.frame = None
+        self.frames = self.detections = 0
+        self.decided = self.rest_t = self.go_t = None
+        self.passed = False
+        self.best = self.at_rest = None  # (frame, detection) to show
+        self.kept: list[tuple[float, np.ndarray]] = []
+
+    def reference_blocks(self) -> dict[str, Any]:
+        c = self.cfg
+        return {
+            "basic_speed_estimation": partial(basic_speed_estimation, params=self.p),
+            "color_thresholding_hsv": partial(color_thresholding_hsv, hsv_min=c.hsv_min, hsv_max=c.hsv_max),
+            "find_objects": partial(find_objects, min_area=c.min_area),
+            "calculate_distance": sign_distance,
+            "stop_sign": partial(stop_sign, near=c.near, far=c.far),
+            "speed_controller": SpeedController(c.kp, c.ki, c.kff, throttle_limit=self.throttle_limit),
+        }
+
+    def detect(self, frame) -> StopSignDetection:
+        """The vision half of the diagram on one RGBD frame."""
+        mask = self.color_thresholding_hsv(frame.color)
+        obj = self.find_objects(mask)
+        if obj is None:
+            return StopSignDetection(False, mask=mask)
+        d = float(self.calculate_distance(frame.depth, obj.centroid, mask))
+        return StopSignDetection(True, obj.centroid, obj.bbox, obj.area, d if math.isfinite(d) else 0.0, mask=mask)
+
+    def step(self, t: float, r: Readout, dt: float) -> Step | object:
+        c = self.cfg
+        v = self.basic_speed_estimation(r.tach)
+        new = None
+        if t + 1e-9 >= self.next_frame:  # a new camera frame is due
+            frame = self.read_rgbd()
+            self.next_frame = (math.floor((t + 1e-9) / self.frame_dt) + 1) * self.frame_dt
+            det = self.det = self.detect(frame)
+            self.frame = frame
+            self.frames += 1
+            new = det.distance if det.found else 0.0
+            self.detections += int(det.found)
+            if det.found and (self.best is None or det.area >= self.best[1].area):
+                self.best = (frame, det)
+            if c.frames and self.frames % FRAME_EVERY == 1:
+                self.kept.append((t, cv2.imencode(".jpg", detection_image(frame.color, det))[1]))
+        det = self.det
+        d_meas = det.distance if det.found else 0.0
+        if self.behaviour is None:
+            v_ref = self.stop_sign(d_meas, c.speed)
+            state = "stop" if v_ref == 0.0 else "go"
+        else:
+            v_ref = self.behaviour.step(t, v, new)
+            state = self.behaviour.state
+        if v_ref == 0.0 and self.decided is None:
+            self.decided = t
+        d_true = self.true_distance() if self.true_distance is not None else None
+        if self.decided is not None and self.rest_t is None and abs(v) < STANDSTILL and v_ref == 0.0:
+            self.rest_t = t  # the first standstill after deciding to stop
+            self.at_rest = (self.frame, det)
+        if self.rest_t is not None and self.go_t is None and v_ref > 0.0:
+            self.go_t = t
+        if d_true is not None and not self.passed and d_true < self.past:
+            self.passed = True
+        throttle = self.speed_controller(v_ref, v, dt)
+        log = {"v_ref": v_ref, "v_meas": v, "sign_found": int(det.found), "sign_distance": d_meas,
+               "true_distance": math.nan if d_true is None else d_true, "state": state}
+        beyond = d_true is not None and d_true < -(self.p.length + c.pass_margin)
+        if self.behaviour is None:
+            if self.rest_t is not None and v_ref == 0.0 and t - self.rest_t >= c.settle:
+                return STOP
+            if self.passed and beyond:
+                return STOP
+        elif self.go_t is not None and (beyond or (d_true is None and t - self.go_t >= 3.0)):
+            return STOP  # (no truth: drive on for 3 s)
+        return Step(Command(throttle, 0.0, _BRAKE if v_ref == 0.0 else ALL_OFF), log)
+
+
+def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None, *, blocks: Mapping[str, Any] | None = None,
+                  world: Any = None) -> Result:
     """Drive straight at ``cfg.speed`` and stop for the stop sign; return metrics, log, figures.
 
     ``sign`` is the world's :class:`~qcarlab.sim.world.Sign` the car drives towards (for the true
-    stop distance); without it (a real car) the true-distance metrics are None.
+    stop distance); without it (a real car) the true-distance metrics are None. ``blocks``
+    replaces any block of :data:`BLOCKS` by name.
     """
+    world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     cfg.check()
     p = car.params
     dt = 1.0 / cfg.rate
-    frame_dt = 1.0 / p.rgbd_rate
-    pi = SpeedController(cfg.kp, cfg.ki, cfg.kff, throttle_limit=car.throttle_limit)
-    beh = StopSignBehaviour(cfg.speed, hold=cfg.hold) if cfg.behaviour == "hold" else None
     truth0 = car.truth()
     plate = sign.plate_center[:2] if (sign is not None and truth0 is not None) else None
     half = p.length / 2.0
     start_distance = bumper_distance((truth0.x, truth0.y, truth0.yaw), plate, half) if plate is not None else None
-    max_time = cfg.max_time or (2.0 * (start_distance or 3.0) / cfg.speed + (cfg.hold if beh else 0.0) + 8.0)
 
-    rec: dict[str, list] = {k: [] for k in ("v_ref", "v_meas", "sign_found", "sign_distance", "true_distance", "state")}
-    st = {
-        "next_frame": 0.0, "det": StopSignDetection(False), "frame": None, "frames": 0, "detections": 0,
-        "first_detection": None, "decision_t": None, "rest_t": None, "rest": None, "rest_frame": None,
-        "go_t": None, "passed": False, "pass_t": None, "min_distance": math.inf, "best_frame": None,
-        "kept": [],
-    }
-
-    def true_distance() -> float | None:
-        if plate is None:
-            return None
+    def true_distance() -> float:
         tr = car.truth()
         return bumper_distance((tr.x, tr.y, tr.yaw), plate, half)
 
-    def step(t: float, r: Readout) -> Command | object:
-        v = basic_speed_estimation(r.tach, p)
-        new = None
-        if t + 1e-9 >= st["next_frame"]:  # a new camera frame is due
-            frame = car.read_rgbd()
-            st["next_frame"] = (math.floor((t + 1e-9) / frame_dt) + 1) * frame_dt
-            det = detect_stop_sign(frame.color, frame.depth, cfg.hsv_min, cfg.hsv_max, cfg.min_area)
-            st["det"], st["frame"] = det, frame
-            st["frames"] += 1
-            new = det.distance if det.found else 0.0
-            if det.found:
-                st["detections"] += 1
-                if st["first_detection"] is None:
-                    st["first_detection"] = (t, det.distance, true_distance())
-                if st["best_frame"] is None or det.area >= st["best_frame"][1].area:
-                    st["best_frame"] = (frame, det)
-            if cfg.frames and st["frames"] % FRAME_EVERY == 1:
-                st["kept"].append((t, cv2.imencode(".jpg", detection_image(frame.color, det))[1]))
-        det: StopSignDetection = st["det"]
-        d_meas = det.distance if det.found else 0.0
-        if beh is None:
-            v_ref = stop_sign(d_meas, cfg.speed, NEAR, FAR)
-            state = "stop" if v_ref == 0.0 else "go"
-        else:
-            v_ref = beh.step(t, v, new)
-            state = beh.state
-        if v_ref == 0.0 and st["decision_t"] is None:
-            st["decision_t"] = t
-        d_true = true_distance()
-        if d_true is not None:
-            st["min_distance"] = min(st["min_distance"], d_true)
-        # the first standstill after deciding to stop
-        if st["decision_t"] is not None and st["rest_t"] is None and abs(v) < STANDSTILL and v_ref == 0.0:
-            st["rest_t"] = t
-            st["rest"] = (d_true, d_meas, t)
-            st["rest_frame"] = (st["frame"], det)
-        if st["rest_t"] is not None and st["go_t"] is None and v_ref > 0.0:
-            st["go_t"] = t
-        if d_true is not None and not st["passed"] and d_true < -(p.length + sign.post_radius * 2):
-            st["passed"], st["pass_t"] = True, t  # the rear bumper is past the sign
-        # at rest for a stop, speed_controller gives throttle 0 and resets its integrator, so the
-        # integral the braking wound up does not creep the car backwards while it waits
-        throttle = pi(v_ref, v, dt)
-        for key, value in (("v_ref", v_ref), ("v_meas", v), ("sign_found", int(det.found)),
-                           ("sign_distance", d_meas), ("true_distance", math.nan if d_true is None else d_true),
-                           ("state", state)):
-            rec[key].append(value)
-        # end of the run
-        if beh is None:
-            if st["rest_t"] is not None and v_ref == 0.0 and t - st["rest_t"] >= cfg.settle:
-                return STOP
-            if st["passed"] and d_true is not None and d_true < -(p.length + cfg.pass_margin):
-                return STOP
-        elif st["go_t"] is not None:
-            if d_true is not None:
-                if d_true < -(p.length + cfg.pass_margin):
-                    return STOP
-            elif t - st["go_t"] >= 3.0:  # no truth: drive on for 3 s
-                return STOP
-        return Command(throttle, 0.0, _BRAKE if v_ref == 0.0 else ALL_OFF)
-
-    log = run_loop(car, step, max_time, cfg.rate)
-    cols = {k: np.asarray(v) for k, v in log.arrays().items()}
+    lab = StopSignLab(cfg, p, car.throttle_limit, true_distance if plate is not None else None,
+                      sign.post_radius * 2 if sign is not None else 0.0, blocks)
+    lab.read_rgbd = car.read_rgbd
+    watch = WorldWatch.for_car(car, world)
+    max_time = cfg.max_time or (2.0 * (start_distance or 3.0) / cfg.speed + (cfg.hold if lab.behaviour else 0.0)
+                                + 8.0)
+    log = run_loop(car, watch.wrap(lab) if watch else lab, max_time, cfg.rate)
+    cols = log.arrays()
     n = log.ticks
-    for key in rec:
-        cols[key] = np.asarray(rec[key][:n])
-
-    rest = st["rest"]
-    first = st["first_detection"]
+    found = np.flatnonzero(cols["sign_found"] == 1) if n else np.zeros(0, int)
+    first = int(found[0]) if found.size else None
+    rest = None
+    if lab.rest_t is not None:
+        k = int(np.searchsorted(cols["t"], lab.rest_t - 1e-9))
+        td = cols["true_distance"][k]
+        rest = (None if math.isnan(td) else float(td), float(cols["sign_distance"][k]), lab.rest_t)
+    true_min = np.nanmin(cols["true_distance"]) if plate is not None and n else None
     stopped = rest is not None and (rest[0] is None or rest[0] > 0.0)  # came to rest before the sign
     metrics = {
         "experiment": "stop-sign",
@@ -237,31 +312,36 @@ def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None) -> Result:
         "stop_distance_m": rest[0] if rest is not None else None,
         "measured_distance_m": rest[1] if rest is not None and rest[1] > 0 else None,
         "time_to_stop_s": rest[2] if rest is not None else None,
-        "braking_time_s": (rest[2] - st["decision_t"]) if rest is not None else None,
-        "detected_at_m": first[1] if first is not None else None,
-        "detected_at_true_m": first[2] if first is not None else None,
-        "detected_at_s": first[0] if first is not None else None,
+        "braking_time_s": (rest[2] - lab.decided) if rest is not None else None,
+        "detected_at_m": float(cols["sign_distance"][first]) if first is not None else None,
+        "detected_at_true_m": (None if plate is None else float(cols["true_distance"][first]))
+        if first is not None else None,
+        "detected_at_s": float(cols["t"][first]) if first is not None else None,
         "start_distance_m": start_distance,
-        "min_distance_m": st["min_distance"] if plate is not None else None,
-        "frames": st["frames"],
-        "frames_with_sign": st["detections"],
+        "min_distance_m": float(true_min) if true_min is not None else None,
+        "frames": lab.frames,
+        "frames_with_sign": lab.detections,
         "duration_s": float(cols["t"][-1] + dt) if n else 0.0,
         "distance_reference": "front bumper to the sign plate, along the heading (true pose)",
     }
-    if beh is not None:
-        metrics["hold_s"] = (st["go_t"] - st["rest_t"]) if st["go_t"] is not None else None
-        metrics["passed_sign"] = bool(st["passed"]) if plate is not None else (st["go_t"] is not None)
-        metrics["stops"] = beh.stops
+    goal = stopped
+    if lab.behaviour is not None:
+        metrics["hold_s"] = (lab.go_t - lab.rest_t) if lab.go_t is not None else None
+        metrics["passed_sign"] = bool(lab.passed) if plate is not None else (lab.go_t is not None)
+        metrics["stops"] = lab.behaviour.stops
+        goal = stopped and metrics["passed_sign"]
     metrics["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()}
+    finish(metrics, log, lab, watch, goal, "the car did not stop before the sign" if not stopped
+           else "the car did not drive on past the sign")
 
-    shown = st["rest_frame"] or st["best_frame"] or ((st["frame"], st["det"]) if st["frame"] is not None else None)
+    shown = lab.at_rest or lab.best or ((lab.frame, lab.det) if lab.frame is not None else None)
     result = Result("stop-sign", metrics, logs={"log.csv": _log_columns(cols)}, figures={})
-    if shown is not None:
+    if shown is not None and shown[0] is not None:
         frame, det = shown
         result.data["detection"] = (frame, det)
         result.figures["detection.png"] = lambda f: _imwrite(f, detection_image(frame.color, det, frame.depth))
-    if st["kept"]:
-        kept = st["kept"]
+    if lab.kept:
+        kept = lab.kept
         result.figures["frames"] = lambda folder: _write_frames(folder, kept)
     return result
 

@@ -9,25 +9,38 @@ One function per block of the lane example (numpy in -> numpy out, no car):
 
 1. :func:`image_selector`: the region of interest for the selected lane. Driving in the **right**
    lane the yellow centre line is on the car's *left*, so the left part of the lower image is kept
-   (and the right part for the left lane). Rows above :data:`ROW_MIN` (beyond ~1.1 m of floor,
-   where the walls and the other lane's edge begin) are never used.
+   (and the right part for the left lane). The region starts at :data:`ROW_FRACTION` of the image
+   height (row 320 of 480: beyond ~1.1 m of floor the walls and the other lane's edge begin); a
+   fraction, so a 540- or 720-row photo gets the same part of its view. An int ``row_min`` is
+   still a pixel row.
 2. ``color_thresholding_hsv`` (shared with the stop-sign lab, :mod:`qcarlab.perception.stop_sign`):
    HSV threshold, default yellow :data:`YELLOW_HSV_MIN` .. :data:`YELLOW_HSV_MAX` (OpenCV hue
-   0..179 = degrees / 2; yellow is 60 deg = 30, the track's paint is 25).
-3. :func:`linear_poly_fit`: least-squares line through the mask's pixels, **column as a function
+   0..179 = degrees / 2; yellow is 60 deg = 30: road paint reads 17..24, the Quanser mat 26..33,
+   the simulator's paint 25). Saturation from 85 keeps faded road paint (S 75..165) but not dry
+   grass (S 60..75); hue from 17 keeps paint but not a brown box (hue 13..15).
+3. :func:`line_components` (:mod:`qcarlab.perception.components`): the mask's blobs shaped like
+   a line (long, thin, not flat); the tracked line is the largest one with the blobs collinear
+   with it (a dashed line's dashes). Grass, boxes and the floor never enter the fit.
+4. :func:`linear_poly_fit`: least-squares line through the line's pixels, **column as a function
    of row**, ``u = slope * v + intercept`` (lane lines are near-vertical in the image, where
    ``v = m u + b`` would be ill-conditioned). Fewer than ``min_pixels`` pixels: no fit.
-4. :func:`lane_mask`: the colour image with the tracked line's pixels painted red (Figure 58).
-5. :func:`draw_box` / :func:`calculate_distance`: the obstacle window (DESIGN.md section 3): rows
+5. :func:`lane_mask`: the colour image with the tracked line's pixels painted red (Figure 58).
+6. :func:`draw_box` / :func:`calculate_distance`: the obstacle window (DESIGN.md section 3): rows
    around the image middle, 120 px wide, centred on column ``320 - 520 delta``; the mean of the
    depths in 0.06..2 m inside it (0.0 = nothing there).
 
 Backup line (qcarlab's addition): the D435's 69 deg field of view does not see the yellow line on
 the *inside* of the track's 1 m curves (it is more than 27 deg to the side as soon as it is in
-front of the bumper). :func:`white_line_mask` finds the white edge line on the other side of the
-lane (low saturation, the brightest pixels of the region) and :func:`detect_lane` falls back to it
-when the yellow line has too few pixels; the steering then aims the same lane centre from the
-other side.
+front of the bumper). :func:`white_line_mask` finds white paint (low saturation, the brightest
+pixels of the floor; optionally brighter than the floor beside it, ``white_contrast``) and
+:func:`detect_lane` falls back to it when the yellow line is not found; when no white blob is
+shaped like a line either (a plain light floor is one wide blob: too thick), the answer is
+"no line". The steering then aims the same lane
+centre from the other side.
+
+:func:`detect_lane` crops the region first and converts it to HSV once for both colours;
+the white level comes from a histogram, not a sort. Both lane lines of the ego lane (for
+``qcarlab detect lanes`` on photos and video) are :func:`qcarlab.perception.lane_lines.detect_lane_lines`.
 """
 
 from __future__ import annotations
@@ -39,10 +52,12 @@ import cv2
 import numpy as np
 
 from qcarlab.errors import InputError
-from qcarlab.perception.stop_sign import check_hsv, color_thresholding_hsv
+from qcarlab.perception.components import MAX_THICKNESS, group_collinear, line_components, mask_of
+from qcarlab.perception.stop_sign import check_hsv, color_thresholding_hsv, in_hsv_range
 
 __all__ = [
     "LANES",
+    "ROW_FRACTION",
     "YELLOW_HSV_MAX",
     "YELLOW_HSV_MIN",
     "LaneDetection",
@@ -54,23 +69,27 @@ __all__ = [
     "image_selector",
     "lane_image",
     "lane_mask",
+    "line_components",
     "linear_poly_fit",
     "white_line_mask",
 ]
 
 LANES = ("right", "left")
-#: Yellow: hue 15..40 (30..80 deg), saturation and value from 80 (the dim end of the track reads
-#: V ~ 135, real photos' faded paint S ~ 100).
-YELLOW_HSV_MIN = (15, 80, 80)
-YELLOW_HSV_MAX = (40, 255, 255)
-ROW_MIN = 320  # px: lowest row index used (480-row image): floor within ~1.1 m of the camera
-MIN_PIXELS = 150  # px: fewer line pixels than this is "no line"
-WHITE_S_MAX = 50  # white: saturation at most this ...
-WHITE_V_MIN = 110  # ... and value at least this and at least 0.8 x the region's 99th percentile
+#: Yellow paint: hue 17..38 (34..76 deg), saturation from 85, value from 70 (module docstring).
+YELLOW_HSV_MIN = (17, 85, 70)
+YELLOW_HSV_MAX = (38, 255, 255)
+ROW_FRACTION = 2.0 / 3.0  # the region starts this far down the image (row 320 of 480)
+ROW_MIN = 320  # px: the same for a 480-row image (kept for callers that pass pixel rows)
+YELLOW_SIDE = 0.85  # the yellow line's region: columns 0 .. 0.85 W (right lane) or 0.15 W .. W
+MIN_PIXELS = 150  # px at 640 x 480 (scaled with the image area): fewer line pixels is "no line"
+WHITE_S_MAX = 80  # white: saturation at most this (the QCar 1 RGB reads its white paint at S 55..75) ...
+WHITE_V_MIN = 110  # ... value at least this and at least 0.8 x the floor's 99th percentile ...
+WHITE_CONTRAST = 0  # optional: a top-hat (value above the floor round it) of at least this; 0 = off
 BOX_WIDTH = 120  # px, obstacle window
 BOX_HALF_HEIGHT = 20  # px, obstacle window rows: middle +- this
 BOX_GAIN = 520.0  # px per rad of steering: the window's column shift
 DEPTH_RANGE = (0.06, 2.0)  # m, depths that count in the obstacle window
+GROUP_TOLERANCE = 0.03  # blobs within 3 % of the width of a line's path belong to it (dashes)
 
 
 def _check_lane(lane: str) -> str:
@@ -79,14 +98,38 @@ def _check_lane(lane: str) -> str:
     return lane
 
 
-def image_selector(image: np.ndarray, lane: str = "right", row_min: int = ROW_MIN,
+def region_row(height: int, row_min: float | int | None = None) -> int:
+    """The first row of the region: ``row_min`` as a pixel row (int), a fraction of ``height``
+    (float in [0, 1)) or, None, :data:`ROW_FRACTION`; clipped to the image."""
+    if row_min is None:
+        row_min = ROW_FRACTION
+    if isinstance(row_min, float) and 0.0 <= row_min < 1.0:
+        r = int(round(row_min * height))
+    else:
+        try:
+            r = int(row_min)
+        except (TypeError, ValueError):
+            raise InputError(f"row_min must be a pixel row or a fraction of the height, got {row_min!r}") from None
+    return min(max(0, r), height)
+
+
+def region_columns(width: int, lane: str, line: str) -> tuple[int, int]:
+    """Columns ``c0 .. c1`` (c1 exclusive) where ``line`` ("yellow" or "white") is looked for."""
+    if line == "yellow":
+        return (0, int(YELLOW_SIDE * width)) if lane == "right" else (int((1.0 - YELLOW_SIDE) * width), width)
+    # the lane's own edge line: the whole width but the far side of the yellow line's region
+    return (int((1.0 - YELLOW_SIDE) * width), width) if lane == "right" else (0, int(YELLOW_SIDE * width))
+
+
+def image_selector(image: np.ndarray, lane: str = "right", row_min: float | int | None = None,
                    line: str = "yellow") -> np.ndarray:
     """Zero everything outside the region where the tracked line is expected; same shape.
 
-    Rows ``row_min`` and below (nearer floor). ``line="yellow"``: the centre line, on the car's
-    left in the right lane (columns 0 .. 0.85 W) and on its right in the left lane (0.15 W .. W).
-    ``line="white"``: the edge line on the other side, whole width (in the curves it sweeps across
-    the image). Works on a colour image or a mask.
+    Rows from ``row_min`` (a fraction of the height, default :data:`ROW_FRACTION`, or an int
+    pixel row) down. ``line="yellow"``: the centre line, on the car's left in the right lane
+    (columns 0 .. 0.85 W) and on its right in the left lane (0.15 W .. W). ``line="white"``: the
+    edge line on the other side, whole width (in the curves it sweeps across the image). Works
+    on a colour image or a mask.
     """
     _check_lane(lane)
     img = np.asarray(image)
@@ -94,30 +137,65 @@ def image_selector(image: np.ndarray, lane: str = "right", row_min: int = ROW_MI
         raise InputError(f"image_selector: expected an image (H, W) or (H, W, 3), got shape {img.shape}")
     h, w = img.shape[:2]
     out = np.zeros_like(img)
-    r0 = min(max(0, int(row_min)), h)
-    if line == "yellow":
-        c0, c1 = (0, int(0.85 * w)) if lane == "right" else (int(0.15 * w), w)
-    else:
-        c0, c1 = 0, w
+    r0 = region_row(h, row_min)
+    c0, c1 = region_columns(w, lane, "yellow") if line == "yellow" else (0, w)
     out[r0:, c0:c1] = img[r0:, c0:c1]
     return out
 
 
+def white_level(hsv: np.ndarray, grey: np.ndarray, v_min: int = WHITE_V_MIN) -> int:
+    """The value a white pixel needs: max(``v_min``, 0.8 x the 99th percentile of V over the
+    ``grey`` (unsaturated) pixels of the HSV image), from a 256-bin histogram (no sort); 256
+    (nothing is white) when no pixel is grey."""
+    hist = cv2.calcHist([hsv], [2], grey, [256], [0, 256]).ravel()
+    total = hist.sum()
+    if total <= 0:
+        return 256
+    p99 = int(np.searchsorted(np.cumsum(hist), 0.99 * total))
+    return int(max(float(v_min), 0.8 * p99))
+
+
+def white_from_hsv(hsv: np.ndarray, s_max: int = WHITE_S_MAX, v_min: int = WHITE_V_MIN,
+                   contrast: int = WHITE_CONTRAST, width: int | None = None) -> np.ndarray:
+    """White paint in an HSV image (a region of the floor), uint8 mask: saturation <= ``s_max``,
+    value >= :func:`white_level`, and (``contrast`` > 0; off by default: the line-shape checks
+    already reject a plain floor, and it costs a third of the chain) a white top-hat of at least
+    ``contrast``:
+
+        top_hat = V - opening(V, k x k square),  k = width / 8 (80 px at 640)
+
+    The opening wipes out every bright structure narrower than k in some direction (a painted
+    line, whatever its angle) and keeps wide ones (a light floor, a wall): a line stands out from
+    the floor beside it, a plain floor or the bright side of an edge does not."""
+    grey = cv2.inRange(hsv, (0, 0, 0), (179, int(s_max), 255))
+    level = white_level(hsv, grey, v_min)
+    if level > 255:
+        return np.zeros(hsv.shape[:2], np.uint8)
+    bright = cv2.inRange(hsv, (0, 0, level), (179, int(s_max), 255))
+    if contrast > 0 and cv2.countNonZero(bright):
+        v = cv2.extractChannel(hsv, 2)
+        k = max(3, ((width or v.shape[1]) // 8) | 1)
+        top_hat = cv2.morphologyEx(v, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+        bright = cv2.bitwise_and(bright, cv2.inRange(top_hat, int(contrast), 255))
+    return bright
+
+
 def white_line_mask(image_bgr: np.ndarray, s_max: int = WHITE_S_MAX, v_min: int = WHITE_V_MIN,
-                    row_min: int = ROW_MIN) -> np.ndarray:
-    """Mask of white paint: saturation <= ``s_max`` and value >= max(``v_min``, 0.8 x the 99th
-    percentile of the value of the unsaturated floor pixels (rows ``row_min`` and below, not the
-    walls)): adaptive, so the dim end of the track
-    still finds its white line and the bright corner does not take the grey concrete for it."""
+                    row_min: float | int | None = None, contrast: int = WHITE_CONTRAST) -> np.ndarray:
+    """Mask (uint8, full image) of white paint on the floor (rows from ``row_min`` down, a
+    fraction or a pixel row): low saturation (<= ``s_max``), value >= max(``v_min``, 0.8 x the
+    99th percentile of the unsaturated floor pixels) -- adaptive, so the dim end of the track
+    still finds its white line and the bright corner does not take the grey concrete for it --
+    and, with ``contrast`` > 0, that much brighter than the floor round it (a top-hat)."""
     img = np.asarray(image_bgr)
-    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
-    s, v = hsv[..., 1], hsv[..., 2]
-    grey = (s <= s_max) & (v > 0)
-    floor = grey[row_min:]
-    if not floor.any():
-        return np.zeros(img.shape[:2], np.uint8)
-    level = max(float(v_min), 0.8 * float(np.percentile(v[row_min:][floor], 99)))
-    return ((grey & (v >= level)).astype(np.uint8)) * 255
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+        raise InputError(f"expected a BGR uint8 image (H, W, 3), got {img.dtype} {img.shape}")
+    h, w = img.shape[:2]
+    r0 = region_row(h, row_min)
+    out = np.zeros((h, w), np.uint8)
+    if r0 < h:
+        out[r0:] = white_from_hsv(cv2.cvtColor(img[r0:], cv2.COLOR_BGR2HSV), s_max, v_min, contrast, w)
+    return out
 
 
 @dataclass(frozen=True)
@@ -134,28 +212,66 @@ class LineFit:
         return self.slope * v + self.intercept
 
 
-def linear_poly_fit(mask: np.ndarray, min_pixels: int = MIN_PIXELS) -> LineFit | None:
-    """Least-squares line ``u = slope * v + intercept`` through the mask's non-zero pixels.
+def _fit_points(v: np.ndarray, u: np.ndarray, min_pixels: int) -> LineFit | None:
+    """The per-row-mean least-squares line through pixels at rows ``v``, columns ``u``."""
+    count = len(v)
+    if count < max(2, int(min_pixels)):
+        return None
+    v0 = int(v.min())
+    vv = v - v0
+    per_row = np.bincount(vv)
+    rows = np.nonzero(per_row)[0]
+    if len(rows) < 2:
+        return None
+    mean_u = np.bincount(vv, weights=u)[rows] / per_row[rows]
+    r = rows.astype(np.float64)
+    rm, um = r.mean(), mean_u.mean()
+    slope = float(np.dot(r - rm, mean_u - um) / np.dot(r - rm, r - rm))
+    intercept = float(um - slope * (rm + v0))
+    return LineFit(slope, intercept, count, (int(rows[0]) + v0, int(rows[-1]) + v0))
 
-    Each row counts once (its mean column), so a wide, near blob does not outweigh the thin far
-    part of the line; fewer than ``min_pixels`` pixels or fewer than 2 rows: None.
+
+def _fit_rows(nz: np.ndarray, min_pixels: int, row0: int = 0, col0: int = 0) -> LineFit | None:
+    """The per-row-mean least-squares line (:func:`_fit_points`) of a mask's pixels, the mask's
+    (0, 0) being (``row0``, ``col0``) of the image; row counts and column sums by matrix
+    products over the mask's bounding box (no list of pixels)."""
+    m = nz.view(np.uint8) if nz.dtype == bool else nz
+    count = int(cv2.countNonZero(m))
+    if count < max(2, int(min_pixels)):
+        return None
+    x, y, w, h = cv2.boundingRect(m)
+    sub = (m[y:y + h, x:x + w] != 0).astype(np.float32)
+    per_row = sub.sum(axis=1)
+    rows = np.nonzero(per_row)[0]
+    if len(rows) < 2:
+        return None
+    mean_u = (sub[rows] @ np.arange(w, dtype=np.float32)).astype(np.float64) / per_row[rows]
+    r = rows.astype(np.float64)
+    rm, um = r.mean(), mean_u.mean()
+    slope = float(np.dot(r - rm, mean_u - um) / np.dot(r - rm, r - rm))
+    v0, u0 = y + row0, x + col0
+    intercept = float(um + u0 - slope * (rm + v0))
+    return LineFit(slope, intercept, count, (int(rows[0]) + v0, int(rows[-1]) + v0))
+
+
+def linear_poly_fit(mask: np.ndarray, min_pixels: int = MIN_PIXELS, whole_mask: bool = False) -> LineFit | None:
+    """Least-squares line ``u = slope * v + intercept`` through the tracked line's pixels.
+
+    The line's pixels are its own blobs (:func:`track_line`): the largest blob of the mask
+    shaped like a line (long, thin, not flat; :mod:`qcarlab.perception.components`) and the
+    blobs collinear with it (a dashed line's dashes), so grass, a box or a second line beside it
+    never enter the fit. Each row counts once (its mean column), so a wide, near blob does not
+    outweigh the thin far part of the line; fewer than ``min_pixels`` line pixels or fewer than
+    2 rows: None. ``whole_mask=True`` fits every non-zero pixel of the mask (the sheet's block
+    as it was).
     """
     m = np.asarray(mask)
     if m.ndim != 2:
         raise InputError(f"linear_poly_fit: expected a 2-D mask, got shape {m.shape}")
-    nz = m != 0
-    count = int(nz.sum())
-    if count < max(2, int(min_pixels)):
-        return None
-    per_row = nz.sum(axis=1)
-    rows = np.nonzero(per_row)[0]
-    if len(rows) < 2:
-        return None
-    cols = np.arange(m.shape[1], dtype=np.float64)
-    mean_u = (nz[rows] @ cols) / per_row[rows]
-    v = rows.astype(np.float64)
-    slope, intercept = np.polyfit(v, mean_u, 1)
-    return LineFit(float(slope), float(intercept), count, (int(rows[0]), int(rows[-1])))
+    m = m if m.dtype == np.uint8 else (m != 0).astype(np.uint8) * 255
+    if whole_mask:
+        return _fit_rows(m, min_pixels)
+    return track_line(m, min_pixels, m.shape[1])[0]
 
 
 def lane_mask(image_bgr: np.ndarray, mask: np.ndarray, color: Sequence[int] = (0, 0, 255)) -> np.ndarray:
@@ -209,6 +325,38 @@ class LaneDetection:
                 "yellow_pixels": self.yellow_pixels, "white_pixels": self.white_pixels}
 
 
+def _scaled(min_pixels: int, h: int, w: int) -> int:
+    """``min_pixels`` (meant for 640 x 480) for an ``h`` x ``w`` image: scaled with the area."""
+    return max(8, int(round(int(min_pixels) * (h * w) / (640.0 * 480.0))))
+
+
+def _check_bgr(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8 or img.shape[0] < 2 or img.shape[1] < 2:
+        raise InputError(f"expected a BGR uint8 image (H, W, 3), got {img.dtype} {img.shape}")
+    return img
+
+
+def track_line(mask: np.ndarray, min_pixels: int, width: int, row0: int = 0, col0: int = 0):
+    """The tracked line in a region's ``mask`` (at ``row0``, ``col0`` of an image ``width`` px
+    wide): the largest line-shaped blob and the blobs collinear with it, fitted with
+    :func:`linear_poly_fit`'s per-row means. ``(LineFit | None, its pixels as a mask)``."""
+    blobs, labels = line_components(mask, max(10, min_pixels // 8), MAX_THICKNESS * width, row0=row0, col0=col0,
+                                    return_labels=True)
+    groups = group_collinear(blobs, GROUP_TOLERANCE * width)
+    if not groups or groups[0].pixels < min_pixels:
+        return None, None
+    line = mask_of(labels, groups[0])
+    return _fit_rows(line, min_pixels, row0, col0), line
+
+
+def _paste(part: np.ndarray | None, shape: tuple[int, int], r0: int, c0: int) -> np.ndarray:
+    out = np.zeros(shape, np.uint8)
+    if part is not None:
+        out[r0:r0 + part.shape[0], c0:c0 + part.shape[1]] = part
+    return out
+
+
 def detect_lane(
     color: np.ndarray,
     lane: str = "right",
@@ -216,30 +364,43 @@ def detect_lane(
     hsv_max: Sequence[int] = YELLOW_HSV_MAX,
     min_pixels: int = MIN_PIXELS,
     white_backup: bool = True,
-    row_min: int = ROW_MIN,
+    row_min: float | int | None = None,
+    white_s_max: int = WHITE_S_MAX,
+    white_v_min: int = WHITE_V_MIN,
+    white_contrast: int = WHITE_CONTRAST,
 ) -> LaneDetection:
-    """imageSelector -> colorThresholdingHSV -> linearPolyFit on the yellow line; when it has fewer
-    than ``min_pixels`` pixels (and ``white_backup``), the same on the white edge line."""
+    """imageSelector -> colorThresholdingHSV -> line blobs -> linearPolyFit on the yellow line;
+    when no yellow blob is a line of ``min_pixels`` pixels (for 640 x 480; scaled with the image
+    area) and ``white_backup``, the same on the white edge line; else "no line" (fit None).
+
+    The region is cropped before the one HSV conversion both colours share.
+    """
     _check_lane(lane)
-    hsv_min, hsv_max = check_hsv(hsv_min, "hsv_min"), check_hsv(hsv_max, "hsv_max")
-    yellow = image_selector(color_thresholding_hsv(color, hsv_min, hsv_max), lane, row_min, "yellow")
-    fit = linear_poly_fit(yellow, min_pixels)
-    ny = int(np.count_nonzero(yellow))
+    lo, hi = check_hsv(hsv_min, "hsv_min"), check_hsv(hsv_max, "hsv_max")
+    img = _check_bgr(color)
+    h, w = img.shape[:2]
+    r0 = region_row(h, row_min)
+    need = _scaled(min_pixels, h, w)
+    if r0 >= h:
+        empty = np.zeros((h, w), np.uint8)
+        return LaneDetection(None, None, 0, 0, empty, empty)
+    hsv = cv2.cvtColor(img[r0:], cv2.COLOR_BGR2HSV)
+    c0, c1 = region_columns(w, lane, "yellow")
+    ymask = in_hsv_range(hsv[:, c0:c1], lo, hi)
+    ny = int(cv2.countNonZero(ymask))
+    fit, line = track_line(ymask, need, w, r0, c0) if ny >= need else (None, None)
+    yellow_full = _paste(ymask, (h, w), r0, c0)
     if fit is not None:
-        return LaneDetection(fit, "yellow", ny, 0, yellow, yellow)
+        return LaneDetection(fit, "yellow", ny, 0, _paste(line, (h, w), r0, c0), yellow_full)
     if not white_backup:
-        return LaneDetection(None, None, ny, 0, yellow, yellow)
-    white = image_selector(white_line_mask(color, row_min=row_min), lane, row_min, "white")
-    # the lane's own edge line only: on the far side of the yellow line's region
-    _h, w = white.shape
-    if lane == "right":
-        white[:, : int(0.15 * w)] = 0
-    else:
-        white[:, int(0.85 * w):] = 0
-    nw = int(np.count_nonzero(white))
-    fit = linear_poly_fit(white, min_pixels)
-    return LaneDetection(fit, "white" if fit is not None else None, ny, nw, white if fit is not None else yellow,
-                         yellow)
+        return LaneDetection(None, None, ny, 0, yellow_full, yellow_full)
+    c0w, c1w = region_columns(w, lane, "white")
+    wmask = white_from_hsv(hsv[:, c0w:c1w], white_s_max, white_v_min, white_contrast, w)
+    nw = int(cv2.countNonZero(wmask))
+    fit, line = track_line(wmask, need, w, r0, c0w) if nw >= need else (None, None)
+    if fit is None:
+        return LaneDetection(None, None, ny, nw, yellow_full, yellow_full)
+    return LaneDetection(fit, "white", ny, nw, _paste(line, (h, w), r0, c0w), yellow_full)
 
 
 def lane_image(color: np.ndarray, det: LaneDetection, box: tuple[int, int, int, int] | None = None,

@@ -14,6 +14,8 @@ The three blocks of the sheet, one function each, numpy in -> numpy out:
 2. :func:`find_objects`: the QUARC *Image Find Objects* block: the connected blobs of the mask
    (``cv2.connectedComponentsWithStats``, 8-connected); the largest one of at least
    ``min_area`` pixels gives the centroid (u, v), the bounding box (x, y, w, h) and the area.
+   With ``shape_check`` the largest one shaped like a stop sign (:mod:`~qcarlab.perception.sign_shape`);
+   :func:`detect_stop_sign` checks by default.
 3. :func:`calculate_distance`: the depth at the centre: the median of the valid (non-zero)
    depths in a small square window around it (the D435 reads 0 where it has no data), 0 when
    there is none, so the sheet's ``stopSign`` block sees 0 = "no sign".
@@ -87,7 +89,24 @@ def color_thresholding_hsv(
     img = np.asarray(image_bgr)
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
         raise InputError(f"expected a BGR uint8 image (H, W, 3), got {img.dtype} {img.shape}")
-    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
+    if lo[2] > 0 and img.shape[0] > 8:
+        # black (V = 0) is never kept: rows that are all black above and below (image_selector's
+        # zeros) need no conversion
+        rows = np.flatnonzero(img.reshape(img.shape[0], -1).max(axis=1))
+        if len(rows) == 0:
+            return np.zeros(img.shape[:2], np.uint8)
+        r0, r1 = int(rows[0]), int(rows[-1]) + 1
+        if r1 - r0 < img.shape[0]:
+            out = np.zeros(img.shape[:2], np.uint8)
+            out[r0:r1] = in_hsv_range(cv2.cvtColor(img[r0:r1], cv2.COLOR_BGR2HSV), lo, hi)
+            return out
+    return in_hsv_range(cv2.cvtColor(img, cv2.COLOR_BGR2HSV), lo, hi)
+
+
+def in_hsv_range(hsv: np.ndarray, lo: Sequence[int], hi: Sequence[int]) -> np.ndarray:
+    """``cv2.inRange`` on an HSV image with the hue wrapping through 0 when ``lo[0] > hi[0]``
+    (``lo``/``hi`` already checked); uint8 mask, 255 = inside."""
+    lo, hi = tuple(int(x) for x in lo), tuple(int(x) for x in hi)
     if lo[0] <= hi[0]:
         return cv2.inRange(hsv, lo, hi)
     upper = cv2.inRange(hsv, lo, (179, hi[1], hi[2]))
@@ -104,26 +123,41 @@ class ImageObject:
     area: int
 
 
-def find_objects(mask: np.ndarray, min_area: int = MIN_AREA) -> ImageObject | None:
+def find_objects(mask: np.ndarray, min_area: int = MIN_AREA, shape_check: bool = False) -> ImageObject | None:
     """The largest 8-connected blob of ``mask`` (non-zero pixels) with at least ``min_area``
-    pixels, or None: QUARC's *Image Find Objects* block (centroid, bounding box, area)."""
+    pixels, or None: QUARC's *Image Find Objects* block (centroid, bounding box, area).
+
+    With ``shape_check`` the largest blob *shaped like a stop sign*
+    (:func:`qcarlab.perception.sign_shape.sign_shape_ok`: aspect, extent, solidity), so a red
+    car or a tail light is passed over for the sign behind it. A blob cut by the image edge
+    passes (a sign filling the corner of the view as the car stops before it), and the letters
+    are not asked for (a plain red octagon is the lab's sign too).
+    """
     m = np.asarray(mask)
     if m.ndim != 2:
         raise InputError(f"find_objects: expected a 2-D mask, got shape {m.shape}")
     if m.dtype != np.uint8:
         m = (m != 0).astype(np.uint8)
-    n, _, stats, centroids = cv2.connectedComponentsWithStats(m, connectivity=8)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStats(m, connectivity=8)
     if n <= 1:
         return None
     areas = stats[1:, cv2.CC_STAT_AREA]
-    best = int(np.argmax(areas)) + 1
-    area = int(stats[best, cv2.CC_STAT_AREA])
-    if area < max(1, int(min_area)):
-        return None
-    x, y, w, h = (int(stats[best, k]) for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH,
-                                                 cv2.CC_STAT_HEIGHT))
-    cu, cv = centroids[best]
-    return ImageObject((float(cu), float(cv)), (x, y, w, h), area)
+    order = np.argsort(-areas, kind="stable") + 1
+    for best in order:
+        area = int(stats[best, cv2.CC_STAT_AREA])
+        if area < max(1, int(min_area)):
+            return None
+        x, y, w, h = (int(stats[best, k]) for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH,
+                                                     cv2.CC_STAT_HEIGHT))
+        if shape_check:
+            from qcarlab.perception.sign_shape import blob_shape, sign_shape_ok
+
+            if not sign_shape_ok(blob_shape(labels, int(best), (x, y, w, h), area), judge_cut=False,
+                                 letters=False):
+                continue
+        cu, cv = centroids[best]
+        return ImageObject((float(cu), float(cv)), (x, y, w, h), area)
+    return None
 
 
 def calculate_distance(
@@ -188,14 +222,18 @@ def detect_stop_sign(
     hsv_max: Sequence[int] = RED_HSV_MAX,
     min_area: int = MIN_AREA,
     window: int = WINDOW,
+    shape_check: bool = True,
 ) -> StopSignDetection:
     """The sheet's *RGBD Imaging* chain: red mask -> largest blob -> median depth at its centroid.
 
     Only the red pixels of the window count, so the white letters and border never lend their
     depth (they are on the plate anyway) and a blob cut by the image edge still reads the plate.
+    With ``shape_check`` (qcarlab's addition, on by default) the largest blob shaped like a sign
+    (:func:`find_objects`), not a red car or a red floor. All the signs in a frame, the dim
+    pass and the Hough-circle method: :func:`qcarlab.perception.stop_signs.detect_stop_signs`.
     """
     mask = color_thresholding_hsv(color, hsv_min, hsv_max)
-    obj = find_objects(mask, min_area)
+    obj = find_objects(mask, min_area, shape_check)
     if obj is None:
         return StopSignDetection(False, mask=mask)
     dist = calculate_distance(depth, obj.centroid, window, mask=mask)

@@ -18,12 +18,13 @@ fx = fy = 616 px, show). Pixel (u, v): u to the right, v down; the principal poi
 centre (cx, cy) = (319.5, 239.5), so the two middle columns straddle the optical axis. The depth
 image is aligned to the colour image and holds the **z-depth from the camera** (the distance
 along the optical axis from the D435's optical centre, as the RealSense reports it): a wall 2 m
-ahead of the car's centre reads ``2 - rgbd_x`` = 1.81 m in the middle of the image. Depth is 0
+ahead of the car's centre reads ``2 - rgbd_x`` = 1.92 m in the middle of the image. Depth is 0
 (no data) nearer than :data:`RGBD_MIN_DEPTH` and beyond ``rgbd_max_depth``. Noise: colour
 +-:data:`COLOR_NOISE_SD` levels per channel, depth sigma = :data:`DEPTH_NOISE` * z^2.
 
 **CSI.** Four 160 deg equidistant fisheye cameras (r = f theta), 820 x 410, on the roof
-``csi_x`` from the centre facing right, rear, left and front, ``csi_z`` above the floor.
+``csi_front_x``/``csi_rear_x`` on the axis and ``csi_side_y`` to the sides, facing front, rear, left
+and right, ``csi_z`` above the floor.
 
 How it is drawn: the floor is a top-down texture (markings, brightness regions) warped into the
 image (a homography per texture level for the pinhole; a precomputed per-pixel ray map for the
@@ -53,7 +54,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from qcarlab.constants import DEFAULT_PARAMS, QCarParams
+from qcarlab.constants import csi_mounts, DEFAULT_PARAMS, QCarParams
 from qcarlab.sensors import CameraIntrinsics, CSIFrames, RGBDFrame
 from qcarlab.sim import _kernels
 from qcarlab.sim.raster import brightness_grid, build_raster, floor_pyramid
@@ -84,9 +85,18 @@ _NO_NOISE = np.zeros((0, 0), np.float32)
 #: thread paints the walls and objects, then half the rows of the finishing passes. OpenCV and
 #: the numba kernels release the GIL, so on two free cores a frame takes about 0.7 of the time
 #: (no gain when the other core is busy); the result is the same pixel for pixel. Off without
-#: numba (the pure-Python kernels hold the GIL) or on one core; set to False to draw every frame
-#: in the calling thread.
-SPLIT_FRAMES = _kernels.HAVE_NUMBA and (os.cpu_count() or 1) >= 2
+#: numba (the pure-Python kernels hold the GIL) or when the process may run on one core only
+#: (``os.sched_getaffinity``, checked at each frame: a benchmark or a grader pinned to a core);
+#: set to False to draw every frame in the calling thread.
+SPLIT_FRAMES = _kernels.HAVE_NUMBA
+
+
+def _cores() -> int:
+    """How many cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -123,7 +133,7 @@ _HELPER_LOCK = threading.Lock()
 def _helper() -> _Helper | None:
     """The process's helper thread (started on first use), or None when frames are not split."""
     global _HELPER
-    if not SPLIT_FRAMES:
+    if not SPLIT_FRAMES or _cores() < 2:
         return None
     h = _HELPER
     if h is None or h.pid != os.getpid():  # a forked child has no thread: start its own
@@ -258,8 +268,11 @@ class _ColumnView:
         dist = np.full(self.H, np.inf)
         dist[below] = self.cam_z * self.fy / (h_rows[below] - self.cy)
         self.row_dist = dist
-        # floor depth (transposed): d / k per column
-        self.floor_depth = np.ascontiguousarray((dist[None, :] / self.k[:, None]).astype(np.float32))
+        # the floor's depth (transposed, one row per column): a pinhole's z-depth is the same
+        # along an image row (the horizontal distance along column u's ray is dist * k[u]); a
+        # cylinder view (k = 1) records the horizontal distance, the same numbers
+        self.row_depth = dist.astype(np.float32)
+        self.floor_depth = np.ascontiguousarray(np.broadcast_to(self.row_depth, (self.W, self.H)))
         self.color4 = np.empty((self.W, self.H, 4), np.uint8)
         self.color_t = self.color4.view(np.uint32).reshape(self.W, self.H)
         self.depth_t = np.empty((self.W, self.H), np.float32)
@@ -267,7 +280,6 @@ class _ColumnView:
         if pinhole is not None:
             self.floor_rm = np.empty((self.H - self.r0, self.W, 4), np.uint8)  # the floor, upright
             self.floor_rm_u32 = self.floor_rm.view(np.uint32).reshape(self.H - self.r0, self.W)
-            self.floor_depth_rm = np.ascontiguousarray(self.floor_depth.T[self.r0 :])  # upright
             self._plan_levels()
         else:
             self._plan_rays(tex_level)
@@ -371,7 +383,7 @@ class _ColumnView:
         _kernels.render_columns(
             self.color_t, self.depth_t, self.floor_depth, self.bg_packed, self.r0, self.pinhole is not None,
             cx_w, cy_w, self.cam_z, yaw, self.cos_c, self.sin_c, self.k, self.fy, self.cy, MAX_VIEW_DIST,
-            r.x0, r.y0, r.res, r.label, r.dt, r.kinds, r.heights, r.colors, r.poly_start, r.poly_count,
+            r.x0, r.y0, r.res, r.cells, r.kinds, r.heights, r.colors, r.poly_start, r.poly_count,
             r.verts, r.circles, g.gain, g.x0, g.y0, g.res, b, LIGHT_DIR[0], LIGHT_DIR[1],
         )
         for sign in self.world.signs:
@@ -568,7 +580,7 @@ class RGBDCamera:
         cv2.transpose(v.color4[:, a:b], dst=self._color4[a:b])
         tile, na, nb = self._depth_noise(o)
         _kernels.finish_frame(
-            self._color4_u32[a:b], depth[a:b], a, v.r0, v.bg_packed, v.floor_rm_u32, v.floor_depth_rm, finish,
+            self._color4_u32[a:b], depth[a:b], a, v.r0, v.bg_packed, v.floor_rm_u32, v.row_depth, finish,
             tile, na, nb, DEPTH_NOISE, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth),
         )
 
@@ -635,13 +647,7 @@ class CSICameras:
         half_az = float(np.abs(az).max()) + 0.02
         half_tan = float(np.abs(tan_el).max()) + 0.02
         fc = self.f * CSI_OVERSAMPLE
-        m = p.csi_x
-        mounts = {
-            "right": (0.0, -m, p.csi_z, -math.pi / 2.0),
-            "rear": (-m, 0.0, p.csi_z, math.pi),
-            "left": (0.0, m, p.csi_z, math.pi / 2.0),
-            "front": (m, 0.0, p.csi_z, 0.0),
-        }
+        mounts = csi_mounts(p)
         self._views = {name: _CylinderView(self.world, mounts[name], half_az, half_tan, fc) for name in CSI_ORDER}
         v0 = self._views["front"]
         # fisheye pixel -> transposed cylinder pixel: x = cylinder row, y = cylinder column

@@ -9,19 +9,25 @@
 
 The model (DESIGN.md section 3): ``beams`` samples per turn (800 by default, the device at
 10 Hz), equally spaced counter-clockwise from the car's forward direction (beam ``i`` at
-``2 pi i / beams`` in the body frame, REP-103). The beams sweep the horizontal plane at the
-mount height ``lidar_z`` (0.20 m): walls, obstacles, sign posts and plates and the moving balls
+``2 pi i / beams`` in the body frame, REP-103). ``fov`` (rad, < 2 pi) makes it a sector
+scanner instead (F1TENTH's Hokuyo: 1080 beams over 4.7 rad): beam ``i`` at
+``-fov/2 + i fov / (beams - 1)``. The beams sweep the horizontal plane at the
+mount height ``lidar_z`` (0.186 m): walls, obstacles, sign posts and plates and the moving balls
 cut by that plane reflect; shapes lower than the mount are not seen, as on the real car.
 
 A range is the distance from the LIDAR's centre plus Gaussian noise (``lidar_noise``, 5 mm,
-drawn from the ``rng`` given; ``rng=None`` gives exact ranges), kept within
-[``lidar_min_range``, ``lidar_max_range``] (0.15-12 m). As the device, a beam reads **0** when
+drawn from the ``rng`` given, the LIDAR's own: it draws the noise of 16 scans at a time;
+``rng=None`` gives exact ranges), kept within
+[``lidar_min_range``, ``lidar_max_range``] (0.15-18 m). As the device, a beam reads **0** when
 nothing is within the maximum range and also when the object is closer than the minimum range
 (the RPLidar reports no valid distance then; set :data:`CLOSE_READS_MIN` to clamp instead).
 
 Speed: the static world is drawn once into a raster with a distance transform (see
-:mod:`qcarlab.sim.raster`); a scan marches every beam through it with precomputed sin/cos tables
-(compiled with numba when available) and intersects the few moving balls analytically.
+:mod:`qcarlab.sim.raster`, one uint16 a cell; a ROS map's walls also as 8 x 8-cell tiles of one
+byte a cell, which stay in the cache between scans); a scan marches every beam through it with
+precomputed sin/cos tables (compiled with numba when available) and intersects the few moving
+balls analytically. ``last_cell_steps`` tells how many cells the last scan looked at: about 3
+per cell of a beam's length at most, whatever the pose (a beam along a cell boundary included).
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ from qcarlab.sim.world import World, load_world
 __all__ = ["CLOSE_READS_MIN", "Lidar"]
 
 CLOSE_READS_MIN = False  # True: an object nearer than the minimum range reads the minimum, not 0
+NOISE_SCANS = 16  # scans whose range noise is drawn from the rng in one go
 
 
 class Lidar:
@@ -51,6 +58,7 @@ class Lidar:
         params: QCarParams = DEFAULT_PARAMS,
         beams: int | None = None,
         rng: np.random.Generator | None = None,
+        fov: float | None = None,
     ):
         self.world = world if isinstance(world, World) else load_world(world, params)
         self.params = params
@@ -59,13 +67,22 @@ class Lidar:
             raise InputError(f"LIDAR beams must be a positive integer, got {beams!r}")
         self.beams = int(n)
         self.rng = rng
-        self.angles = np.arange(self.beams, dtype=np.float64) * (2.0 * math.pi / self.beams)
+        if fov is None or fov >= 2.0 * math.pi:
+            self.angles = np.arange(self.beams, dtype=np.float64) * (2.0 * math.pi / self.beams)
+        elif math.isfinite(fov) and fov > 0.0 and self.beams >= 2:
+            # a sector centred on forward, both ends included (as a Hokuyo or F1TENTH's scans)
+            self.angles = -fov / 2.0 + np.arange(self.beams, dtype=np.float64) * (fov / (self.beams - 1))
+        else:
+            raise InputError(f"LIDAR fov must be a positive angle (rad) with at least 2 beams, got {fov!r}")
         self.angles.setflags(write=False)
         self._cos = np.cos(self.angles)
         self._sin = np.sin(self.angles)
         self._raster = build_raster(self.world, z=params.lidar_z)
         self._no_balls = np.zeros((0, 3), np.float64)
         self._no_noise = np.zeros(0, np.float64)
+        self.last_cell_steps = 0  # cells the last scan looked at (all beams): the work it took
+        self._noise_rows = np.zeros((0, self.beams))
+        self._noise_i = 0
 
     @property
     def rate(self) -> float:
@@ -93,9 +110,9 @@ class Lidar:
         sx, sy, syaw = self.sensor_pose(pose)
         r, p = self._raster, self.params
         out = np.empty(self.beams, np.float64)
-        _kernels.lidar_scan(
+        self.last_cell_steps = _kernels.lidar_scan(
             sx, sy, syaw, self._cos, self._sin, float(p.lidar_max_range),
-            r.x0, r.y0, r.res, r.label, r.dt, r.kinds, r.poly_start, r.poly_count, r.verts, r.circles,
+            r.x0, r.y0, r.res, r.cells, r.tiles, r.tiles_x, r.kinds, r.poly_start, r.poly_count, r.verts, r.circles,
             self._balls(t), noise, float(p.lidar_min_range), near_mode, out,
         )
         return out
@@ -108,8 +125,14 @@ class Lidar:
         """One turn from the car pose (x, y, yaw of its centre) at time ``t`` (moving balls)."""
         p = self.params
         if self.rng is not None and p.lidar_noise > 0.0:
-            noise = self.rng.standard_normal(self.beams)
-            noise *= p.lidar_noise
+            if self._noise_i >= len(self._noise_rows):
+                # the noise of NOISE_SCANS scans drawn at once: the generator's draws come in
+                # sequence, so these are the numbers one draw per scan would give
+                self._noise_rows = self.rng.standard_normal((NOISE_SCANS, self.beams))
+                self._noise_rows *= p.lidar_noise
+                self._noise_i = 0
+            noise = self._noise_rows[self._noise_i]
+            self._noise_i += 1
         else:
             noise = self._no_noise
         ranges = self._cast(pose, t, noise, 1 if CLOSE_READS_MIN else 0)

@@ -4,8 +4,10 @@
   the cameras sample it, the top-down render starts from it.
 - :func:`build_raster`: the static shapes as a label grid (cell -> index of the shape covering it,
   -1 = free) with a distance transform (distance in cells from each free cell to the nearest
-  occupied one) so a ray can skip empty space, plus per-shape tables (kind, height, colour,
-  polygon vertices or circle) so a hit can be refined to the exact surface.
+  occupied one) so a ray can skip empty space, both in one uint16 a cell for the kernels
+  (:func:`cell_map`; a ROS map's walls alone also as one-byte 8 x 8 tiles, :func:`tile_map`),
+  plus per-shape tables (kind, height, colour, polygon vertices or circle) so a hit can be
+  refined to the exact surface.
 
 Raster cells: cell (row, col) covers x in [x0 + col res, x0 + (col + 1) res) and
 y in [y0 + row res, y0 + (row + 1) res): row 0 is the *bottom* (y grows with the row), unlike
@@ -20,6 +22,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from qcarlab.errors import InputError
+from qcarlab.sim import _kernels
 from qcarlab.sim.world import Solid, World
 
 RASTER_RES = 0.005  # m, cell size of vector worlds' rasters (coarsened to stay under MAX_RASTER_CELLS)
@@ -160,7 +164,9 @@ class Raster:
     y0: float
     res: float
     label: np.ndarray  # int32 (ny, nx), -1 = free, else index into the tables
-    dt: np.ndarray  # float32 (ny, nx), cells from a free cell's centre to the nearest occupied one
+    cells: np.ndarray  # uint16 (ny, nx), what the kernels read: see cell_map()
+    tiles: np.ndarray  # uint8 (8 x 8-cell tiles, flat) of a ROS map's walls alone for the LIDAR, else empty: see tile_map()
+    tiles_x: int  # tiles a row
     kinds: np.ndarray  # int32 (L,): KIND_GRID, KIND_POLYGON, KIND_CIRCLE
     heights: np.ndarray  # float64 (L,) top of each shape above the floor
     colors: np.ndarray  # float32 (L, 3) BGR
@@ -172,6 +178,38 @@ class Raster:
     @property
     def shape(self) -> tuple[int, int]:
         return self.label.shape  # type: ignore[return-value]
+
+
+def cell_map(label: np.ndarray) -> np.ndarray:
+    """The kernels' uint16 cell map of a label grid (-1 = free): an occupied cell holds
+    ``OCC + label``; a free cell the distance from its centre to the nearest occupied cell's
+    centre (the exact Euclidean distance transform) in units of ``DT_UNIT`` cells, rounded down
+    and capped at ``OCC - 1`` (about 4,096 cells), so that a ray's jump is never longer than
+    the true distance allows. One array of 2 bytes a cell (was two of 4): the map stays in the
+    cache while a simulation also renders camera frames."""
+    free = (label < 0).astype(np.uint8)
+    if free.all():
+        return np.full(label.shape, _kernels.OCC - 1, np.uint16)
+    dt = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    q = np.floor(np.minimum(dt, (_kernels.OCC - 1) * _kernels.DT_UNIT) / _kernels.DT_UNIT).astype(np.uint16)
+    return np.where(label >= 0, (label + _kernels.OCC).astype(np.uint16), q)
+
+
+def tile_map(cells: np.ndarray) -> tuple[np.ndarray, int]:
+    """The one-byte tiled form of a one-shape raster's cell map (the kernels' ``march_tiles``):
+    8 x 8-cell tiles, row-major tiles of row-major cells, 64 bytes each (one cache line); an
+    occupied cell is ``TILE_OCC``, a free cell its distance value in units of ``TILE_UNIT`` cells
+    (rounded down from the cell map's, capped at 254); the edge tiles are padded with occupied
+    cells that no ray reaches (it leaves the grid first). Returns (tiles, tiles a row)."""
+    k = _kernels
+    ny, nx = cells.shape
+    occ = cells >= k.OCC
+    q = np.minimum((cells.astype(np.int64) * k.DT_UNIT / k.TILE_UNIT).astype(np.int64), k.TILE_OCC - 1)
+    c8 = np.where(occ, k.TILE_OCC, q).astype(np.uint8)
+    ty, tx = (ny + 7) // 8, (nx + 7) // 8
+    pad = np.full((ty * 8, tx * 8), k.TILE_OCC, np.uint8)
+    pad[:ny, :nx] = c8
+    return np.ascontiguousarray(pad.reshape(ty, 8, tx, 8).transpose(0, 2, 1, 3)).reshape(-1), tx
 
 
 def build_raster(world: World, z: float | None = None, res: float | None = None) -> Raster:
@@ -252,17 +290,21 @@ def build_raster(world: World, z: float | None = None, res: float | None = None)
             rad = max(1, int(round(s.radius / r * _ONE)))
             cv2.circle(label, (int(c[0]), int(c[1])), rad, idx, -1, cv2.LINE_8, _SHIFT)
 
-    free = (label < 0).astype(np.uint8)
-    if free.all():
-        dt = np.full(label.shape, 1e9, np.float32)
-    else:
-        dt = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    if len(kinds) > _kernels.MAX_LABELS:
+        raise InputError(f"world {world.name!r}: {len(kinds)} shapes, more than the sensors' raster holds "
+                         f"({_kernels.MAX_LABELS})")
+    cells = cell_map(label)
+    # a ROS map alone (coarse cells, where a 63.5-cell cap on the jumps costs nothing): tiles too
+    one_grid = len(kinds) == 1 and kinds[0] == KIND_GRID
+    tiles, tiles_x = tile_map(cells) if one_grid else (np.zeros(0, np.uint8), 0)
     out = Raster(
         x0=float(x0),
         y0=float(y0),
         res=float(r),
         label=label,
-        dt=dt,
+        cells=cells,
+        tiles=tiles,
+        tiles_x=tiles_x,
         kinds=np.array(kinds, np.int32),
         heights=np.array(heights, np.float64),
         colors=np.array(colors, np.float32).reshape(-1, 3),

@@ -1,0 +1,90 @@
+"""Recording: file size and what --record costs in the simulator's real-time factor.
+
+    python benchmarks/bench_record.py              # 60 s lane-follow size + overhead, alternating batches
+    python benchmarks/bench_record.py --quick      # shorter runs (a smoke test of the script)
+
+Targets (issue 13): a 60 s lane-follow recording with the RGBD camera at 30 Hz stays under 100 MB
+(compact profile: JPEG colour every frame, 16-bit mm depth every 15th frame), and recording costs
+at most 20 % of the real-time factor. Each figure is the median of alternating batches (plain,
+recorded, plain, recorded, ...) so a load change on a shared machine hits both alike; the load
+average is printed with them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from qcarlab.car import open_car  # noqa: E402
+from qcarlab.experiments.avoid import AvoidConfig, avoid  # noqa: E402
+from qcarlab.experiments.lane_follow import LaneFollowConfig, run_lane_follow  # noqa: E402
+from qcarlab.recording.car import RecordingCar  # noqa: E402
+from qcarlab.recording.writer import Recorder  # noqa: E402
+from qcarlab.sim.world import load_world  # noqa: E402
+
+
+def lane(car, seconds):
+    return run_lane_follow(car, LaneFollowConfig(duration=seconds), None)
+
+
+def lidar(car, seconds):
+    return avoid(car, AvoidConfig(duration=seconds))
+
+
+LABS = {"lane-follow": ("track", lane), "avoid": ("obstacles", lidar)}
+
+
+def run_once(lab: str, seconds: float, record: Path | None, profile: str = "compact") -> tuple[float, int]:
+    """Wall time of one run (s) and the recording's size (bytes, 0 without)."""
+    world, fn = LABS[lab]
+    car = open_car("sim", world=load_world(world), seed=0)
+    if record is not None:
+        car = RecordingCar(car, Recorder(record, profile=profile))
+    t = time.perf_counter()
+    with car:
+        fn(car, seconds)
+    wall = time.perf_counter() - t  # includes finishing the file (closing is inside the with)
+    return wall, (record.stat().st_size if record is not None else 0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="short runs")
+    ap.add_argument("--batches", type=int, default=3)
+    args = ap.parse_args()
+    size_s = 10.0 if args.quick else 60.0
+    speed_s = 5.0 if args.quick else 15.0
+    print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at start")
+    with tempfile.TemporaryDirectory() as tmp:
+        f = Path(tmp) / "size.mcap"
+        for lab in LABS:  # warm-up: numba kernels, rasters
+            run_once(lab, 1.0, None)
+        wall, size = run_once("lane-follow", size_s, f)
+        per_min = size / size_s * 60.0
+        print(f"size: lane-follow {size_s:g} s, RGBD 30 Hz, compact: {size / 1e6:.1f} MB "
+              f"({per_min / 1e6:.1f} MB per minute; target < 100 MB)")
+        wall_x, size_x = run_once("lane-follow", 3.0, Path(tmp) / "exact.mcap", "exact")
+        print(f"size: lane-follow 3 s, exact profile: {size_x / 1e6:.1f} MB ({size_x / 3.0 * 60 / 1e6:.0f} MB per "
+              "minute; for exact replays of camera labs)")
+        for lab in LABS:
+            plain, rec = [], []
+            for b in range(args.batches):
+                plain.append(run_once(lab, speed_s, None)[0])
+                rec.append(run_once(lab, speed_s, Path(tmp) / f"{lab}{b}.mcap")[0])
+            p, r = statistics.median(plain), statistics.median(rec)
+            rtf_p, rtf_r = speed_s / p, speed_s / r
+            print(f"speed: {lab} {speed_s:g} s x {args.batches}: real-time factor {rtf_p:.2f} plain, {rtf_r:.2f} "
+                  f"recorded: recording costs {100 * (1 - rtf_r / rtf_p):.1f} % (target <= 20 %); "
+                  f"walls plain {[round(x, 2) for x in plain]}, recorded {[round(x, 2) for x in rec]}")
+    print(f"load average {os.getloadavg()[0]:.2f} at the end")
+
+
+if __name__ == "__main__":
+    main()

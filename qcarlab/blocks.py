@@ -1,0 +1,388 @@
+"""The lab's blocks by their sheet names, and the student's own blocks plugged in from a file.
+
+Every lab is a block diagram (:mod:`qcarlab.experiments.models`): each Simulink block of the
+sheet is one function (or small class) looked up by its sheet name in snake_case. A student
+replaces any of them without touching the package::
+
+    qcarlab stop-sign --use mylab/stop_sign.py              # every block named in the file
+    qcarlab avoid --block lidar_stop=mine.py:my_stop         # one block, any function name
+    follow_path(car, path, cfg, blocks={"pure_pursuit": my_fn})   # the Python API
+
+A student's block is called through :class:`StudentBlock`, which makes student code fail like
+student code: an exception inside it stops the run (the car is stopped by the loop) and is
+reported with the student's own frames only (file:line) and the block's name, exit 1; a return
+value of the wrong type, NaN or out of the block's range is one line naming the block and the
+value, exit 1; an unfilled template (a body that still raises ``NotImplementedError``) is found
+before the car moves: one line naming the file, the block and the sheet task, exit 2. Each call
+is timed, so a block slower than the tick on a real-time car is reported, not silently lagged.
+
+A stateful block may be a class: it is instantiated once per run (no arguments), its instance is
+called like the function (``__call__``), and ``reset()`` is called at the start if it has one.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib.util
+import inspect
+import math
+import numbers
+import sys
+import time
+import traceback
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from qcarlab.errors import InputError, QcarlabError
+
+__all__ = [
+    "BlockSpec",
+    "StudentBlock",
+    "StudentBlockError",
+    "load_block_file",
+    "parse_block_option",
+    "resolve_student_blocks",
+]
+
+
+class StudentBlockError(QcarlabError):
+    """A student's block raised or returned something unusable. Exit code 1 (the run failed)."""
+
+    exit_code = 1
+
+
+@dataclass(frozen=True)
+class BlockSpec:
+    """One block of a lab's diagram: the sheet's name, its fixed signature and units.
+
+    ``returns`` names the check applied to a student's return value: ``speed`` (m/s, finite,
+    |v| <= 10), ``steering`` (rad, finite, |delta| <= pi/2), ``throttle`` (duty, finite,
+    |u| <= 1), ``speed_steering`` (a pair of those), ``pose`` (three finite numbers), or ``any``.
+    ``fill`` is the sheet's task text when the block is one the student fills in (the template
+    writes a file for it); ``stub`` is the body the template gives it.
+    """
+
+    name: str
+    signature: str  # e.g. "stop_sign(distance_to_sign, desired_speed) -> speed_cmd"
+    units: str  # e.g. "m, m/s -> m/s"
+    section: str  # e.g. "5.2 Task 1, Figure 51"
+    doc: str  # one line: what it does
+    returns: str = "any"
+    stateful: bool = False
+    fill: str | None = None  # the sheet's task text, for blocks the student fills in
+    args: tuple[str, ...] = ()  # the parameter names (from the signature)
+    example: str = ""  # a call with its reference result, for the template's docstring
+
+    @property
+    def params(self) -> tuple[str, ...]:
+        if self.args:
+            return self.args
+        inside = self.signature.split("(", 1)[1].split(")", 1)[0]
+        return tuple(a.strip() for a in inside.split(",") if a.strip())
+
+
+# --------------------------------------------------------------------------------------------
+# return-value checks
+# --------------------------------------------------------------------------------------------
+_LIMITS = {"speed": (10.0, "m/s"), "steering": (math.pi / 2.0, "rad"), "throttle": (1.0, "(duty fraction)")}
+
+
+def _number(block: str, value: Any, kind: str, what: str = "") -> float:
+    limit, unit = _LIMITS[kind]
+    label = f"{what} " if what else ""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        shape = getattr(value, "shape", None)
+        if shape == () or (shape is not None and len(shape) == 1 and shape[0] == 1):
+            value = float(value.reshape(-1)[0]) if shape else float(value)  # a numpy scalar or 1-element array
+        else:
+            raise StudentBlockError(f"block {block} returned {_short(value)} ({type(value).__name__}); "
+                                    f"expected {label}a number in {unit}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise StudentBlockError(f"block {block} returned {label}{v}; expected a finite number in {unit}")
+    if abs(v) > limit:
+        raise StudentBlockError(f"block {block} returned {label}{v:g} {unit}, out of range (|value| <= {limit:g})")
+    return v
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def check_return(block: str, kind: str, value: Any) -> Any:
+    """``value`` as the lab uses it, or :class:`StudentBlockError` naming the block and the value."""
+    if kind in _LIMITS:
+        return _number(block, value, kind)
+    if kind == "speed_steering":
+        if not (isinstance(value, (tuple, list)) and len(value) == 2):
+            raise StudentBlockError(f"block {block} returned {_short(value)}; expected a pair "
+                                    "(speed_cmd in m/s, steering_cmd in rad)")
+        return (_number(block, value[0], "speed", "speed_cmd"), _number(block, value[1], "steering", "steering_cmd"))
+    if kind == "pose":
+        try:
+            x, y, yaw = (float(v) for v in value)
+        except (TypeError, ValueError):
+            raise StudentBlockError(f"block {block} returned {_short(value)}; expected (x, y, yaw) in m, m, rad") \
+                from None
+        if not all(math.isfinite(v) for v in (x, y, yaw)):
+            raise StudentBlockError(f"block {block} returned {_short(value)}; expected finite (x, y, yaw)")
+        return (x, y, yaw)
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# the student's block
+# --------------------------------------------------------------------------------------------
+@dataclass
+class StudentBlock:
+    """A student's function (or class) in place of a reference block; called like the block.
+
+    ``source`` is ``file.py:function``. Every call is checked (see the module docstring) and
+    timed: ``calls``, ``worst_s`` and the number of calls over ``budget_s`` (when set).
+    """
+
+    spec: BlockSpec
+    target: Any  # the function, or the class (instantiated by start())
+    source: str
+    file: Path
+    calls: int = 0
+    worst_s: float = 0.0
+    total_s: float = 0.0
+    over_budget: int = 0
+    budget_s: float | None = None
+    fn: Callable[..., Any] | None = field(default=None, repr=False)
+
+    def start(self) -> StudentBlock:
+        """Ready for a run: instantiate a class (once), call its ``reset()`` if it has one."""
+        self.calls, self.worst_s, self.total_s, self.over_budget = 0, 0.0, 0.0, 0
+        if inspect.isclass(self.target):
+            obj = self._guard(self.target, ())
+            if not callable(obj):
+                raise StudentBlockError(f"block {self.spec.name} ({self.source}): the class has no __call__ method; "
+                                        f"give it one with the block's signature {self.spec.signature}")
+            self.fn = obj
+        else:
+            self.fn = self.target
+        reset = getattr(self.fn, "reset", None)
+        if inspect.isclass(self.target) and callable(reset):
+            self._guard(reset, ())
+        return self
+
+    def _guard(self, fn: Callable[..., Any], args: tuple, kwargs: Mapping[str, Any] | None = None) -> Any:
+        try:
+            return fn(*args, **(kwargs or {}))
+        except NotImplementedError:
+            raise InputError(f"{self.file}: {self.spec.name} is not filled in yet (sheet {self.spec.section}); "
+                             "write its body, then run again") from None
+        except (KeyboardInterrupt, QcarlabError):
+            raise
+        except SystemExit as exc:
+            raise StudentBlockError(f"block {self.spec.name} ({self.source}) called sys.exit({exc.code!r}); "
+                                    "a block returns its value instead") from None
+        except BaseException as exc:  # noqa: BLE001 - the student's code may raise anything
+            raise StudentBlockError(student_traceback(exc, self.file)
+                                    + f"\nblock {self.spec.name} ({self.source}) raised "
+                                    f"{type(exc).__name__}: {exc}") from None
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        if self.fn is None:
+            self.start()
+        t0 = time.perf_counter()
+        value = self._guard(self.fn, args, kwargs)
+        spent = time.perf_counter() - t0
+        self.calls += 1
+        self.total_s += spent
+        if spent > self.worst_s:
+            self.worst_s = spent
+        if self.budget_s is not None and spent > self.budget_s:
+            self.over_budget += 1
+        return check_return(self.spec.name, self.spec.returns, value)
+
+    def __getattr__(self, name: str) -> Any:  # e.g. a class's .state, read for the log
+        if name.startswith("__") or self.__dict__.get("fn") is None:
+            raise AttributeError(name)
+        return getattr(self.__dict__["fn"], name)
+
+    def timing(self) -> dict[str, Any]:
+        return {"source": self.source, "calls": self.calls, "worst_s": self.worst_s,
+                "mean_s": self.total_s / self.calls if self.calls else 0.0, "over_budget": self.over_budget,
+                "budget_s": self.budget_s}
+
+
+def student_traceback(exc: BaseException, file: Path) -> str:
+    """The traceback of ``exc`` cut to the frames in the student's ``file`` (file:line and code)."""
+    want = str(Path(file).resolve())
+    lines = []
+    for frame in traceback.extract_tb(exc.__traceback__):
+        if str(Path(frame.filename).resolve()) == want:
+            lines.append(f"  {file}:{frame.lineno} in {frame.name}")
+            if frame.line:
+                lines.append(f"    {frame.line.strip()}")
+    if not lines:
+        return "  (no line of your file in the traceback: the error came from a call your block made)"
+    return "\n".join(["traceback (your code only):"] + lines)
+
+
+# --------------------------------------------------------------------------------------------
+# loading a student's file
+# --------------------------------------------------------------------------------------------
+def _import_file(path: Path) -> Any:
+    if not path.is_file():
+        raise InputError(f"{path}: no such file (expected a Python file with your blocks)")
+    if path.suffix != ".py":
+        raise InputError(f"{path}: expected a Python file (.py)")
+    name = f"qcarlab_student_{abs(hash(str(path.resolve())))}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise InputError(f"{path}: cannot be loaded as a Python module")
+    module = importlib.util.module_from_spec(spec)
+    folder = str(path.resolve().parent)
+    added = folder not in sys.path
+    if added:
+        sys.path.insert(0, folder)  # so the student's file can import its neighbours
+    try:
+        spec.loader.exec_module(module)
+    except SyntaxError as exc:
+        raise InputError(f"{path} line {exc.lineno}: syntax error: {exc.msg}") from None
+    except (KeyboardInterrupt, QcarlabError):
+        raise
+    except SystemExit:
+        raise InputError(f"{path}: calls sys.exit when it is imported; put the code in functions") from None
+    except BaseException as exc:  # noqa: BLE001
+        raise InputError(f"{path}: importing it raised {type(exc).__name__}: {exc}\n"
+                         + student_traceback(exc, path)) from None
+    finally:
+        if added:
+            try:
+                sys.path.remove(folder)
+            except ValueError:
+                pass
+    return module
+
+
+def _unfilled(path: Path, name: str) -> bool:
+    """True when ``name`` in ``path`` still has a template's body: only ``raise NotImplementedError``
+    (after its docstring), or a class whose ``__call__`` is like that."""
+    try:
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+    except (OSError, SyntaxError, ValueError):
+        return False
+
+    def stub(fn: ast.AST) -> bool:
+        body = [s for s in fn.body if not (isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant))]
+        if len(body) != 1 or not isinstance(body[0], ast.Raise) or body[0].exc is None:
+            return False
+        exc = body[0].exc
+        called = exc.func if isinstance(exc, ast.Call) else exc
+        return isinstance(called, ast.Name) and called.id == "NotImplementedError"
+
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name == name:
+            return stub(node)
+        if isinstance(node, ast.ClassDef) and node.name == name:
+            return any(isinstance(m, ast.FunctionDef) and m.name == "__call__" and stub(m) for m in node.body)
+    return False
+
+
+def _defined_names(path: Path) -> set[str]:
+    """The top-level function and class names of a Python file (without running it)."""
+    try:
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+    except SyntaxError as exc:
+        raise InputError(f"{path} line {exc.lineno}: syntax error: {exc.msg}") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read it ({exc})") from None
+    return {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))}
+
+
+def _make(spec: BlockSpec, target: Any, path: Path, func: str) -> StudentBlock:
+    if not callable(target):
+        raise InputError(f"{path}: {func} is not a function or class")
+    if _unfilled(path, func):
+        raise InputError(f"{path}: {spec.name} is not filled in yet (sheet {spec.section}); "
+                         "write its body, then run again")
+    return StudentBlock(spec, target, f"{path}:{func}", path)
+
+
+def load_block_file(path: str | Path, specs: Mapping[str, BlockSpec], lab: str) -> dict[str, StudentBlock]:
+    """Every top-level function or class of the file named like one of the lab's blocks."""
+    p = Path(path)
+    module = _import_file(p)
+    found = {}
+    for name, spec in specs.items():
+        target = module.__dict__.get(name)
+        if target is not None and (inspect.isfunction(target) or inspect.isclass(target)):
+            found[name] = _make(spec, target, p, name)
+    if not found:
+        raise InputError(f"{p}: defines none of the {lab} blocks ({', '.join(specs)}); "
+                         f"see: qcarlab blocks {lab}")
+    return found
+
+
+def parse_block_option(text: str) -> tuple[str, Path, str]:
+    """``NAME=FILE.py:FUNC`` (``:FUNC`` optional, default NAME) -> (NAME, FILE, FUNC)."""
+    name, sep, rest = text.partition("=")
+    name, rest = name.strip(), rest.strip()
+    if not sep or not name or not rest:
+        raise InputError(f"--block {text!r}: expected NAME=FILE.py:FUNCTION (e.g. stop_sign=mylab/stop.py:stop_sign)")
+    file, colon, func = rest.rpartition(":")
+    if not colon or not file.endswith(".py"):
+        file, func = rest, name
+    if not func.isidentifier():
+        raise InputError(f"--block {text!r}: {func!r} is not a Python function name")
+    return name, Path(file), func
+
+
+def resolve_student_blocks(
+    specs: Mapping[str, BlockSpec],
+    lab: str,
+    use: Iterable[str | Path] = (),
+    block: Iterable[str] = (),
+) -> dict[str, StudentBlock]:
+    """The student's blocks from ``--use FILE`` (all matching names) and ``--block NAME=FILE:FUNC``
+    (later options win); unknown block names are refused with the lab's list."""
+    out: dict[str, StudentBlock] = {}
+    for file in use:
+        folder = Path(file)
+        if folder.is_dir():  # a workspace: every .py file in it that defines blocks of this lab
+            found: dict[str, StudentBlock] = {}
+            for path in sorted(folder.glob("*.py")):
+                names = _defined_names(path) & set(specs)
+                if names:
+                    found.update(load_block_file(path, {n: specs[n] for n in names}, lab))
+            if not found:
+                raise InputError(f"--use {folder}: no .py file there defines one of the {lab} blocks "
+                                 f"({', '.join(specs)}); see: qcarlab blocks {lab}")
+            out.update(found)
+        else:
+            out.update(load_block_file(file, specs, lab))
+    for text in block:
+        name, file, func = parse_block_option(text)
+        if name not in specs:
+            raise InputError(f"--block {text!r}: {lab} has no block {name!r} (its blocks: {', '.join(specs)})")
+        module = _import_file(file)
+        target = module.__dict__.get(func)
+        if target is None:
+            raise InputError(f"--block {text!r}: {file} has no function or class {func!r}")
+        out[name] = _make(specs[name], target, file, func)
+    return out
+
+
+def as_block(spec: BlockSpec, value: Any, where: str = "blocks") -> Any:
+    """A block given through the Python API (``blocks={"pure_pursuit": fn}``): a StudentBlock is
+    kept, a plain function or class is wrapped so it is checked and timed like one from a file."""
+    if isinstance(value, StudentBlock):
+        return value
+    if not callable(value):
+        raise InputError(f"{where}[{spec.name!r}]: expected a function or class, got {type(value).__name__}")
+    inner = getattr(value, "func", value)  # a functools.partial's function
+    try:
+        src = inspect.getsourcefile(inner)
+    except TypeError:  # a builtin or a C function
+        src = None
+    file = Path(src) if src else Path("<python>")
+    name = getattr(inner, "__qualname__", getattr(inner, "__name__", spec.name))
+    return StudentBlock(spec, value, f"{file}:{name}", file)

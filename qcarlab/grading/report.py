@@ -1,0 +1,214 @@
+"""What grading writes: ``grade.json``, JUnit XML, the gradebook CSV and the class's HTML report.
+
+- ``grade.json``: every task of every student with its criteria (expected, value, verdict, reason,
+  points) and the totals.
+- JUnit (``--junit FILE``, made with junitparser): one ``testsuite`` per student and sheet, one
+  ``testcase`` per criterion (``classname`` = ``sheet.task``), a ``failure`` with the reason when
+  a criterion is not met, an ``error`` when the task could not run (timeout, crash, block
+  missing), ``skipped`` for tasks that need a car. GitHub Actions, GitLab and Jenkins show it.
+- ``gradebook.csv``: one row per student: points per task (``sheet/task`` columns), total, maximum.
+- ``report.html``: one file, no external resources: the table of students and tasks, then per
+  student each task's criteria, their figures (embedded, scaled down) and their ``answers.md``
+  (shown as text, never as HTML).
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+from pathlib import Path
+from typing import Any
+
+
+def _public(row: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in row.items() if not k.startswith("_")}
+
+
+def report_dict(sheets: list[Any], students: list[dict[str, Any]], single: bool) -> dict[str, Any]:
+    """grade.json: for one submission its tasks at the top level; for a class, one entry per student."""
+    from qcarlab import __version__
+
+    head = {"qcarlab": __version__,
+            "sheets": [{"name": s.name, "title": s.title, "section": s.section, "path": str(s.path),
+                        "lab": s.lab, "points": s.points} for s in sheets]}
+    clean = [{**{k: v for k, v in st.items() if k != "tasks"}, "tasks": [_public(r) for r in st["tasks"]]}
+             for st in students]
+    if single:
+        head.update(clean[0])
+        return head
+    head["students"] = clean
+    return head
+
+
+# --------------------------------------------------------------------------------------------
+# JUnit
+# --------------------------------------------------------------------------------------------
+def write_junit(path: str | Path, students: list[dict[str, Any]], single: bool) -> Path:
+    from junitparser import Error, Failure, JUnitXml, Skipped, TestCase, TestSuite
+
+    xml = JUnitXml("qcarlab grade")
+    for st in students:
+        by_sheet: dict[str, list[dict[str, Any]]] = {}
+        for r in st["tasks"]:
+            by_sheet.setdefault(r["sheet"], []).append(r)
+        for sheet, rows in by_sheet.items():
+            suite = TestSuite(sheet if single else f"{st['student']}: {sheet}")
+            for r in rows:
+                n = max(len(r["criteria"]), 1)
+                for c in r["criteria"]:
+                    case = TestCase(c["criterion"], classname=f"{sheet}.{r['id']}" if single
+                                    else f"{st['student']}.{sheet}.{r['id']}",
+                                    time=round((r.get("seconds") or 0.0) / n, 3))
+                    text = f"expected {c['expected']}; got {c['value']!r}; points {c['earned']:g}/{c['points']:g}"
+                    if r["status"] == "skipped":
+                        case.result = [Skipped(r["problem"])]
+                    elif r["problem"] and not c["passed"] and c["reason"] == r["problem"]:
+                        err = Error(r["problem"], "task")
+                        err.text = (r.get("detail") or "")[-4000:] or text
+                        case.result = [err]
+                    elif not c["passed"]:
+                        fail = Failure(c["reason"] or "criterion not met", "criterion")
+                        fail.text = text + (f"\n{r['detail'][-4000:]}" if r.get("detail") else "")
+                        case.result = [fail]
+                    case.system_out = text
+                    suite.add_testcase(case)
+            suite.add_property("points", f"{sum(r['earned'] for r in rows):g}")
+            suite.add_property("max_points", f"{sum(r['points'] for r in rows if r['status'] != 'skipped'):g}")
+            xml.add_testsuite(suite)
+    out = Path(path)
+    if out.parent != Path(""):
+        out.parent.mkdir(parents=True, exist_ok=True)
+    xml.write(str(out), pretty=True)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# the gradebook
+# --------------------------------------------------------------------------------------------
+def columns(students: list[dict[str, Any]]) -> list[str]:
+    cols: list[str] = []
+    for st in students:
+        for r in st["tasks"]:
+            key = f"{r['sheet']}/{r['id']}"
+            if key not in cols:
+                cols.append(key)
+    return cols
+
+
+def write_gradebook(path: str | Path, students: list[dict[str, Any]]) -> Path:
+    """student, points per task, total, max_points (skipped tasks are empty)."""
+    cols = columns(students)
+    out = Path(path)
+    with open(out, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(["student", *cols, "total", "max_points"])
+        for st in students:
+            got = {f"{r['sheet']}/{r['id']}": r for r in st["tasks"]}
+            cells = []
+            for c in cols:
+                r = got.get(c)
+                cells.append("" if r is None or r["status"] == "skipped" else f"{r['earned']:g}")
+            w.writerow([st["student"], *cells, f"{st['points']:g}", f"{st['max_points']:g}"])
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# the HTML report
+# --------------------------------------------------------------------------------------------
+_CSS = """
+body{font-family:system-ui,sans-serif;margin:2em;color:#222}
+table{border-collapse:collapse;margin:1em 0}
+td,th{border:1px solid #ccc;padding:.25em .5em;text-align:left;vertical-align:top;font-size:90%}
+th{background:#f3f3f3} .pass{background:#e3f6e3} .fail{background:#fbe3e3} .skip{background:#eee;color:#777}
+.figs img{max-width:360px;margin:.25em;border:1px solid #ddd} pre{background:#f7f7f7;padding:1em;white-space:pre-wrap}
+h2{border-top:2px solid #ddd;padding-top:1em} .small{color:#666;font-size:85%}
+"""
+
+
+def thumbnail(png: bytes, width: int = 480) -> tuple[str, bytes]:
+    """A figure scaled to ``width`` px as JPEG (mime, bytes); the PNG itself when it cannot be read."""
+    try:
+        import cv2
+        import numpy as np
+
+        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+        if img is None:
+            return "image/png", png
+        if img.shape[1] > width:
+            img = cv2.resize(img, (width, int(img.shape[0] * width / img.shape[1])), interpolation=cv2.INTER_AREA)
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])
+        return ("image/jpeg", buf.tobytes()) if ok else ("image/png", png)
+    except Exception:  # noqa: BLE001 - a figure that cannot be scaled is shown as it is
+        return "image/png", png
+
+
+def _cls(r: dict[str, Any]) -> str:
+    return {"passed": "pass", "skipped": "skip"}.get(r["status"], "fail")
+
+
+def write_html(path: str | Path, title: str, students: list[dict[str, Any]], figures: dict[tuple, dict[str, bytes]],
+               answers: dict[str, list[tuple[str, str]]]) -> Path:
+    """The class report; ``figures[(student, sheet, task)]`` are PNG bytes by name, ``answers[student]``
+    each sheet's ``answers.md`` as (sheet, text)."""
+    e = html.escape
+    cols = columns(students)
+    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{e(title)}</title><style>{_CSS}</style>"
+             f"</head><body><h1>{e(title)}</h1>", "<table><tr><th>student</th>"]
+    parts += [f"<th>{e(c)}</th>" for c in cols] + ["<th>total</th></tr>"]
+    for st in students:
+        got = {f"{r['sheet']}/{r['id']}": r for r in st["tasks"]}
+        parts.append(f"<tr><td><a href='#s-{e(st['student'])}'>{e(st['student'])}</a></td>")
+        for c in cols:
+            r = got.get(c)
+            if r is None:
+                parts.append("<td></td>")
+            else:
+                shown = "skipped" if r["status"] == "skipped" else f"{r['earned']:g}/{r['points']:g}"
+                parts.append(f"<td class='{_cls(r)}' title='{e(r['problem'] or '')}'>{shown}</td>")
+        parts.append(f"<td><b>{st['points']:g}</b>/{st['max_points']:g}</td></tr>")
+    parts.append("</table>")
+    for st in students:
+        parts.append(f"<h2 id='s-{e(st['student'])}'>{e(st['student'])}: {st['points']:g} of "
+                     f"{st['max_points']:g} points</h2>")
+        if st.get("submission_problems"):
+            parts.append("<p class='small'>" + "<br>".join(e(x) for x in st["submission_problems"]) + "</p>")
+        for r in st["tasks"]:
+            parts.append(f"<h3 class='{_cls(r)}'>{e(r['sheet'])} / {e(r['id'])}: {r['status']} "
+                         f"({r['earned']:g}/{r['points']:g})</h3>")
+            if r.get("command"):
+                parts.append(f"<p class='small'><code>{e(r['command'])}</code></p>")
+            if r["problem"]:
+                parts.append(f"<p><b>{e(r['problem'])}</b></p>")
+            if r.get("detail"):
+                parts.append(f"<pre>{e(r['detail'])}</pre>")
+            parts.append("<table><tr><th>criterion</th><th>value</th><th>result</th><th>points</th></tr>")
+            for c in r["criteria"]:
+                v = c["value"]
+                shown = f"{v:.4g}" if isinstance(v, float) else ("" if v is None else str(v))
+                verdict = "pass" if c["passed"] else ("skipped" if r["status"] == "skipped" else
+                                                      "FAIL: " + (c["reason"] or ""))
+                parts.append(f"<tr class='{'pass' if c['passed'] else _cls(r)}'><td>{e(c['criterion'])}</td>"
+                             f"<td>{e(shown[:200])}</td><td>{e(verdict)}</td>"
+                             f"<td>{c['earned']:g}/{c['points']:g}</td></tr>")
+            parts.append("</table>")
+            figs = figures.get((st["student"], r["sheet"], r["id"])) or {}
+            if figs:
+                parts.append("<div class='figs'>")
+                for name, png in sorted(figs.items()):
+                    mime, data = thumbnail(png)
+                    parts.append(f"<img alt='{e(name)}' title='{e(name)}' "
+                                 f"src='data:{mime};base64,{base64.b64encode(data).decode()}'>")
+                parts.append("</div>")
+        given = answers.get(st["student"]) or []
+        if not given:
+            parts.append("<h3>answers.md</h3><p class='small'>(none)</p>")
+        for sheet, text in given:
+            parts.append(f"<h3>answers.md ({e(sheet)})</h3><pre>{e(text)}</pre>")
+    parts.append("</body></html>")
+    out = Path(path)
+    out.write_text("".join(parts), encoding="utf-8")
+    return out
+
+
+__all__ = ["report_dict", "thumbnail", "write_gradebook", "write_html", "write_junit"]

@@ -1,0 +1,163 @@
+"""A student's submission as the grader sees it, read without running any of it.
+
+A submission is the folder ``qcarlab template LAB --out DIR`` made and the student filled: their
+block files (``stop_sign.py``, ...), ``params.yaml`` (the ``lab:`` tunables) and ``answers.md``.
+A repository with several labs keeps one folder per sheet, named like the sheet or the lab
+(``stop-sign/``, ``path-following/`` or ``path-follow/``); :func:`folder_for` picks it (an
+instructor's sheet that ``extends`` one finds the folder of the sheet it extends).
+
+The grader reads the top-level ``*.py`` files (each at most 1 MB), ``params.yaml`` and
+``answers.md``; it finds the blocks by parsing the files (``ast``), never by importing them: which
+of the lab's blocks each file defines, and which are still the template's stub.
+"""
+
+from __future__ import annotations
+
+import ast
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from qcarlab.errors import InputError
+
+MAX_FILE = 2**20  # bytes per file the grader takes from a submission
+MAX_TOTAL = 8 * 2**20
+
+
+@dataclass
+class Submission:
+    """The files of one student's submission for one sheet."""
+
+    name: str  # the student (the folder's name)
+    folder: Path
+    files: dict[str, bytes] = field(default_factory=dict)  # *.py and params.yaml, by name
+    answers: str | None = None
+    problems: list[str] = field(default_factory=list)  # files left out, with why
+
+    def defined(self) -> dict[str, str]:
+        """Top-level function and class names -> the file that defines them (the last file in
+        name order wins, as ``--use DIR`` does)."""
+        out: dict[str, str] = {}
+        for fname in sorted(self.files):
+            if not fname.endswith(".py"):
+                continue
+            tree = self._tree(fname)
+            if tree is None:
+                continue
+            for node in tree.body:
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                    out[node.name] = fname
+        return out
+
+    def _tree(self, fname: str) -> ast.Module | None:
+        try:
+            return ast.parse(self.files[fname].decode("utf-8"), filename=fname)
+        except (SyntaxError, ValueError, UnicodeDecodeError):
+            return None
+
+    def syntax_errors(self) -> list[str]:
+        """One line per .py file that does not parse."""
+        out = []
+        for fname in sorted(self.files):
+            if not fname.endswith(".py"):
+                continue
+            try:
+                ast.parse(self.files[fname].decode("utf-8"), filename=fname)
+            except SyntaxError as exc:
+                out.append(f"{fname} line {exc.lineno}: syntax error: {exc.msg}")
+            except (ValueError, UnicodeDecodeError) as exc:
+                out.append(f"{fname}: cannot be read as Python ({exc})")
+        return out
+
+    def unfilled(self, name: str) -> bool:
+        """Whether ``name`` is still the template's stub (a body that only raises NotImplementedError)."""
+        fname = self.defined().get(name)
+        if fname is None:
+            return False
+        tree = self._tree(fname)
+        return tree is not None and _is_stub(tree, name)
+
+    def block_problem(self, name: str) -> str | None:
+        """Why the submission cannot be graded on block ``name`` (None when it can)."""
+        fname = self.defined().get(name)
+        if fname is None:
+            bad = self.syntax_errors()
+            more = f"; {bad[0]}" if bad else ""
+            return (f"your submission has no {name} (a function or class {name} in a .py file of "
+                    f"{self.folder}){more}")
+        if self.unfilled(name):
+            return f"{fname}: {name} is not filled in yet (its body still raises NotImplementedError)"
+        return None
+
+
+def _is_stub(tree: ast.Module, name: str) -> bool:
+    def stub(fn: ast.AST) -> bool:
+        body = [s for s in fn.body if not (isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant))]
+        if len(body) != 1 or not isinstance(body[0], ast.Raise) or body[0].exc is None:
+            return False
+        exc = body[0].exc
+        called = exc.func if isinstance(exc, ast.Call) else exc
+        return isinstance(called, ast.Name) and called.id == "NotImplementedError"
+
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name == name:
+            return stub(node)
+        if isinstance(node, ast.ClassDef) and node.name == name:
+            return any(isinstance(m, ast.FunctionDef) and m.name == "__call__" and stub(m) for m in node.body)
+    return False
+
+
+def folder_for(root: Path, names: list[str | None]) -> Path:
+    """The submission's folder for a sheet: ROOT/NAME for the first of ``names`` (the sheet's name,
+    the sheet it extends, the lab's sheet and command) that is a folder there, else ROOT."""
+    for name in names:
+        if name and (root / name).is_dir():
+            return root / name
+    return root
+
+
+def read_submission(root: str | Path, names: list[str | None], student: str | None = None) -> Submission:
+    """The submission in ``root`` for a sheet (see :func:`folder_for`); files too large are left
+    out and said so."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(f"--submission {root}: not a folder")
+    folder = folder_for(root, names)
+    sub = Submission(student or root.resolve().name, folder)
+    total = 0
+    for path in sorted(folder.iterdir()):
+        if not path.is_file() or path.name.startswith("."):
+            continue
+        if not (path.suffix == ".py" or path.name in ("params.yaml", "answers.md")):
+            continue
+        try:
+            size = path.stat().st_size
+            if size > MAX_FILE:
+                sub.problems.append(f"{path.name}: larger than {MAX_FILE // 1024} KB, left out")
+                continue
+            if total + size > MAX_TOTAL:
+                sub.problems.append(f"{path.name}: the submission is over {MAX_TOTAL // 2**20} MB, left out")
+                continue
+            data = path.read_bytes()
+        except OSError as exc:
+            sub.problems.append(f"{path.name}: unreadable ({exc.strerror or exc})")
+            continue
+        total += len(data)
+        if path.name == "answers.md":
+            sub.answers = data.decode("utf-8", errors="replace")
+        else:
+            sub.files[path.name] = data
+    return sub
+
+
+def class_folders(root: str | Path) -> list[tuple[str, Path]]:
+    """The students of a class folder: (name, folder) of each sub-folder, in name order."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(f"--class {root}: not a folder")
+    found = [(p.name, p) for p in sorted(root.iterdir()) if p.is_dir() and not p.name.startswith((".", "_"))]
+    if not found:
+        raise InputError(f"--class {root}: no sub-folder (one per student) in it")
+    return found
+
+
+__all__ = ["Submission", "class_folders", "folder_for", "read_submission"]

@@ -1,0 +1,172 @@
+"""Images and videos a user hands to ``qcarlab detect``: finding them, reading their frames, writing
+overlays. One-line errors (InputError, exit 2) for what cannot be read.
+
+    for src in expand_paths(["photos/", "drive.mp4"]):
+        for index, frame in frames_of(src, every=5):
+            ...
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from qcarlab.errors import InputError
+
+__all__ = ["IMAGE_EXT", "VIDEO_EXT", "Source", "VideoOut", "expand_paths", "frames_of", "read_depth", "read_image"]
+
+IMAGE_EXT = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
+VIDEO_EXT = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
+
+
+@dataclass(frozen=True)
+class Source:
+    """One file to read: an image or a video."""
+
+    path: Path
+    kind: str  # "image" | "video"
+
+
+def _kind(p: Path) -> str | None:
+    ext = p.suffix.lower()
+    return "image" if ext in IMAGE_EXT else "video" if ext in VIDEO_EXT else None
+
+
+def expand_paths(paths: Sequence[str | Path]) -> list[Source]:
+    """Images and videos of ``paths``; a folder gives the images and videos in it (sorted, not
+    its sub-folders). A missing path, an unknown extension or an empty folder is an error."""
+    out: list[Source] = []
+    if not paths:
+        raise InputError("give at least one image, video or folder")
+    for raw in paths:
+        p = Path(raw)
+        if p.is_dir():
+            found = [Source(q, _kind(q)) for q in sorted(p.iterdir()) if q.is_file() and _kind(q)]
+            if not found:
+                raise InputError(f"{p}: no images ({', '.join(IMAGE_EXT[:4])}, ...) or videos "
+                                 f"({', '.join(VIDEO_EXT[:4])}, ...) in this folder")
+            out += found
+        elif p.is_file():
+            kind = _kind(p)
+            if kind is None:
+                raise InputError(f"{p}: not an image or a video by its extension "
+                                 f"(images: {', '.join(IMAGE_EXT)}; videos: {', '.join(VIDEO_EXT)})")
+            out.append(Source(p, kind))
+        else:
+            raise InputError(f"{p}: no such file or folder")
+    return out
+
+
+def _as_bgr(img: np.ndarray, where: Path) -> np.ndarray:
+    if img.dtype == np.uint16:
+        img = (img // 257).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise InputError(f"{where}: unsupported pixel type {img.dtype}")
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    if img.shape[2] == 1:
+        return cv2.cvtColor(img[..., 0], cv2.COLOR_GRAY2BGR)
+    return np.ascontiguousarray(img)
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """A BGR uint8 image (grey, 16-bit and alpha images converted)."""
+    p = Path(path)
+    data = np.fromfile(str(p), np.uint8) if p.is_file() else None
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data is not None and data.size else None
+    if img is None:
+        raise InputError(f"{p}: cannot read this image (not an image file, or damaged)")
+    if min(img.shape[:2]) < 8:
+        raise InputError(f"{p}: the image is {img.shape[1]}x{img.shape[0]} px; at least 8 x 8 is needed")
+    return _as_bgr(img, p)
+
+
+def frames_of(src: Source, every: int = 1) -> Iterator[tuple[int, np.ndarray]]:
+    """``(frame index, BGR frame)`` of an image (index 0) or of every ``every``-th video frame."""
+    if src.kind == "image":
+        yield 0, read_image(src.path)
+        return
+    cap = cv2.VideoCapture(str(src.path))
+    if not cap.isOpened():
+        raise InputError(f"{src.path}: cannot open this video (unknown codec or damaged)")
+    try:
+        index, seen = 0, 0
+        while True:
+            ok = cap.grab()
+            if not ok:
+                break
+            if index % every == 0:
+                ok, frame = cap.retrieve()
+                if not ok or frame is None:
+                    raise InputError(f"{src.path}: frame {index} cannot be decoded")
+                seen += 1
+                yield index, _as_bgr(frame, src.path)
+            index += 1
+        if seen == 0:
+            raise InputError(f"{src.path}: the video has no frames")
+    finally:
+        cap.release()
+
+
+def video_fps(path: Path) -> float:
+    cap = cv2.VideoCapture(str(path))
+    try:
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+    finally:
+        cap.release()
+    return fps if np.isfinite(fps) and 0.5 <= fps <= 1000.0 else 30.0
+
+
+def read_depth(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """A depth image in metres (float32, 0 = no data): ``.npy`` in metres, or a 16-bit PNG in
+    millimetres (the RealSense convention); with ``shape`` (H, W) it must be that size."""
+    p = Path(path)
+    if p.suffix.lower() == ".npy":
+        try:
+            d = np.load(p, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{p}: cannot read this depth array ({exc})") from None
+        if d.ndim != 2 or not np.issubdtype(d.dtype, np.number):
+            raise InputError(f"{p}: a depth array is 2-D numbers (metres), got {d.dtype} {d.shape}")
+        d = d.astype(np.float32)
+    elif p.suffix.lower() == ".png":
+        data = np.fromfile(str(p), np.uint8) if p.is_file() else None
+        d = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data is not None and data.size else None
+        if d is None or d.ndim != 2 or d.dtype != np.uint16:
+            raise InputError(f"{p}: a depth PNG is one 16-bit channel in millimetres")
+        d = d.astype(np.float32) / 1000.0
+    else:
+        raise InputError(f"{p}: depth is a .npy (metres) or a 16-bit .png (millimetres)")
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    if shape is not None and d.shape != tuple(shape):
+        raise InputError(f"{p}: the depth image is {d.shape[1]}x{d.shape[0]}, the colour image "
+                         f"{shape[1]}x{shape[0]}: they must be aligned")
+    return d
+
+
+class VideoOut:
+    """An MP4 written frame by frame (``mp4v``), opened on the first frame's size."""
+
+    def __init__(self, path: Path, fps: float):
+        self.path, self.fps, self._w = path, fps, None
+
+    def write(self, frame: np.ndarray) -> None:
+        if self._w is None:
+            h, w = frame.shape[:2]
+            self._w = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
+            if not self._w.isOpened():
+                raise InputError(f"{self.path}: cannot write a video here")
+            self._size = (w, h)
+        if (frame.shape[1], frame.shape[0]) != self._size:
+            frame = cv2.resize(frame, self._size)
+        self._w.write(frame)
+
+    def close(self) -> None:
+        if self._w is not None:
+            self._w.release()

@@ -1,0 +1,204 @@
+"""qcarlab's sensor data as Foxglove's well-known messages (foxglove-sdk), one function per kind.
+
+Pure conversions: numbers in, ``foxglove.messages`` objects out; no files, no channels.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+from foxglove.messages import (
+    CameraCalibration,
+    CompressedImage,
+    CubePrimitive,
+    CylinderPrimitive,
+    FrameTransform,
+    FrameTransforms,
+    LaserScan,
+    LinePrimitive,
+    LinePrimitiveLineType,
+    Point3,
+    Pose,
+    PoseInFrame,
+    Quaternion,
+    RawImage,
+    SceneEntity,
+    SceneUpdate,
+    SpherePrimitive,
+    Timestamp,
+    TriangleListPrimitive,
+    Vector3,
+)
+
+from qcarlab.errors import InputError
+from qcarlab.recording import channels as C
+
+
+def timestamp(ns: int) -> Timestamp:
+    return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def _pose(x: float, y: float, z: float, q: tuple[float, float, float, float]) -> Pose:
+    return Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+
+
+# ------------------------------------------------------------------------------------ sensors
+def laser_scan(scan: Any, ns: int) -> LaserScan:
+    """A LIDAR turn as ``foxglove.LaserScan`` in frame ``lidar``: angles from the first to the last
+    beam (Foxglove spaces the beams evenly between them), no-returns (0) as NaN."""
+    angles = np.asarray(scan.angles, dtype=np.float64)
+    ranges = np.asarray(scan.ranges, dtype=np.float64)
+    shown = np.where(ranges > 0.0, ranges, np.nan)
+    return LaserScan(timestamp=timestamp(ns), frame_id=C.LIDAR_FRAME,
+                     start_angle=float(angles[0]) if angles.size else 0.0,
+                     end_angle=float(angles[-1]) if angles.size else 0.0,
+                     ranges=shown.tolist())
+
+
+def color_image(image: np.ndarray, ns: int, frame_id: str, exact: bool) -> CompressedImage | RawImage:
+    """A BGR uint8 image: JPEG (quality 90) or, ``exact``, raw ``bgr8`` (lossless)."""
+    img = np.ascontiguousarray(image)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise InputError(f"recording: expected a BGR uint8 image, got {img.dtype} {img.shape}")
+    if exact:
+        h, w = img.shape[:2]
+        return RawImage(timestamp=timestamp(ns), frame_id=frame_id, width=w, height=h, encoding="bgr8",
+                        step=w * 3, data=img.tobytes())
+    ok, jpg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, C.JPEG_QUALITY])
+    if not ok:
+        raise InputError("recording: the JPEG encoder refused a camera frame")
+    return CompressedImage(timestamp=timestamp(ns), frame_id=frame_id, format="jpeg", data=jpg.tobytes())
+
+
+def depth_image(depth: np.ndarray, ns: int, exact: bool) -> RawImage:
+    """Depth (float32 m, 0 = no data): ``32FC1`` metres (exact) or ``16UC1`` millimetres, the
+    D435's own z16 format (compact; nearest mm, 0 stays 0)."""
+    d = np.asarray(depth)
+    h, w = d.shape[:2]
+    if exact:
+        data = np.ascontiguousarray(d, dtype="<f4").tobytes()
+        return RawImage(timestamp=timestamp(ns), frame_id=C.CAMERA_FRAME, width=w, height=h, encoding="32FC1",
+                        step=w * 4, data=data)
+    mm = np.clip(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0) * 1000.0 + 0.5, 0, 65535).astype("<u2")
+    return RawImage(timestamp=timestamp(ns), frame_id=C.CAMERA_FRAME, width=w, height=h, encoding="16UC1",
+                    step=w * 2, data=mm.tobytes())
+
+
+def calibration(params: Any, ns: int) -> CameraCalibration:
+    """The RGBD colour camera's pinhole model (no distortion), so Foxglove can project into 3D."""
+    fx, fy, cx, cy, w, h = C.rgbd_intrinsics(params)
+    return CameraCalibration(timestamp=timestamp(ns), frame_id=C.CAMERA_FRAME, width=w, height=h,
+                             distortion_model="plumb_bob", D=[0.0] * 5,
+                             K=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
+                             R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                             P=[fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+
+
+# ------------------------------------------------------------------------------------ poses
+def pose_in_frame(pose: tuple[float, float, float], ns: int) -> PoseInFrame:
+    x, y, yaw = pose
+    return PoseInFrame(timestamp=timestamp(ns), frame_id=C.WORLD_FRAME, pose=_pose(x, y, 0.0, C.yaw_quaternion(yaw)))
+
+
+def _tf(ns: int, parent: str, child: str, x: float, y: float, z: float, q) -> FrameTransform:
+    return FrameTransform(timestamp=timestamp(ns), parent_frame_id=parent, child_frame_id=child,
+                          translation=Vector3(x=x, y=y, z=z), rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+
+
+def mounts(params: Any, ns: int) -> list[FrameTransform]:
+    """The sensors on the car: base_link -> lidar, the RGBD optical frame and the four CSI cameras."""
+    p = params
+    out = [_tf(ns, C.BASE_FRAME, C.LIDAR_FRAME, p.lidar_x, 0.0, p.lidar_z, (0.0, 0.0, 0.0, 1.0)),
+           _tf(ns, C.BASE_FRAME, C.CAMERA_FRAME, p.rgbd_x, 0.0, p.rgbd_z, C.camera_rotation(0.0, p.rgbd_pitch))]
+    from qcarlab.constants import csi_mounts
+
+    where = csi_mounts(p)
+    for view in C.CSI_VIEWS:
+        x, y, z, yaw = where[view]
+        out.append(_tf(ns, C.BASE_FRAME, C.CSI_FRAMES[view], x, y, z, C.camera_rotation(yaw)))
+    return out
+
+
+def transforms(ns: int, true_pose=None, estimate=None, static: list[FrameTransform] | None = None) -> FrameTransforms:
+    """world -> base_link (the true pose, else the estimate), world -> base_link_estimate, + mounts."""
+    out = list(static or [])
+    body = true_pose if true_pose is not None else estimate
+    if body is not None:
+        out.append(_tf(ns, C.WORLD_FRAME, C.BASE_FRAME, body[0], body[1], 0.0, C.yaw_quaternion(body[2])))
+    if estimate is not None:
+        out.append(_tf(ns, C.WORLD_FRAME, C.ESTIMATE_FRAME, estimate[0], estimate[1], 0.0,
+                       C.yaw_quaternion(estimate[2])))
+    return FrameTransforms(transforms=out)
+
+
+# ------------------------------------------------------------------------------------ scene
+def _is_convex(pts: np.ndarray) -> bool:
+    d = np.roll(pts, -1, axis=0) - pts
+    cross = d[:, 0] * np.roll(d[:, 1], -1) - d[:, 1] * np.roll(d[:, 0], -1)
+    return bool(np.all(cross >= -1e-12) or np.all(cross <= 1e-12))
+
+
+def _prism(points: np.ndarray, z0: float, z1: float, color) -> tuple[TriangleListPrimitive, LinePrimitive]:
+    """A vertical prism as triangles (sides, and the top when convex) plus its top outline."""
+    pts = np.asarray(points, dtype=float)
+    tri: list[Point3] = []
+    n = len(pts)
+    for i in range(n):
+        (ax, ay), (bx, by) = pts[i], pts[(i + 1) % n]
+        a0, b0, a1, b1 = Point3(x=ax, y=ay, z=z0), Point3(x=bx, y=by, z=z0), Point3(x=ax, y=ay, z=z1), Point3(x=bx, y=by, z=z1)
+        tri += [a0, b0, b1, a0, b1, a1]
+    if n >= 3 and _is_convex(pts):
+        for i in range(1, n - 1):
+            tri += [Point3(x=pts[0][0], y=pts[0][1], z=z1), Point3(x=pts[i][0], y=pts[i][1], z=z1),
+                    Point3(x=pts[i + 1][0], y=pts[i + 1][1], z=z1)]
+    outline = LinePrimitive(type=LinePrimitiveLineType.LineLoop, thickness=0.005,
+                            points=[Point3(x=x, y=y, z=z1) for x, y in pts], color=C.bgr_color((40, 40, 40)))
+    return TriangleListPrimitive(points=tri, color=color), outline
+
+
+def world_entity(world: Any, ns: int) -> SceneEntity:
+    """The world's floor, floor paint, walls, boxes, posts and sign plates, as one scene entity."""
+    x0, y0, x1, y1 = world.floor_bounds
+    cubes = [CubePrimitive(pose=_pose((x0 + x1) / 2.0, (y0 + y1) / 2.0, -0.006, (0.0, 0.0, 0.0, 1.0)),
+                           size=Vector3(x=x1 - x0, y=y1 - y0, z=0.01), color=C.bgr_color(world.floor_color))]
+    lines, triangles, cylinders = [], [], []
+    for m in getattr(world, "markings", []) or []:
+        pts = np.asarray(m.points, dtype=float)
+        kind = LinePrimitiveLineType.LineLoop if (m.closed or m.filled) else LinePrimitiveLineType.LineStrip
+        lines.append(LinePrimitive(type=kind, thickness=float(m.width) if not m.filled else 0.01,
+                                   points=[Point3(x=x, y=y, z=0.001) for x, y in pts], color=C.bgr_color(m.color)))
+    for s in world.static_solids():
+        z0, z1 = float(s.z0), float(s.height)
+        if s.kind == "polygon" and s.points is not None:
+            tri, outline = _prism(s.points, z0, z1, C.bgr_color(s.color))
+            triangles.append(tri)
+            lines.append(outline)
+        elif s.center is not None:
+            cylinders.append(CylinderPrimitive(
+                pose=_pose(s.center[0], s.center[1], (z0 + z1) / 2.0, (0.0, 0.0, 0.0, 1.0)),
+                size=Vector3(x=2.0 * s.radius, y=2.0 * s.radius, z=max(z1 - z0, 1e-3)),
+                bottom_scale=1.0, top_scale=1.0, color=C.bgr_color(s.color)))
+    return SceneEntity(timestamp=timestamp(ns), frame_id=C.WORLD_FRAME, id="world", cubes=cubes, lines=lines,
+                       triangles=triangles, cylinders=cylinders)
+
+
+def path_entity(path: np.ndarray, ns: int) -> SceneEntity:
+    """The reference path, a green line on the floor."""
+    pts = np.asarray(path, dtype=float).reshape(-1, 2)
+    line = LinePrimitive(type=LinePrimitiveLineType.LineStrip, thickness=0.02,
+                         points=[Point3(x=x, y=y, z=0.005) for x, y in pts], color=C.bgr_color((60, 200, 60)))
+    return SceneEntity(timestamp=timestamp(ns), frame_id=C.WORLD_FRAME, id="path", lines=[line])
+
+
+def balls_entity(circles: list[Any], ns: int) -> SceneEntity:
+    """The moving balls at one instant (spheres resting on the floor)."""
+    spheres = [SpherePrimitive(pose=_pose(c.x, c.y, c.radius, (0.0, 0.0, 0.0, 1.0)),
+                               size=Vector3(x=2 * c.radius, y=2 * c.radius, z=2 * c.radius),
+                               color=C.bgr_color(c.color)) for c in circles]
+    return SceneEntity(timestamp=timestamp(ns), frame_id=C.WORLD_FRAME, id="balls", spheres=spheres)
+
+
+def scene_update(entities: list[SceneEntity]) -> SceneUpdate:
+    return SceneUpdate(entities=entities)
