@@ -25,6 +25,8 @@ from qcarlab.cli.common import (
     stdout,
     summary_table,
 )
+from qcarlab.cli.trials import TrialsOpt, check_trials, progress, trials_summary
+from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.lane_follow import (
     LANE_HALF_WIDTH,
@@ -80,6 +82,7 @@ def lane_follow_cmd(
     hsv_max: Annotated[str, typer.Option(help="Upper HSV bound H,S,V.")] = ",".join(map(str, YELLOW_HSV_MAX)),
     lookahead: Annotated[float, typer.Option(help="Where the fitted line is read, m ahead of the camera.")] = 0.5,
     stop_distance: Annotated[float, typer.Option(help="automatedDriving stop distance, m.")] = 0.6,
+    trials: TrialsOpt = None,
     start: StartOpt = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
@@ -98,7 +101,10 @@ def lane_follow_cmd(
     Examples: qcarlab lane-follow | qcarlab lane-follow --laps 1 --out runs/lane |
     qcarlab lane-follow --hsv-tune --hsv-min 20,100,100 --out runs/tune | qcarlab lane-follow --use mylab/lane.py
 
-    Exit 0 when the car stayed in its lane (and drove --laps), 1 when it did not, 2 for bad input.
+    Trials: qcarlab lane-follow --trials 5 --duration 20 (each from a random spot round the lane).
+
+    Exit 0 when the car stayed in its lane (and drove --laps; trials: in every trial), 1 when it did not,
+    2 for bad input.
     """
     if lane not in LANES:
         raise InputError(f"--lane must be one of {', '.join(LANES)}, got {lane!r}")
@@ -113,6 +119,22 @@ def lane_follow_cmd(
         x, y, yaw = getattr(world_obj, "start", None) or START_POSE  # the start is in the right lane
         d = 2.0 * LANE_HALF_WIDTH
         pose = (x - d * math.sin(yaw), y + d * math.cos(yaw), yaw)
+    check_trials(trials, car)
+    if trials is not None:
+        if hsv_tune_:
+            raise InputError("--trials drives the lane; --hsv-tune does not drive: use one of them")
+        from dataclasses import replace
+
+        from qcarlab.experiments.trials import LANE_FOLLOW, run_trials
+
+        s0 = pose or getattr(world_obj, "start", None) or START_POSE
+        spec = replace(LANE_FOLLOW, along_path=lane_centre(world_obj, s0))
+        result = run_trials("lane-follow", world_obj,
+                            lambda c, w, wrap: run_lane_follow(c, cfg, w, blocks=mine, wrap=wrap),
+                            trials, seed, spec, load_params(params), s0, on_trial=progress(json_out, trials))
+        result.metrics.update({"car": car, "world": world_obj.name, "lane": cfg.lane, "speed_mps": cfg.speed})
+        emit(result, json_out, out, trials_summary)
+        return
     if hsv_tune_:
         if world_obj is None:
             raise InputError("--hsv-tune places the car at spots of the track: simulator only")

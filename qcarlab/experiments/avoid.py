@@ -225,11 +225,12 @@ class _Collisions:
 
 
 def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
-          blocks: Mapping[str, Any] | None = None) -> Result:
+          blocks: Mapping[str, Any] | None = None, wrap=None) -> Result:
     """Drive ``car`` with the LIDAR strategy ``cfg.strategy``; return metrics, the log, the scans.
 
     ``world`` (the simulator's, when local) enables the collision check and the drive figure.
-    ``blocks`` replaces any block of :data:`BLOCKS` by name.
+    ``blocks`` replaces any block of :data:`BLOCKS` by name. ``wrap(model) -> model`` wraps the
+    model the loop runs (the trials roll their balls that way).
     """
     world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     p = car.params
@@ -241,7 +242,8 @@ def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
         lab.scan_pose = lambda t: lidar_world_pose(car, t)
     guard = _Collisions(lab, world, car) if (world is not None and truth0 is not None) else None
     dt = 1.0 / cfg.rate
-    log = run_loop(car, guard or lab, cfg.duration, cfg.rate, on_tick=on_tick)
+    model = guard or lab
+    log = run_loop(car, wrap(model) if wrap else model, cfg.duration, cfg.rate, on_tick=on_tick)
     cols: dict[str, np.ndarray] = log.arrays()
     n = log.ticks
     if "clearance" not in cols:

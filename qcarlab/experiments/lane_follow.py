@@ -331,11 +331,12 @@ class _Laps:
         return STOP if self.along >= self.laps * L else out
 
 
-def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapping[str, Any] | None = None
-                    ) -> Result:
+def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapping[str, Any] | None = None,
+                    wrap=None) -> Result:
     """Follow the lane at ``cfg.speed`` for ``cfg.duration`` s (or ``cfg.laps`` laps).
 
-    ``blocks`` replaces any block of :data:`BLOCKS` by name.
+    ``blocks`` replaces any block of :data:`BLOCKS` by name; ``wrap(model) -> model`` wraps the
+    model the loop runs (trials).
     """
     world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     cfg.check()
@@ -355,7 +356,7 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     if duration is None:  # --laps sets the time it needs (half as much again, for the turns)
         duration = min(3600.0, 1.5 * cfg.laps * Polyline(centre).length / cfg.speed + 10.0) \
             if (cfg.laps is not None and centre is not None) else 30.0
-    log = run_loop(car, model, duration, cfg.rate)
+    log = run_loop(car, wrap(model) if wrap else model, duration, cfg.rate)
     cols = log.arrays()
     n = log.ticks
     duration = n * dt
