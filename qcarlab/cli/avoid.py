@@ -54,7 +54,9 @@ def avoid_cmd(
     strategy: Annotated[str, typer.Option(help="stop (sheet Task 1-2: lidar_stop, speed 0 near an obstacle), "
                                           "steer (Task 3: lidar_steer, up to +-0.5 rad away from it, speed "
                                           "untouched), combined (Task 4: lidar_avoid, avoid, stop and back up "
-                                          "before contact) or student (your own lidar_avoid from --use).")]
+                                          "before contact), student (your own lidar_avoid from --use) or depth (the race-car "
+                                          "report's left/middle/right depth windows and state machine, with Back, "
+                                          "on the RGBD camera).")]
     = "combined",
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
     stop_distance: Annotated[float, typer.Option(help="Stop when a return in the forward window is closer than "

@@ -65,7 +65,7 @@ def _what(r: dict[str, Any]) -> str:
     if r["success"]:
         return "ok"
     if hit:
-        return f"collision with the {hit['with']} at ({hit['x']:+.2f}, {hit['y']:+.2f}), t = {hit['t']:.1f} s"
+        return f"hit the {hit['with']} at {hit['x']:+.2f}, {hit['y']:+.2f} ({hit['t']:.1f} s)"
     return r["failure"]
 
 
@@ -73,7 +73,7 @@ def _ball(r: dict[str, Any]) -> str:
     b = r["balls"][0] if r["balls"] else {}
     if b.get("ball_start_s") is None:
         return "not rolled"
-    return f"{b['ball_start_s']:.1f} s, {b['launch_distance_m']:.1f} m, {b['speed_mps']:.2f} m/s"
+    return f"{b['ball_start_s']:.1f} s, {b['speed_mps']:.2f} m/s"
 
 
 def trials_summary(result: Result) -> None:
