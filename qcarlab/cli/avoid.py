@@ -17,7 +17,7 @@ from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.avoid import STRATEGIES, AvoidConfig, AvoidLab, avoid, draw_drive
 from qcarlab.experiments.result import Result
-from qcarlab.cli.trials import TrialsOpt, check_trials, given, progress, trials_summary
+from qcarlab.cli.trials import MinSuccessOpt, TrialsOpt, check_trials, given, progress, trials_summary
 
 BALL_TRIAL_TIME = 90.0  # s: a trial in a world with a ball ends 1 s after the ball rolled by, at the latest here
 
@@ -67,6 +67,7 @@ def avoid_cmd(
                                             f"with a ball: {BALL_TRIAL_TIME:g} s, ended 1 s after the ball "
                                             "rolled by).")] = 20.0,
     trials: TrialsOpt = None,
+    min_success: MinSuccessOpt = 1.0,
     start: StartOpt = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
@@ -106,7 +107,8 @@ def avoid_cmd(
         if world_obj.balls and not given(ctx, "duration"):
             cfg.duration = BALL_TRIAL_TIME
         result = run_trials("avoid", world_obj, lambda c, w, wrap: avoid(c, cfg, world=w, blocks=mine, wrap=wrap),
-                            trials, seed, AVOID, load_params(params), pose, on_trial=progress(json_out, trials))
+                            trials, seed, AVOID, load_params(params), pose,
+                            on_trial=progress(json_out, trials), min_success=min_success)
         result.metrics.update({"car": car, "world": world_obj.name, "strategy": cfg.strategy, "speed_mps": cfg.speed,
                                "config": asdict(cfg)})
         emit(result, json_out, out, trials_summary)

@@ -24,7 +24,7 @@ from qcarlab.cli.common import (
     stdout,
     summary_table,
 )
-from qcarlab.cli.trials import TrialsOpt, check_trials, progress, trials_summary
+from qcarlab.cli.trials import MinSuccessOpt, TrialsOpt, check_trials, progress, trials_summary
 from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.result import Result
@@ -87,6 +87,7 @@ def stop_sign_cmd(
     frames: Annotated[bool, typer.Option("--frames", help="With --out: also write annotated camera frames "
                                          "(10 per second) to frames/.")] = False,
     trials: TrialsOpt = None,
+    min_success: MinSuccessOpt = 1.0,
     start: StartOpt = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
@@ -128,7 +129,7 @@ def stop_sign_cmd(
             return run_stop_sign(c, cfg, sign_ahead(w, (tr.x, tr.y, tr.yaw)), blocks=mine, world=w, wrap=wrap)
 
         result = run_trials("stop-sign", world_obj, one, trials, seed, STOP_SIGN, load_params(params), pose,
-                            on_trial=progress(json_out, trials))
+                            on_trial=progress(json_out, trials), min_success=min_success)
         result.metrics.update({"car": car, "world": world_obj.name, "speed_mps": cfg.speed,
                                "behaviour": cfg.behaviour})
         emit(result, json_out, out, trials_summary)

@@ -23,6 +23,12 @@ TrialsOpt = Annotated[
                  "happened (trials.png and trials.csv with --out). Simulator only."),
 ]
 
+MinSuccessOpt = Annotated[
+    float,
+    typer.Option("--min-success", min=0.0, max=1.0,
+                 help="With --trials: the success rate (a fraction) the run needs to exit 0; 1 = every trial."),
+]
+
 
 def check_trials(trials: int | None, car: str) -> None:
     """Trials move the simulated world's objects: refuse them for a remote car."""
@@ -53,7 +59,7 @@ def given(ctx: typer.Context, name: str) -> bool:
 
 def _start(row: dict[str, Any]) -> str:
     x, y, yaw = row["start"]
-    return f"{x:+.2f}, {y:+.2f}, {math.degrees(yaw):+.0f}°"
+    return f"{x:+.2f},{y:+.2f},{math.degrees(yaw):+.0f}°"
 
 
 def _cm(v: float | None) -> str:
@@ -65,7 +71,7 @@ def _what(r: dict[str, Any]) -> str:
     if r["success"]:
         return "ok"
     if hit:
-        return f"hit the {hit['with']} at {hit['x']:+.2f}, {hit['y']:+.2f} ({hit['t']:.1f} s)"
+        return f"hit {hit['with']} {hit['x']:+.2f},{hit['y']:+.2f}"
     return r["failure"]
 
 
@@ -73,7 +79,7 @@ def _ball(r: dict[str, Any]) -> str:
     b = r["balls"][0] if r["balls"] else {}
     if b.get("ball_start_s") is None:
         return "not rolled"
-    return f"{b['ball_start_s']:.1f} s, {b['speed_mps']:.2f} m/s"
+    return f"{b['ball_start_s']:.1f} s"
 
 
 def trials_summary(result: Result) -> None:
@@ -85,12 +91,13 @@ def trials_summary(result: Result) -> None:
     key = m.get("key_metric") or {}
     columns = [("trial", "right", lambda r: str(r["trial"])), ("start x, y, yaw", "right", _start),
                ("result", "left", _what)]
+    table.caption = "hit: a collision, with what and where (m); ball: when it was rolled at the car"
     if key.get("trials_with_value"):
         columns.append((key["label"], "right", lambda r: _cm(r["metrics"].get(key["name"]))))
     if any(r["distance_m"] is not None for r in rows):
         columns.append(("distance", "right", lambda r: "-" if r["distance_m"] is None else f"{r['distance_m']:.2f} m"))
     if any(r["balls"] for r in rows):
-        columns.append(("ball rolled at", "right", _ball))
+        columns.append(("ball", "right", _ball))
     for name, justify, _ in columns:
         table.add_column(name, justify=justify)
     for r in rows:
