@@ -9,6 +9,7 @@ import typer
 
 from qcarlab.cli.app import app
 from qcarlab.cli.common import (
+    CarTokenOpt,
     StartOpt, WorldOpt, sim_world, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt,
     emit, open_from_options, stdout, summary_table,
@@ -71,6 +72,7 @@ def avoid_cmd(
     start: StartOpt = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     out: OutOpt = None,
@@ -113,7 +115,7 @@ def avoid_cmd(
                                "config": asdict(cfg)})
         emit(result, json_out, out, trials_summary)
         return
-    with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
+    with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
         if pose is not None and world_obj is not None:
             from qcarlab.experiments.safety import Clearance
 

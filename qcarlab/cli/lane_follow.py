@@ -11,6 +11,7 @@ from qcarlab import plots
 from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app
 from qcarlab.cli.common import (
+    CarTokenOpt,
     StartOpt, WorldOpt, sim_world, parse_hsv, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt,
     DebugOpt,
@@ -106,6 +107,7 @@ def lane_follow_cmd(
     start: StartOpt = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     out: OutOpt = None,
@@ -170,11 +172,11 @@ def lane_follow_cmd(
         s0 = pose or getattr(world_obj, "start", None) or START_POSE
         frames = []
         for spot in tune_spots(lane_centre(world_obj, s0), s0):
-            with open_from_options(car, world_obj, seed, realtime, params, start=spot) as qcar:
+            with open_from_options(car, world_obj, seed, realtime, params, start=spot, token=token) as qcar:
                 frames.append((spot, qcar.read_rgbd()))
         result = hsv_tune(frames, cfg)
     else:
-        with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
+        with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
             result = run_lane_follow(qcar, cfg, world_obj, blocks=mine)
         log = result.logs["log.csv"]
         result.figures["speed.png"] = lambda f: plots.plot_speed(log, f)

@@ -13,6 +13,7 @@ from rich.table import Table
 from qcarlab import paths, plots
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import (
+    CarTokenOpt,
     KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
     check_out,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
@@ -222,6 +223,7 @@ def path_follow_cmd(
                                                    show_default=False)] = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     out: OutOpt = None,
@@ -257,7 +259,7 @@ def path_follow_cmd(
     world_obj, _ = sim_world(car, world, None, "studio", params)
 
     def open_car():
-        return open_from_options(car, world_obj, seed, realtime, params)
+        return open_from_options(car, world_obj, seed, realtime, params, token=token)
 
     if step_response_:
         cfg = FollowConfig(speed=speed, kp=kp, ki=ki, kff=kff, rate=rate)

@@ -10,6 +10,7 @@ from qcarlab import plots
 from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import (
+    CarTokenOpt,
     StartOpt, WorldOpt, sim_world, parse_hsv, KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt,
     DebugOpt,
@@ -91,6 +92,7 @@ def stop_sign_cmd(
     start: StartOpt = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     out: OutOpt = None,
@@ -140,7 +142,7 @@ def stop_sign_cmd(
         if sign is None:
             stderr.print("warning: no stop sign ahead of the car in this world; the true stop distance is not "
                           "measured", markup=False)
-    with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
+    with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
         result = run_stop_sign(qcar, cfg, sign, blocks=mine, world=world_obj)
     result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
     log = result.logs["log.csv"]

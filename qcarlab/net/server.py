@@ -9,10 +9,14 @@
 One thread per connection (blocking sockets, TCP_NODELAY), one lock around the car. Safety:
 
 - **one controller**: the first client that says hello as ``control`` drives; others may connect
-  as ``monitor`` (read-only); a second controller is refused (``busy``);
+  as ``monitor`` (read-only); a second controller is refused (``busy``); in lock-step each new
+  controller starts from the car's start state (``reset()``: start pose, at rest, time 0, noise
+  re-seeded), so the same client run twice gets the same numbers;
 - **watchdog**: no command from the controller for ``watchdog`` seconds -> throttle 0, wheels
   straight, hazard and brake lamps (in lock-step mode any frame from the controller counts, since
-  simulated time only moves when the controller says so);
+  simulated time only moves when the controller says so); armed by the controller's first
+  ``COMMAND`` or ``STOP``: before it the car stands stopped anyway, and a client that reads its
+  first (slow) sensor frame before driving is not stopped for it;
 - **dropped connection**: when the controller leaves (bye, close, reset, protocol error) the car is
   stopped before its socket is closed;
 - **limits**: every command goes through ``Car.write``: non-finite values are refused (the car is
@@ -116,6 +120,7 @@ class CarServer:
         self.sessions: set[_Session] = set()
         self.last_feed = time.monotonic()
         self.tripped = False
+        self.armed = False  # the watchdog guards from the controller's first command on
         self.trips = 0
         self.cache: dict[int, Any] = {}  # lock-step: the controller's last readout and frames
         self.stopping = False
@@ -287,7 +292,7 @@ class CarServer:
                 except Exception:
                     pass
             ctl = self.controller
-            if ctl is None or self.tripped:
+            if ctl is None or self.tripped or not self.armed:
                 continue
             if time.monotonic() - self.last_feed <= self.watchdog:
                 continue
@@ -462,6 +467,7 @@ class _Session:
             with server.state_lock:
                 server.controller = None
                 server.tripped = False
+                server.armed = False
             stopped = "; car stopped" if ok else "; STOPPING THE CAR FAILED"
         if self.errors > MAX_LOGGED_ERRORS:
             reason += f"; {self.errors} error frames in all"
@@ -567,10 +573,16 @@ class _Session:
                 if holder is None:
                     server.controller = self
                     server.feed()
+                    server.armed = False
             if holder is not None:
                 raise self.fatal(
                     "busy", f"the car is controlled by {holder.peer}; connect as a monitor to watch", frame.seq
                 )
+            reset = getattr(self.car, "reset", None)
+            if server.lockstep and callable(reset):  # a new run: from the start state, not the last client's
+                with server.car_lock:
+                    reset()
+                    server.cache.clear()
         self.role = role
         welcome = dict(server.welcome_base, role=role)
         self.sock.settimeout(server.io_timeout)
@@ -616,6 +628,7 @@ class _Session:
         throttle, steering, leds, flags = P.unpack_command(frame.payload)
         with server.car_lock:
             server.feed()
+            server.armed = True
             cmd = self.car.write(throttle, steering, leds)
             readout = self.car.read() if flags & P.FLAG_READ_BACK else None
         if readout is not None:
@@ -630,6 +643,7 @@ class _Session:
         _expect_empty(frame)
         with server.car_lock:
             server.feed()
+            server.armed = True
             self.car.stop()
         self.send(M.OK, frame.seq)
 
