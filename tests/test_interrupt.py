@@ -20,11 +20,13 @@ from qcarlab.experiments.result import Result
 def test_a_signal_mid_run_saves_the_run_so_far_and_exits_130(tmp_path, sig):
     out = tmp_path / "run"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-c", "import signal; signal.signal(signal.SIGINT, "
-                             "signal.default_int_handler); from qcarlab.cli import main; main()",
+    child = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+             "from qcarlab.cli import main; print('ready', flush=True); main()")
+    proc = subprocess.Popen([sys.executable, "-c", child,
                              "io-test", "--realtime", "--on-floor", "--duration", "30", "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    time.sleep(3.0)
+    assert proc.stdout.readline().strip() == "ready"  # imported (a cold machine compiles first)
+    time.sleep(2.0)  # the run is going
     proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 130, stderr

@@ -114,7 +114,7 @@ def test_the_map_under_the_point_cloud_is_where_the_world_is(cli, tmp_path, monk
 @pytest.mark.parametrize("args, says", [
     (("avoid", "--start", "50,50,0", "--duration", "1"), "outside the world 'obstacles'"),
     (("lane-follow", "--start", "9,0,0", "--duration", "1"), "outside the world 'track'"),
-    (("stop-sign", "--start", "-2.0,-3,0"), "inside a wall or an obstacle"),
+    (("stop-sign", "--start", "-2.0,-3,0"), "inside an obstacle (or a wall)"),
     (("avoid", "--world", "."), "is a folder"),
     (("lidar-scan", "--world", "/"), "is a folder"),
     (("avoid", "--rate", "5000", "--duration", "1"), "--rate must be between 1 and 2000 Hz"),

@@ -325,8 +325,9 @@ def test_a_late_tick_gives_the_real_dt_and_is_counted():
     assert log.overruns >= 1 and log.worst_tick_s >= 0.19
     late = max(dts)
     assert late >= 0.19  # the block is told the real time since the last tick ...
-    after = dts[dts.index(late) + 1:][:5]
-    assert all(d > 0.005 for d in after)  # ... and no burst of catch-up ticks follows
+    after = np.cumsum(dts[dts.index(late) + 1:])
+    # ... and no burst of catch-up ticks follows: about 5 ticks in the next 50 ms, not the 20 missed
+    assert np.count_nonzero(after <= 0.05) <= 9
     assert np.asarray(log.arrays()["dt"]).max() == late
 
 
@@ -368,3 +369,21 @@ def test_run_without_student_blocks_is_unchanged_by_the_redesign(cli_json):
     m = cli_json("stop-sign")
     assert m["student_blocks"] == {} and m["goal_reached"] and 0.25 <= m["stop_distance_m"] <= 0.35
     assert math.isclose(m["stop_distance_m"], 0.315, abs_tol=0.01)
+
+
+def test_a_block_slower_than_the_tick_on_a_real_time_car_is_reported(cli, tmp_path):
+    path = write(tmp_path, "slow.py", """
+        import time
+
+        def basic_speed_estimation(counts_per_s):
+            time.sleep(0.015)          # longer than the 10 ms tick at 100 Hz
+            return counts_per_s * 6.866e-6
+    """)
+    code, out, err = cli("io-test", "--use", path, "--realtime", "--duration", "0.3", "--json")
+    assert code == 0, err
+    timing = json.loads(out)["student_blocks"]["basic_speed_estimation"]
+    assert timing["over_budget"] >= 10 and timing["worst_s"] >= 0.015 and timing["budget_s"] == 0.01
+    assert "your basic_speed_estimation took longer than the 10.0 ms tick" in err
+    # on the stepped simulator (as fast as it can) there is no tick budget to miss
+    code, out, err = cli("io-test", "--use", path, "--duration", "0.1", "--json")
+    assert code == 0 and json.loads(out)["student_blocks"]["basic_speed_estimation"]["over_budget"] == 0

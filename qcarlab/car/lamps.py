@@ -15,6 +15,8 @@ Users name lamps one by one or by group: ``brake``, ``reverse``, ``headlamps``, 
 
 from __future__ import annotations
 
+import functools
+
 from collections.abc import Iterable, Mapping
 
 from qcarlab.errors import InputError
@@ -63,6 +65,13 @@ def _expand(word: str) -> tuple[str, ...]:
     if key in HIL_CHANNELS:
         return (key,)
     raise InputError(f"unknown lamp '{word.strip()}' (choose from: {', '.join(known_lamp_words())})")
+
+
+@functools.lru_cache(maxsize=256)
+def lamps_named(names: tuple[str, ...]) -> tuple[float, ...]:
+    """``parse_lamps`` for a tuple of lamp names, cached: what a lab's ``indicator_and_lamps``
+    block returns, turned into the 12 intensities every tick at no cost."""
+    return parse_lamps(list(names)) if names else ALL_OFF
 
 
 def parse_lamps(spec: str | Iterable[str] | Mapping[str, float] | None) -> tuple[float, ...]:

@@ -194,8 +194,7 @@ def summary_table(title: str) -> Table:
     table.add_column("value", justify="right")
     return table
 
-
-from qcarlab.control.speed import KFF, KI, KP  # noqa: E402  (the gains' defaults, written once)
+from qcarlab.control.speed import KFF, KI, KP  # noqa: E402,F401  (the gains' defaults, written once)
 
 KpOpt = Annotated[float, typer.Option("--kp", help="speed_controller proportional gain.")]
 KiOpt = Annotated[float, typer.Option("--ki", help="speed_controller integral gain.")]

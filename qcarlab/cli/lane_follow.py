@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from typing import Annotated
 
 import typer
 
 from qcarlab import plots
-from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app
 from qcarlab.cli.common import (
     CarTokenOpt,
@@ -30,8 +28,8 @@ from qcarlab.cli.trials import MinSuccessOpt, TrialsOpt, check_trials, progress,
 from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.lane_follow import (
-    LANE_HALF_WIDTH,
     LaneFollowingLab,
+    start_in_lane,
     LaneFollowConfig,
     hsv_tune,
     lane_centre,
@@ -139,16 +137,14 @@ def lane_follow_cmd(
     cfg.check()
     mine = student_blocks(LaneFollowingLab, use, block)
     world_obj, pose = sim_world(car, world, start, "track", params)
-    if world_obj is not None and pose is None and lane == "left":
-        x, y, yaw = getattr(world_obj, "start", None) or START_POSE  # the start is in the right lane
-        d = 2.0 * LANE_HALF_WIDTH
-        pose = (x - d * math.sin(yaw), y + d * math.cos(yaw), yaw)
+    if world_obj is not None:
+        pose = start_in_lane(world_obj, lane, pose)
     if obstacle is not None:
         if world_obj is None:
             raise InputError("--obstacle puts a box in the simulated world: simulator only")
         from qcarlab.experiments.lane_follow import place_obstacle
 
-        place_obstacle(world_obj, pose or getattr(world_obj, "start", None) or START_POSE, obstacle)
+        place_obstacle(world_obj, pose or world_obj.start, obstacle)
     check_trials(trials, car)
     if trials is not None:
         if hsv_tune_:
@@ -157,7 +153,7 @@ def lane_follow_cmd(
 
         from qcarlab.experiments.trials import LANE_FOLLOW, run_trials
 
-        s0 = pose or getattr(world_obj, "start", None) or START_POSE
+        s0 = pose or world_obj.start
         spec = replace(LANE_FOLLOW, along_path=lane_centre(world_obj, s0))
         result = run_trials("lane-follow", world_obj,
                             lambda c, w, wrap: run_lane_follow(c, cfg, w, blocks=mine, wrap=wrap),
@@ -169,7 +165,7 @@ def lane_follow_cmd(
     if hsv_tune_:
         if world_obj is None:
             raise InputError("--hsv-tune places the car at spots of the track: simulator only")
-        s0 = pose or getattr(world_obj, "start", None) or START_POSE
+        s0 = pose or world_obj.start
         frames = []
         for spot in tune_spots(lane_centre(world_obj, s0), s0):
             with open_from_options(car, world_obj, seed, realtime, params, start=spot, token=token) as qcar:

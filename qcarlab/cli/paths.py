@@ -21,7 +21,7 @@ from qcarlab.cli.common import (
 )
 from qcarlab.constants import DEFAULT_PARAMS
 from qcarlab.errors import InputError
-from qcarlab.experiments.path_follow import CONTROLLERS, POSE_SOURCES, FollowConfig, PathFollowingLab, follow_path
+from qcarlab.experiments.path_follow import CONTROLLERS, POSE_SOURCES, FollowConfig, PathFollowingLab, follow_path, lookahead_sweep
 from qcarlab.experiments.result import Result
 from qcarlab.experiments.step_response import step_response
 from qcarlab.record import dumps
@@ -291,15 +291,8 @@ def path_follow_cmd(
         return
 
     runs = [run(la) for la in lookaheads]
-    ranked = sorted(runs, key=lambda r: (r.metrics["completion"] < 0.99, r.metrics["rms_cross_track_m"]))
-    summaries = []
-    for r in ranked:
-        m = {k: v for k, v in r.metrics.items() if k != "config"}
-        m["lookahead"] = r.metrics["config"]["lookahead"]
-        summaries.append(m)
-    sweep = Result("path-follow sweep", {"experiment": "path-follow", "path": label, "sweep": "lookahead",
-                                         "runs": summaries, "best": summaries[0]})
-    sweep.logs = {f"log_lookahead_{r.metrics['config']['lookahead']:g}.csv": r.logs["log.csv"] for r in runs}
+    sweep = lookahead_sweep(runs, label)
+    ranked = sweep.data["ranked"]
     sweep.figures["sweep.png"] = lambda f: plots.plot_sweep(ref, [(r.metrics["config"]["lookahead"], r.logs["log.csv"],
                                                                    r.metrics) for r in ranked], f)
     emit(sweep, json_out, out, _sweep_summary)

@@ -24,7 +24,7 @@ from qcarlab.cli.common import (
 from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.camera import grab
-from qcarlab.experiments.lidar_scan import capture, sector_minima
+from qcarlab.experiments.lidar_scan import place_target, capture, sector_minima
 from qcarlab.experiments.result import Result
 
 SECTORS = ("ahead", "ahead-left", "left", "behind-left", "behind", "behind-right", "right", "ahead-right")
@@ -106,11 +106,7 @@ def lidar_scan_cmd(
         raise InputError("--target applies to the simulator only")
     world_obj, pose = sim_world(car, world, start, "studio", params)
     if target is not None:
-        x, y, yaw = pose or world_obj.start
-        p = load_params(params)
-        depth = 0.3  # the box's size along the line of sight
-        d = p.lidar_x + target + depth / 2.0
-        world_obj.add_box(x + d * math.cos(yaw), y + d * math.sin(yaw), depth, 0.6, yaw)
+        place_target(world_obj, pose or world_obj.start, target, load_params(params))
     with open_from_options(car, world_obj, seed, realtime or watch, params, start=pose, token=token) as qcar:
         if beams is not None:
             if not hasattr(qcar, "lidar_beams"):

@@ -7,7 +7,6 @@ from typing import Annotated
 import typer
 
 from qcarlab import plots
-from qcarlab.car.sim import START_POSE
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import (
     CarTokenOpt,
@@ -138,7 +137,7 @@ def stop_sign_cmd(
         return
     sign = None
     if world_obj is not None:
-        sign = sign_ahead(world_obj, pose or getattr(world_obj, "start", None) or START_POSE)
+        sign = sign_ahead(world_obj, pose or world_obj.start)
         if sign is None:
             stderr.print("warning: no stop sign ahead of the car in this world; the true stop distance is not "
                           "measured", markup=False)

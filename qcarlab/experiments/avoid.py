@@ -47,7 +47,7 @@ from functools import partial
 
 from qcarlab.blocks import BlockSpec
 from qcarlab.car.base import Car, Command, Readout
-from qcarlab.car.lamps import parse_lamps
+from qcarlab.car.lamps import lamps_named
 from qcarlab.constants import QCarParams
 from qcarlab.control.depth_avoid import DepthAvoid
 from qcarlab.control.lidar_avoid import LidarAvoid, forward_range, lidar_steer, lidar_stop
@@ -56,7 +56,7 @@ from qcarlab.errors import InputError
 from qcarlab.experiments.lidar_scan import lidar_world_pose
 from qcarlab.control.lamps import indicator_and_lamps
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
-from qcarlab.experiments.model import LabModel, finish
+from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, INDICATOR_AND_LAMPS, SPEED_CONTROLLER, LabModel, finish
 from qcarlab.experiments.result import Result
 from qcarlab.experiments.safety import Clearance
 from qcarlab.perception.depth_windows import depth_windows
@@ -100,8 +100,7 @@ class AvoidConfig:
 # --------------------------------------------------------------------------------------------
 #: The blocks of the LIDAR obstacle diagram (sheet 6.1, Figures 59-61), in the sheet's order.
 BLOCKS = (
-    BlockSpec("basic_speed_estimation", "basic_speed_estimation(counts_per_s) -> speed", "counts/s -> m/s",
-              "6.1", "Car speed from the motor encoder's rate.", "speed"),
+    BASIC_SPEED_ESTIMATION,
     BlockSpec("lidar_stop", "lidar_stop(distances, headings, desired_speed) -> speed_cmd",
               "m (0 = no return), rad (body frame, CCW from forward, + = left), m/s -> m/s",
               "6.1 Tasks 1-2, Figure 60", "Stop strategy: 0 when an obstacle is near ahead, else the desired "
@@ -136,27 +135,14 @@ BLOCKS = (
               "--strategy depth: the report's state machine (stop, straight, straight left/right, turn "
               "left/right, back) on the three windows (a class: it keeps its state).", "speed_steering",
               stateful=True),
-    BlockSpec("speed_controller", "speed_controller(v_ref, v_measured, dt) -> throttle",
-              "m/s, m/s, s -> duty fraction", "4.2.3, Figure 43",
-              "Feed-forward PI from the desired speed to the throttle (a class: it integrates).", "throttle",
-              stateful=True),
-    BlockSpec("indicator_and_lamps", "indicator_and_lamps(steering, v_ref) -> lamp names",
-              "rad, m/s -> names (brake, reverse, left-indicators, right-indicators)", "lane example block 10",
-              "Brake lamp at v_ref = 0, reverse lamps backing up, indicators in turns."),
+    SPEED_CONTROLLER,
+    INDICATOR_AND_LAMPS,
 )
-_LAMPS: dict[tuple[str, ...], tuple[float, ...]] = {}
 
 
 def lamp_text(names) -> str:
     """The lamps a block lit, for the log: names joined by '+' ('' = all off)."""
     return "+".join(names)
-
-
-def _lamps(names) -> tuple[float, ...]:
-    key = tuple(names)
-    if key not in _LAMPS:
-        _LAMPS[key] = parse_lamps(list(key))
-    return _LAMPS[key]
 
 
 class AvoidLab(LabModel):
@@ -221,7 +207,7 @@ class AvoidLab(LabModel):
             throttle = self.speed_controller(v_ref, v, dt)
             left, middle, right = self.windows
             names = tuple(self.indicator_and_lamps(delta, v_ref))
-            return Step(Command(throttle, delta, _lamps(names)),
+            return Step(Command(throttle, delta, lamps_named(names)),
                         {"v_ref": v_ref, "v_meas": v, "front_range": self.front, "state": self.state,
                          "depth_left": left, "depth_middle": middle, "depth_right": right,
                          "lamps": lamp_text(names)})
@@ -245,7 +231,7 @@ class AvoidLab(LabModel):
             self.rest = {"t": t, "range_m": self.front}
         throttle = self.speed_controller(v_ref, v, dt)  # speed_controller holds a car at rest with throttle 0
         names = tuple(self.indicator_and_lamps(delta, v_ref))
-        return Step(Command(throttle, delta, _lamps(names)),
+        return Step(Command(throttle, delta, lamps_named(names)),
                     {"v_ref": v_ref, "v_meas": v, "front_range": self.front, "state": self.state,
                      "lamps": lamp_text(names)})
 

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from qcarlab.car.base import Car, Command, Readout, Truth
-from qcarlab.car.lamps import ALL_OFF, parse_lamps
+from qcarlab.car.lamps import lamps_named
 from qcarlab.control.speed import basic_speed_estimation
 from qcarlab.errors import InputError, NotBuiltError
 from qcarlab.experiments.loop import STOP, Step, run_loop
@@ -475,7 +475,6 @@ class KeyboardDriveLab:
         self.rate = rate
         self.t_car: float | None = None
         self.readout: Readout | None = None
-        self._lamps: dict[tuple[str, ...], tuple[float, ...]] = {}
 
     def read_lidar(self) -> None:
         if not self.lidar_ok:
@@ -523,10 +522,7 @@ class KeyboardDriveLab:
         if self.on_frame is not None:
             self.on_frame(Frame(now - self.wall0, state, r, speed, names, self.nearest, self.truth, self.distance,
                                 rate_est))
-        leds = self._lamps.get(names)
-        if leds is None:
-            leds = self._lamps[names] = parse_lamps(list(names)) if names else ALL_OFF
-        return Step(Command(state.throttle, state.steering, leds))
+        return Step(Command(state.throttle, state.steering, lamps_named(names)))
 
 
 def keyboard_drive(

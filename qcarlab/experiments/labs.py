@@ -141,7 +141,7 @@ def block_file(spec: BlockSpec, lab: Lab) -> str:
         body = [
             "", "",
             f"class {spec.name}:",
-            f'    """A class, because this block keeps a state between calls. qcarlab makes one per run',
+            '    """A class, because this block keeps a state between calls. qcarlab makes one per run',
             '    (no arguments), calls reset() at the start, then calls the object every tick."""',
             "",
             "    def __init__(self):",

@@ -48,7 +48,7 @@ from typing import Any
 
 from qcarlab.blocks import BlockSpec
 from qcarlab.car.base import Car, Command
-from qcarlab.car.lamps import ALL_OFF, parse_lamps
+from qcarlab.car.lamps import lamps_named
 from qcarlab.control.lane import (
     LaneCamera,
     automated_driving,
@@ -67,7 +67,7 @@ from qcarlab.errors import InputError
 from qcarlab.constants import QCarParams
 from qcarlab.control.lamps import indicator_and_lamps
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
-from qcarlab.experiments.model import LabModel, finish
+from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, INDICATOR_AND_LAMPS, SPEED_CONTROLLER, TURN_SPEED_HANDLING, LabModel, finish
 from qcarlab.experiments.safety import WorldWatch
 from qcarlab.experiments.result import Result
 from qcarlab.perception.lane import (
@@ -167,6 +167,16 @@ def _yellow_line(world) -> np.ndarray | None:
     return pts
 
 
+def start_in_lane(world, lane: str, pose: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+    """The start pose for ``lane``: ``pose`` when given; in the left lane, the world's start (which
+    is in the right lane) moved one lane width (0.4 m) to the car's left; else None (the world's)."""
+    if pose is not None or lane != "left":
+        return pose
+    x, y, yaw = world.start
+    d = 2.0 * LANE_HALF_WIDTH
+    return (x - d * math.sin(yaw), y + d * math.cos(yaw), yaw)
+
+
 def lane_centre(world, start: tuple[float, float, float], half_width: float = LANE_HALF_WIDTH) -> np.ndarray | None:
     """The centre polyline of the lane the car at ``start`` is in: the world's yellow centre line
     offset by ``half_width`` to the side of ``start``; None when the world has no yellow line."""
@@ -211,8 +221,7 @@ def lane_metrics(xy: np.ndarray, centre: np.ndarray, dt: float, half_width: floa
 # ------------------------------------------------------------------------------- the run
 #: The blocks of the lane example (sheet 5.3 and the lane-following block list), in its order.
 BLOCKS = (
-    BlockSpec("basic_speed_estimation", "basic_speed_estimation(counts_per_s) -> speed", "counts/s -> m/s",
-              "lane example block 9", "Car speed from the motor encoder's rate.", "speed"),
+    BASIC_SPEED_ESTIMATION,
     BlockSpec("image_selector", "image_selector(image) -> image", "BGR (H, W, 3) -> the same, zero outside",
               "lane example block 1", "Keep the region where the tracked line is expected (same shape)."),
     BlockSpec("color_thresholding_hsv", "color_thresholding_hsv(image_bgr) -> mask", "BGR uint8 -> uint8 0/255",
@@ -230,15 +239,9 @@ BLOCKS = (
     BlockSpec("automated_driving", "automated_driving(desired_speed, obstacle_distance) -> speed", "m/s, m -> m/s",
               "lane example block 7", "Adaptive cruise: slower as an obstacle nears, 0 at the stop distance.",
               "speed"),
-    BlockSpec("turn_speed_handling", "turn_speed_handling(desired_speed, steering) -> speed", "m/s, rad -> m/s",
-              "lane example block 6", "Slow down in turns: v cos(delta)^8, within 0.5..1 of v.", "speed"),
-    BlockSpec("speed_controller", "speed_controller(v_ref, v_measured, dt) -> throttle",
-              "m/s, m/s, s -> duty fraction", "lane example block 8, Figure 43",
-              "Feed-forward PI from the desired speed to the throttle (a class: it integrates).", "throttle",
-              stateful=True),
-    BlockSpec("indicator_and_lamps", "indicator_and_lamps(steering, v_ref) -> lamp names",
-              "rad, m/s -> names (brake, reverse, left-indicators, right-indicators)", "lane example block 8",
-              "Indicators beyond 0.3 rad of steering, brake when stopped, the red rear (reverse) lamps backing up."),
+    TURN_SPEED_HANDLING,
+    SPEED_CONTROLLER,
+    INDICATOR_AND_LAMPS,
     BlockSpec("user_inputs", "user_inputs(speed_selector, stop_offset, distance_to_lane) -> "
               "(desired_speed, stop_distance, lane_gain)", "%, %, % -> m/s, m, 0..1", "lane example block 10",
               "The sliders: Speed Selector (% of the maximum speed), Stopping Distance Offset (% added to the "
@@ -348,7 +351,7 @@ class LaneFollowingLab(LabModel):
             if callable(reset):
                 reset()
         names = tuple(self.indicator_and_lamps(delta, v_ref))
-        return Step(Command(throttle, delta, _lamps(names)),
+        return Step(Command(throttle, delta, lamps_named(names)),
                     {"v_ref": v_ref, "v_meas": v, "line": self.det.source or "none", "obstacle_distance": self.d_obs,
                      "armed": int(armed), "lamps": "+".join(names)})
 
@@ -457,14 +460,6 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     return result
 
 
-_LAMP_CACHE: dict[tuple[str, ...], tuple[float, ...]] = {}
-
-
-def _lamps(names) -> tuple[float, ...]:
-    key = tuple(names)
-    if key not in _LAMP_CACHE:
-        _LAMP_CACHE[key] = parse_lamps(list(key)) if key else ALL_OFF
-    return _LAMP_CACHE[key]
 
 
 def _topdown(file, world, poses: np.ndarray, centre) -> None:

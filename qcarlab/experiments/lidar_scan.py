@@ -67,6 +67,15 @@ def lidar_world_pose(car: Car, t: float) -> tuple[float, float, float] | None:
     return (x + lx * math.cos(yaw), y + lx * math.sin(yaw), yaw)
 
 
+def place_target(world, pose: tuple[float, float, float], target: float, params) -> None:
+    """Put a 0.3 m deep, 0.6 m wide box ``target`` m in front of the LIDAR at ``pose`` (the sheet's
+    carton box, for the range check of ``lidar-scan --target``)."""
+    x, y, yaw = pose
+    depth = 0.3  # the box's size along the line of sight
+    d = params.lidar_x + target + depth / 2.0
+    world.add_box(x + d * math.cos(yaw), y + d * math.sin(yaw), depth, 0.6, yaw)
+
+
 def capture(car: Car, scans: int = 1, drive: bool = False, target: float | None = None,
             on_scan=None) -> Result:
     """Take ``scans`` LIDAR turns; return the summary, the last scan and the world point cloud."""

@@ -38,7 +38,7 @@ from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pu
 from qcarlab.control.tracking import Polyline, cross_track_errors, progress_along
 from qcarlab.errors import InputError
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
-from qcarlab.experiments.model import LabModel, finish
+from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, TURN_SPEED_HANDLING, LabModel, finish
 from qcarlab.experiments.result import Result
 from qcarlab.experiments.safety import WorldWatch
 
@@ -100,8 +100,7 @@ def repeat_laps(path: np.ndarray, laps: int) -> np.ndarray:
 
 #: The blocks of the path-following diagram (sheet 4, Figures 34-43), in the sheet's order.
 BLOCKS = (
-    BlockSpec("basic_speed_estimation", "basic_speed_estimation(counts_per_s) -> speed", "counts/s -> m/s",
-              "3.3 / lane example block 9", "Car speed from the motor encoder's rate.", "speed"),
+    BASIC_SPEED_ESTIMATION,
     BlockSpec("pose_estimator", "pose_estimator(pose, speed, steering, dt, yaw_rate) -> pose",
               "(m, m, rad), m/s, rad, s, rad/s or None -> (m, m, rad)", "4.1.1, Figure 34",
               "Dead reckoning: the pose dt later by the kinematic bicycle (yaw_rate: the gyro's, "
@@ -119,8 +118,7 @@ BLOCKS = (
     BlockSpec("stanley", "stanley(pose, path, index, speed, k, wheelbase) -> steering",
               "(m, m, rad), Polyline, segment, m/s, 1, m -> rad", "beyond the sheet (Thrun 2006)",
               "Front-axle path tracking (--controller stanley).", "steering"),
-    BlockSpec("turn_speed_handling", "turn_speed_handling(desired_speed, steering) -> speed", "m/s, rad -> m/s",
-              "lane example block 6", "Slow down in turns (with --turn-speed).", "speed"),
+    TURN_SPEED_HANDLING,
     BlockSpec("speed_controller", "speed_controller(v_ref, v_measured, dt) -> throttle",
               "m/s, m/s, s -> duty fraction", "4.2.3, Figure 43",
               "Feed-forward PI from the desired speed to the throttle (a class: it integrates).", "throttle",
@@ -231,6 +229,24 @@ def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
     finish(metrics, log, lab, watch, goal=metrics["completion"] >= 0.999 or metrics["stopped_at_goal"],
            goal_text="the car did not reach the end of the path")
     return Result("path-follow", metrics, logs={"log.csv": _log_columns(cols)}, figures={})
+
+
+def lookahead_sweep(runs: list[Result], label: str) -> Result:
+    """The runs of a look-ahead sweep (sheet 4.2.2 Tasks 3-4) ranked: the ones that completed the
+    path first, then by RMS cross-track error; ``best`` is the first. Its goal: the best completed."""
+    ranked = sorted(runs, key=lambda r: (r.metrics["completion"] < 0.99, r.metrics["rms_cross_track_m"]))
+    summaries = []
+    for r in ranked:
+        m = {k: v for k, v in r.metrics.items() if k != "config"}
+        m["lookahead"] = r.metrics["config"]["lookahead"]
+        summaries.append(m)
+    best = summaries[0]
+    metrics = {"experiment": "path-follow", "path": label, "sweep": "lookahead", "runs": summaries, "best": best,
+               "goal_reached": bool(best.get("goal_reached", True)),
+               "failure": None if best.get("goal_reached", True) else "no look-ahead of the sweep reached the goal"}
+    sweep = Result("path-follow sweep", metrics, data={"ranked": ranked})
+    sweep.logs = {f"log_lookahead_{r.metrics['config']['lookahead']:g}.csv": r.logs["log.csv"] for r in runs}
+    return sweep
 
 
 def _heading(path: np.ndarray) -> float:

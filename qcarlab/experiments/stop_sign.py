@@ -54,7 +54,7 @@ from qcarlab.control.stop_sign import (
 )
 from qcarlab.errors import InputError
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
-from qcarlab.experiments.model import LabModel, finish
+from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, SPEED_CONTROLLER, LabModel, finish
 from qcarlab.experiments.result import Result
 from qcarlab.experiments.safety import WorldWatch
 from qcarlab.perception.stop_sign import (
@@ -156,8 +156,7 @@ def sign_distance(depth: np.ndarray, centroid, mask: np.ndarray | None = None) -
 
 #: The blocks of the Stop.slx diagram (sheet 5.2, Figure 50), in the sheet's order.
 BLOCKS = (
-    BlockSpec("basic_speed_estimation", "basic_speed_estimation(counts_per_s) -> speed", "counts/s -> m/s",
-              "5.2 Task 2", "Car speed from the motor encoder's rate.", "speed"),
+    BASIC_SPEED_ESTIMATION,
     BlockSpec("color_thresholding_hsv", "color_thresholding_hsv(image_bgr) -> mask", "BGR uint8 -> uint8 0/255",
               "5.1, Figure 47", "Keep the pixels whose HSV is the sign's red (hue wraps through 0)."),
     BlockSpec("find_objects", "find_objects(mask) -> ImageObject | None", "mask -> centroid (u, v) px, bbox, area",
@@ -171,10 +170,7 @@ BLOCKS = (
               "make the speed output equal to the desired speed input if the sign is not in that range. "
               "(Not between 0 and 40 cm: the sensor gives a distance of 0 when it does not find the sign.)",
               example="stop_sign(0.30, 0.5) == 0.0; stop_sign(0.02, 0.5) == 0.5; stop_sign(0.45, 0.5) == 0.5"),
-    BlockSpec("speed_controller", "speed_controller(v_ref, v_measured, dt) -> throttle",
-              "m/s, m/s, s -> duty fraction", "4.2.3, Figure 43",
-              "Feed-forward PI from the desired speed to the throttle (a class: it integrates).", "throttle",
-              stateful=True),
+    SPEED_CONTROLLER,
 )
 
 

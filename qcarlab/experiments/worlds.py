@@ -45,7 +45,7 @@ def check_start(world: World, pose: tuple[float, float, float] | None, params: Q
         raise InputError(f"{option} {text}: ({x:g}, {y:g}) is outside the world '{world.name}', which spans "
                          f"x {x0:g}..{x1:g} m, y {y0:g}..{y1:g} m")
     if Clearance(world, params)(x, y, yaw)[0] <= 0.0:
-        raise InputError(f"{option} {text}: the car would stand inside a wall or an obstacle of '{world.name}'")
+        raise InputError(f"{option} {text}: the car would stand inside an obstacle (or a wall) of '{world.name}'")
 
 
 def topdown_map(world: World, px_per_m: float = 50.0) -> tuple[np.ndarray, list[float]]:
