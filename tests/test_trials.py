@@ -63,12 +63,14 @@ def test_a_lane_trial_starts_anywhere_round_the_lane_heading_along_it():
     world = load_world("track")
     centre = lane_centre(world, world.start)
     spec = Randomise(start_along=0.0, start_across=0.0, start_yaw=0.0, along_path=centre)
-    starts = [randomise_world(world, world.start, spec, _rng(i)).start for i in range(6)]
+    starts = [randomise_world(world, world.start, spec, _rng(i)).start for i in range(12)]
     from qcarlab.control.tracking import Polyline
 
     d, _ = Polyline(centre).nearest(np.array([s[:2] for s in starts]))
     assert d.max() < 0.01  # on the lane centre
     assert np.ptp([s[0] for s in starts]) > 1.0 and np.ptp([s[1] for s in starts]) > 1.0  # round the loop
+    for x, y, yaw in starts:  # counter-clockwise, as the world's start drives: the centre of the loop on the left
+        assert -math.sin(yaw) * (0.0 - x) + math.cos(yaw) * (0.0 - y) > 0.5, (x, y, yaw)
 
 
 def test_trials_count_successes_and_report_the_ball_collision_and_its_place():

@@ -101,7 +101,7 @@ def avoid_cmd(
     apply_tunables(cfg, params, ctx)
     cfg.check(load_params(params))
     mine = student_blocks(AvoidLab, use, block)
-    check_trials(trials, car)
+    check_trials(trials, car, realtime)
     world_obj, pose = sim_world(car, world, start, "obstacles", params)
     if trials is not None:
         from qcarlab.experiments.trials import AVOID, run_trials

@@ -145,7 +145,7 @@ def lane_follow_cmd(
         from qcarlab.experiments.lane_follow import place_obstacle
 
         place_obstacle(world_obj, pose or world_obj.start, obstacle)
-    check_trials(trials, car)
+    check_trials(trials, car, realtime)
     if trials is not None:
         if hsv_tune_:
             raise InputError("--trials drives the lane; --hsv-tune does not drive: use one of them")

@@ -120,7 +120,7 @@ def stop_sign_cmd(
     apply_tunables(cfg, params, ctx, ignore=("frames",))
     cfg.check()
     mine = student_blocks(StopSignLab, use, block)
-    check_trials(trials, car)
+    check_trials(trials, car, realtime)
     world_obj, pose = sim_world(car, world, start, "stop-sign", params)
     if trials is not None:
         from qcarlab.experiments.trials import STOP_SIGN, run_trials

@@ -30,10 +30,15 @@ MinSuccessOpt = Annotated[
 ]
 
 
-def check_trials(trials: int | None, car: str) -> None:
-    """Trials move the simulated world's objects: refuse them for a remote car."""
-    if trials is not None and parse_car_uri(car)[0] != "sim":
+def check_trials(trials: int | None, car: str, realtime: bool = False) -> None:
+    """Trials move the simulated world's objects and run it as fast as it goes: refuse them for a
+    remote car or a real-time simulator."""
+    if trials is None:
+        return
+    if parse_car_uri(car)[0] != "sim":
         raise InputError("--trials randomises the simulated world (start pose, obstacles, ball): simulator only")
+    if realtime:
+        raise InputError("--trials runs the simulator as fast as it goes (seeded, repeatable): drop --realtime")
 
 
 def progress(json_out: bool, n: int):

@@ -182,6 +182,15 @@ def _point_on_path(path: np.ndarray, s: float) -> tuple[float, float, float]:
     return float(p[0]), float(p[1]), math.atan2(seg[j, 1], seg[j, 0])
 
 
+def _nearest_segment(path: np.ndarray, x: float, y: float) -> np.ndarray:
+    """The direction vector (dx, dy) of the segment of ``path`` nearest to (x, y)."""
+    a, b = path[:-1], path[1:]
+    ab = b - a
+    t = np.clip(((x - a[:, 0]) * ab[:, 0] + (y - a[:, 1]) * ab[:, 1]) / np.maximum((ab * ab).sum(axis=1), 1e-18), 0, 1)
+    d = np.hypot(a[:, 0] + t * ab[:, 0] - x, a[:, 1] + t * ab[:, 1] - y)
+    return ab[int(np.argmin(d))]
+
+
 def randomise_world(world: Any, start: tuple[float, float, float], spec: Randomise, rng: np.random.Generator,
                     params: QCarParams = DEFAULT_PARAMS) -> TrialWorld:
     """A copy of ``world`` (a :class:`qcarlab.sim.world.World`, not changed) with the obstacles,
@@ -224,12 +233,16 @@ def randomise_world(world: Any, start: tuple[float, float, float], spec: Randomi
     clear = Clearance(new, params)
     x0, y0, yaw0 = start
     poly = None if spec.along_path is None else np.asarray(spec.along_path, dtype=float).reshape(-1, 2)
+    if poly is not None:
+        seg = np.diff(poly, axis=0)
+        length = float(np.hypot(seg[:, 0], seg[:, 1]).sum())
+        # the way round the path the start drives: the path's own direction where the start is, or against it
+        heading = math.atan2(*_nearest_segment(poly, x0, y0)[::-1])
+        backwards = math.cos(heading - yaw0) < 0.0
     for _ in range(200):
         if poly is not None:
-            seg = np.diff(poly, axis=0)
-            length = float(np.hypot(seg[:, 0], seg[:, 1]).sum())
             x, y, yaw = _point_on_path(poly, float(rng.uniform(0.0, length)))
-            if math.cos(yaw - yaw0) < 0.0:  # drive the way the start faces
+            if backwards:
                 yaw += math.pi
         else:
             x, y, yaw = x0, y0, yaw0
