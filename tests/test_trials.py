@@ -135,3 +135,26 @@ def test_the_hallway_ball_meets_the_car_at_the_default_speed():
     by = np.array([ball.position(ti)[1] for ti in t])
     gap = np.hypot(bx - x, by - y)
     assert rolling.any() and gap[rolling].min() < 0.5  # it reaches the car while still rolling
+
+
+def test_ctrl_c_keeps_the_trials_done_so_far():
+    from qcarlab.experiments.result import Result
+
+    class FakeCar:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+    calls = []
+
+    def run(car, world, wrap):
+        calls.append(world)
+        return Result("avoid", {"goal_reached": True, "interrupted": len(calls) == 2, "collision": None})
+
+    world = load_world("obstacles")
+    result = run_trials("avoid", world, run, n=5, open_car=lambda w, s, seed, p: FakeCar())
+    m = result.metrics
+    assert len(calls) == 2 and m["trials"] == 1 and m["trials_asked"] == 5 and m["interrupted"] is True
+    assert m["successes"] == 1 and m["goal_reached"] is False and m["failure"] == "interrupted (Ctrl-C)"

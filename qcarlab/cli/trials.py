@@ -110,6 +110,8 @@ def trials_summary(result: Result) -> None:
     stdout.print(table)
     totals = summary_table(f"{m['experiment']}: {m['trials']} trials")
     totals.add_row("success rate", f"{m['successes']} of {m['trials']} ({100.0 * m['success_rate']:.0f} %)")
+    if m.get("interrupted"):
+        totals.add_row("interrupted", f"after {m['trials']} of {m['trials_asked']} trials")
     if key.get("trials_with_value"):
         totals.add_row(f"{key['label']}: mean (min..max)",
                        f"{_cm(key['mean'])} ({_cm(key['min'])} .. {_cm(key['max'])})")

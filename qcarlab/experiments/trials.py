@@ -357,6 +357,7 @@ def run_trials(lab: str, world: Any, run: RunFn, n: int, seed: int = 0, spec: Ra
     opener = open_car or _open_sim
     start = tuple(start) if start is not None else tuple(world.start)
     rows: list[dict[str, Any]] = []
+    interrupted = False
     for i in range(n):
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), i, 11]))
         tw = randomise_world(world, start, spec, rng, params)
@@ -373,8 +374,9 @@ def run_trials(lab: str, world: Any, run: RunFn, n: int, seed: int = 0, spec: Ra
 
             result = run(car, tw.world, wrap)
         m = result.metrics
-        if m.get("interrupted"):
-            raise KeyboardInterrupt
+        if m.get("interrupted"):  # Ctrl-C: the trials so far are the result (saved, exit 130)
+            interrupted = True
+            break
         reasons = [] if m.get("goal_reached") else [m.get("failure") or "goal missed"]
         e = enc[0] if enc else None
         balls = []
@@ -409,12 +411,15 @@ def run_trials(lab: str, world: Any, run: RunFn, n: int, seed: int = 0, spec: Ra
             on_trial(i, row)
     ok = sum(r["success"] for r in rows)
     hits = [dict(r["collision"], trial=r["trial"]) for r in rows if r["collision"]]
+    done = len(rows)
     metrics: dict[str, Any] = {
         "experiment": lab,
         "mode": "trials",
-        "trials": n,
+        "trials": done,
+        "trials_asked": n,
+        "interrupted": interrupted,
         "successes": ok,
-        "success_rate": ok / n,
+        "success_rate": ok / done if done else 0.0,
         "collisions": len(hits),
         "collision_places": hits,
         "failures": {r["trial"]: r["failure"] for r in rows if not r["success"]},
@@ -430,9 +435,9 @@ def run_trials(lab: str, world: Any, run: RunFn, n: int, seed: int = 0, spec: Ra
                                  "mean": float(np.mean(values)) if values else None,
                                  "min": min(values) if values else None, "max": max(values) if values else None}
     metrics["min_success"] = float(min_success)
-    metrics["goal_reached"] = ok / n >= min_success - 1e-12
-    metrics["failure"] = None if metrics["goal_reached"] else (
-        f"{n - ok} of {n} trials failed (success rate {100.0 * ok / n:.0f} %, "
+    metrics["goal_reached"] = bool(done) and not interrupted and ok / done >= min_success - 1e-12
+    metrics["failure"] = None if metrics["goal_reached"] else "interrupted (Ctrl-C)" if interrupted else (
+        f"{done - ok} of {done} trials failed (success rate {100.0 * ok / done:.0f} %, "
         + ("every trial must succeed" if min_success >= 1.0 else f"at least {100.0 * min_success:.0f} % asked") + ")")
     table = {
         "trial": [r["trial"] for r in rows],
@@ -445,13 +450,17 @@ def run_trials(lab: str, world: Any, run: RunFn, n: int, seed: int = 0, spec: Ra
         "collision_y": [r["collision"]["y"] if r["collision"] else math.nan for r in rows],
         "min_clearance_m": [math.nan if r["min_clearance_m"] is None else r["min_clearance_m"] for r in rows],
         "distance_m": [math.nan if r["distance_m"] is None else r["distance_m"] for r in rows],
-        "ball_start_s": [next((b.get("ball_start_s") for b in r["balls"]), None) or math.nan for r in rows],
+        "ball_start_s": [_or_nan(next((b.get("ball_start_s") for b in r["balls"]), None)) for r in rows],
         "failure": [r["failure"] or "" for r in rows],
     }
     out = Result(lab, metrics, logs={"trials.csv": table})
     out.data["world"] = world
     out.figures["trials.png"] = lambda f: _imwrite(f, draw_trials(world, out))
     return out
+
+
+def _or_nan(v: float | None) -> float:
+    return math.nan if v is None else float(v)
 
 
 def _imwrite(file: Any, image: np.ndarray) -> None:
