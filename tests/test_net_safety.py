@@ -140,6 +140,7 @@ def test_throttle_limit_is_enforced_by_the_server(served):
         assert (thr, ste) == (0.2, pytest.approx(0.5))  # the car's steering limit, +-0.5 rad
         thr, _, _ = P.unpack_applied(raw.request(M.COMMAND, P.pack_command(-5.0, 0.0, (0.0,) * 12)).payload)
         assert thr == -0.2 and car.cmd.throttle == -0.2
+    assert wait_for(lambda: server.controller is None)  # the server has seen the raw client go
     with connect(server, throttle_limit=0.3) as ctl:
         assert ctl.throttle_limit == 0.2  # the client adopts the stricter server limit
         assert ctl.write(0.3, 0.0).throttle == 0.2

@@ -254,6 +254,11 @@ class SimCar(Car):
     def stop(self) -> None:
         self._apply(Command(0.0, 0.0, ALL_OFF))
 
+    def reset(self) -> None:
+        """Back to the state the car was opened in: its start pose at rest, time 0, no command, the
+        noise streams re-seeded (a lock-step server's new controlling client starts here)."""
+        self.__init__(self.params, seed=self.seed, on_stand=self.vehicle.on_stand, world=self.world,
+                      start=self.start, realtime=self._realtime, throttle_limit=self.throttle_limit)
 
 _RATES = {"lidar": lambda p: p.lidar_rate, "rgbd": lambda p: p.rgbd_rate, "csi": lambda p: p.csi_rate}
 _DRAW = {

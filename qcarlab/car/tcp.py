@@ -84,6 +84,7 @@ class TcpCar(Car):
         self._waiter: P.Waiter | None = None
         self._reader: P.FrameReader | None = None
         self._warned_trip = False
+        self._commanded = False  # a watchdog trip before our first command stopped nothing of ours
         if token is None:
             token = os.environ.get(TOKEN_ENV) or None
         self.welcome = self._connect(token, float(connect_timeout), client)
@@ -303,6 +304,7 @@ class TcpCar(Car):
     def _apply(self, cmd: Command) -> Command:
         self._need_control("driving")
         frame = self._request(M.COMMAND, P.pack_command(cmd.throttle, cmd.steering, cmd.leds), expect=(M.APPLIED,))
+        self._commanded = True
         thr, ste, lamps = P.unpack_applied(frame.payload)
         return Command(thr, ste, lamps)
 
@@ -313,6 +315,7 @@ class TcpCar(Car):
         frame = self._request(
             M.COMMAND, P.pack_command(cmd.throttle, cmd.steering, cmd.leds, P.FLAG_READ_BACK), expect=(M.READOUT,)
         )
+        self._commanded = True
         return self._readout(frame)
 
     def stop(self) -> None:
@@ -339,7 +342,7 @@ class TcpCar(Car):
     def _readout(self, frame: P.Frame) -> Readout:
         fields, status = P.unpack_readout(frame.payload)
         self.status = status
-        if status & P.STATUS_WATCHDOG:
+        if status & P.STATUS_WATCHDOG and self._commanded:
             if not self._warned_trip:
                 self._warned_trip = True
                 log.warning("%s: the server's watchdog stopped the car (no command in time)", self.uri)

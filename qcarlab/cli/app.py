@@ -36,6 +36,22 @@ stderr = Console(stderr=True, highlight=False, soft_wrap=True)
 interrupt_reported = False  # set when a command has said "interrupted" itself (cli.common.emit)
 
 
+def _version(value: bool) -> None:
+    if value:
+        from qcarlab import __version__
+
+        typer.echo(f"qcarlab {__version__}")
+        raise typer.Exit(0)
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                 help="Print qcarlab's version and exit."),
+) -> None:
+    """The QCar self-driving lab, section by section."""
+
+
 class _OneLineHandler(logging.Handler):
     """Warnings from the library (e.g. a clamped command) as one plain line on stderr."""
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from typing import Annotated
 
 import typer
@@ -9,6 +10,7 @@ import typer
 from qcarlab.cli.app import app
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
+    CarTokenOpt,
     StartOpt, WorldOpt, sim_world, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt,
     emit, open_from_options, stdout, summary_table,
@@ -17,6 +19,9 @@ from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.avoid import STRATEGIES, AvoidConfig, AvoidLab, avoid, draw_drive
 from qcarlab.experiments.result import Result
+from qcarlab.cli.trials import MinSuccessOpt, TrialsOpt, check_trials, given, progress, trials_summary
+
+BALL_TRIAL_TIME = 90.0  # s: a trial in a world with a ball ends 1 s after the ball rolled by, at the latest here
 
 
 def _summary(result: Result) -> None:
@@ -52,17 +57,24 @@ def avoid_cmd(
     strategy: Annotated[str, typer.Option(help="stop (sheet Task 1-2: lidar_stop, speed 0 near an obstacle), "
                                           "steer (Task 3: lidar_steer, up to +-0.5 rad away from it, speed "
                                           "untouched), combined (Task 4: lidar_avoid, avoid, stop and back up "
-                                          "before contact) or student (your own lidar_avoid from --use).")]
+                                          "before contact), student (your own lidar_avoid from --use) or depth (the race-car "
+                                          "report's left/middle/right depth windows and state machine, with Back, "
+                                          "on the RGBD camera).")]
     = "combined",
     speed: Annotated[float, typer.Option(help="Desired speed, m/s.")] = 0.3,
     stop_distance: Annotated[float, typer.Option(help="Stop when a return in the forward window is closer than "
                                                  "this, m from the LIDAR (0.223 m behind the front bumper).")] = 0.4,
     half_width: Annotated[float, typer.Option(help="Half width of the forward window, m (car half width 0.096 + "
                                               "margin).")] = 0.15,
-    duration: Annotated[float, typer.Option(help="Run length, s (a collision ends it earlier).")] = 20.0,
+    duration: Annotated[float, typer.Option(help="Run length, s (a collision ends it earlier; trials in a world "
+                                            f"with a ball: {BALL_TRIAL_TIME:g} s, ended 1 s after the ball "
+                                            "rolled by).")] = 20.0,
+    trials: TrialsOpt = None,
+    min_success: MinSuccessOpt = 1.0,
     start: StartOpt = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     out: OutOpt = None,
@@ -78,8 +90,11 @@ def avoid_cmd(
     Examples: qcarlab avoid --strategy stop | qcarlab avoid --world hallway --duration 30 --out runs/hall |
     qcarlab avoid --strategy steer --start 0.5,0,-1.57 --json | qcarlab avoid --strategy student --use mylab/lidar.py
 
-    Exit 0 when the car drove the whole duration without touching anything, 1 after a collision, 2 for
-    bad input.
+    Trials: qcarlab avoid --world hallway --trials 20 --speed 0.5 --out runs/ball (the success rate over
+    N randomised runs, as the race-car report measured it).
+
+    Exit 0 when the car drove the whole duration without touching anything (trials: every trial did), 1
+    after a collision, 2 for bad input.
     """
     if strategy not in STRATEGIES:
         raise InputError(f"--strategy must be one of {', '.join(STRATEGIES)}, got {strategy!r}")
@@ -88,8 +103,21 @@ def avoid_cmd(
     apply_tunables(cfg, params, ctx)
     cfg.check(load_params(params))
     mine = student_blocks(AvoidLab, use, block)
+    check_trials(trials, car, realtime)
     world_obj, pose = sim_world(car, world, start, "obstacles", params)
-    with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
+    if trials is not None:
+        from qcarlab.experiments.trials import AVOID, run_trials
+
+        if world_obj.balls and not given(ctx, "duration"):
+            cfg.duration = BALL_TRIAL_TIME
+        result = run_trials("avoid", world_obj, lambda c, w, wrap: avoid(c, cfg, world=w, blocks=mine, wrap=wrap),
+                            trials, seed, AVOID, load_params(params), pose,
+                            on_trial=progress(json_out, trials), min_success=min_success)
+        result.metrics.update({"car": car, "world": world_obj.name, "strategy": cfg.strategy, "speed_mps": cfg.speed,
+                               "config": asdict(cfg)})
+        emit(result, json_out, out, trials_summary)
+        return
+    with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
         if pose is not None and world_obj is not None:
             from qcarlab.experiments.safety import Clearance
 

@@ -66,7 +66,13 @@ BlockOpt = Annotated[
     typer.Option("--block", help="One block from your code: NAME=FILE.py:FUNCTION (e.g. "
                  "stop_sign=mylab/stop.py:my_stop). Repeatable.", show_default=False),
 ]
-RateOpt = Annotated[float, typer.Option("--rate", help="Control loop rate in Hz (the lab's Python loops: 60-200).")]
+CarTokenOpt = Annotated[
+    str | None,
+    typer.Option("--token", envvar="QCARLAB_TOKEN", show_envvar=True, show_default=False,
+                 help="The served car's token (qcarlab serve --token), for --car tcp://HOST:PORT."),
+]
+RateOpt = Annotated[float, typer.Option("--rate", help="Control loop rate in Hz, 1-2000 (the lab's Python loops "
+                                        "run at 60-200).")]
 RecordOpt = Annotated[Path | None, typer.Option(
     "--record", help="Record the run to FILE.mcap (opens in Foxglove; replay it with --car replay:FILE.mcap).",
     show_default=False)]
@@ -278,9 +284,12 @@ def sim_world(car: str, world: str | None, start: str | None, default: str, para
         if world is not None or pose is not None:
             raise InputError("--world and --start apply to the simulator only; a remote car is where it is")
         return None, None
-    from qcarlab.experiments.worlds import load_world
+    from qcarlab.experiments.worlds import check_start, load_world
 
-    return load_world(world or default, load_params(params)), pose
+    p = load_params(params)
+    world_obj = load_world(world or default, p)
+    check_start(world_obj, pose, p)
+    return world_obj, pose
 
 
 def parse_hsv(text: str, option: str) -> tuple[int, int, int]:

@@ -7,6 +7,8 @@ a slow terminal never holds up the 50 Hz command stream) and the summary line.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import sys
 import threading
@@ -23,7 +25,7 @@ from rich.text import Text
 
 from qcarlab.cli.app import app
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
-from qcarlab.cli.common import CarOpt, DebugOpt, ParamsOpt, SeedOpt, WorldOpt, open_from_options, stdout
+from qcarlab.cli.common import CarTokenOpt, CarOpt, DebugOpt, ParamsOpt, SeedOpt, WorldOpt, open_from_options, stdout
 from qcarlab.errors import CarError, InputError
 from qcarlab.experiments.keyboard_drive import (
     DriveConfig,
@@ -193,6 +195,28 @@ class _View:
         return Panel(body, title=self.title, title_align="left", expand=False)
 
 
+@contextlib.contextmanager
+def _log_above(live: Live):
+    """While the live panel is up, the library's warnings go through its console, printed on their
+    own line above the panel: a plain stderr write would land after the panel's last character (on
+    "starting the car...", glued to it) and be drawn over at the next refresh."""
+    logger = logging.getLogger("qcarlab")
+
+    class _AbovePanel(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            try:
+                live.console.print(f"{record.levelname.lower()}: {record.getMessage()}", markup=False, highlight=False)
+            except Exception:  # noqa: BLE001  (a closed terminal: the drive goes on to its stop)
+                pass
+
+    saved = list(logger.handlers)
+    logger.handlers = [_AbovePanel()]
+    try:
+        yield
+    finally:
+        logger.handlers = saved
+
+
 def _map_for(world: Any, console: Console, map_wanted: bool) -> tuple[_MapView | None, bool]:
     """The map view sized to the terminal (beside the readings when it fits), or None."""
     if world is None or not map_wanted:
@@ -223,9 +247,11 @@ def keyboard_drive_cmd(
     ] = 0.3,
     steering_step: Annotated[float, typer.Option(help="Steering change per key press, rad.")] = 0.1,
     steering_ramp: Annotated[float, typer.Option(help="How fast the wheels follow the keys, rad/s.")] = 1.5,
-    rate: Annotated[float, typer.Option(help="Command rate in Hz (a served car stops after 0.25 s without one).")] = 50.0,
+    rate: Annotated[float, typer.Option(help="Command rate in Hz, 5-500 (a served car stops after 0.25 s without "
+                                        "one).")] = 50.0,
     show_map: Annotated[bool, typer.Option("--map/--no-map", help="Top-down map of the simulator's world.")] = True,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     params: ParamsOpt = None,
@@ -272,7 +298,8 @@ def keyboard_drive_cmd(
     if is_sim and world is None:
         world = DEFAULT_WORLD
     with open_from_options(
-        car, world, seed, True, params, throttle_limit=max_throttle, timeout=1.0, client="qcarlab keyboard-drive"
+        car, world, seed, True, params, token=token, throttle_limit=max_throttle, timeout=1.0,
+        client="qcarlab keyboard-drive",
     ) as qcar:
         config = DriveConfig(**{**config.__dict__, "max_steering": qcar.steering_limit})
         car_world = getattr(qcar, "world", None)
@@ -283,7 +310,8 @@ def keyboard_drive_cmd(
             title = f"QCar keyboard drive · {getattr(qcar, 'uri', car)} ({qcar.identity().name})"
         fd = sys.stdin.fileno()
         with cbreak_terminal(fd):
-            with Live(Text("starting the car..."), console=stdout, auto_refresh=False, transient=True) as live:
+            with Live(Text("starting the car..."), console=stdout, auto_refresh=False, transient=True) as live, \
+                    _log_above(live):
                 with _View(live, title, config, qcar.params.battery_low_v, map_view, beside) as view:
                     try:
                         summary = keyboard_drive(qcar, config, key_fd=fd, on_frame=view.push, rate=rate)

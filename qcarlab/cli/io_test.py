@@ -13,6 +13,7 @@ from qcarlab.car.lamps import known_lamp_words, lamps_on, parse_lamps
 from qcarlab.cli.app import app
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
+    CarTokenOpt,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt, UseOpt, BlockOpt,
     emit, interactive, open_from_options, stdout, student_blocks, summary_table,
 )
@@ -74,6 +75,7 @@ def io_test_cmd(
     throttle_limit: Annotated[float, typer.Option(help="Throttle limit (duty fraction).")] = 0.3,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     out: OutOpt = None,
@@ -94,7 +96,8 @@ def io_test_cmd(
     check_rate(rate)
     mine = student_blocks(BasicIOLab, use, block)
     live = interactive(json_out)
-    with open_from_options(car, world, seed, realtime, params, on_stand=on_stand, throttle_limit=throttle_limit) as qcar:
+    with open_from_options(car, world, seed, realtime, params, on_stand=on_stand, throttle_limit=throttle_limit,
+                           token=token) as qcar:
         qcar.validate(throttle, steering, lamp_state)
         if live:
             with Live(refresh_per_second=10, console=stdout, transient=True) as view:

@@ -10,6 +10,7 @@ from qcarlab import plots
 from qcarlab.cli.app import app
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
+    CarTokenOpt,
     StartOpt, WorldOpt, sim_world, parse_hsv, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt,
     DebugOpt,
@@ -24,6 +25,8 @@ from qcarlab.cli.common import (
     stdout,
     summary_table,
 )
+from qcarlab.cli.trials import MinSuccessOpt, TrialsOpt, check_trials, progress, trials_summary
+from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.lane_follow import (
     LaneFollowingLab,
@@ -61,6 +64,12 @@ def _summary(result: Result) -> None:
     table.add_row("duration, mean speed", f"{m['duration_s']:.2f} s, {m['mean_speed_mps']:.3f} m/s")
     table.add_row("frames: white backup / line lost", f"{m['frames_white_backup']} / {m['frames_line_lost']} "
                   f"of {m['frames']}")
+    u = m["user_inputs"]
+    table.add_row("user inputs: speed, stop distance, lane", f"{u['desired_speed_mps']:.2f} m/s, "
+                  f"{u['stop_distance_m']:.2f} m, {u['lane_gain'] * 100:.0f} %")
+    if m["stopped_for_obstacle_s"]:
+        table.add_row("stopped for an obstacle (brake lamp)", f"{m['stopped_for_obstacle_s']:.2f} s "
+                      f"({m['brake_lamp_s']:.2f} s)")
     stdout.print(table)
 
 
@@ -79,10 +88,26 @@ def lane_follow_cmd(
     = ",".join(map(str, YELLOW_HSV_MIN)),
     hsv_max: Annotated[str, typer.Option(help="Upper HSV bound H,S,V.")] = ",".join(map(str, YELLOW_HSV_MAX)),
     lookahead: Annotated[float, typer.Option(help="Where the fitted line is read, m ahead of the camera.")] = 0.5,
-    stop_distance: Annotated[float, typer.Option(help="automatedDriving stop distance, m.")] = 0.6,
+    stop_distance: Annotated[float, typer.Option(help="automatedDriving's minimum stopping distance, m.")] = 0.6,
+    speed_selector: Annotated[float, typer.Option(help="userInputs' Speed Selector: per cent of --speed (the "
+                                                  "maximum speed).")] = 100.0,
+    stop_offset: Annotated[float, typer.Option(help="userInputs' Stopping Distance Offset: per cent of "
+                                               "--stop-distance added to it (0: 0.6 m, 100: 1.2 m).")] = 0.0,
+    distance_to_lane: Annotated[float, typer.Option(help="userInputs' Distance To Lane, per cent: 0 follows the "
+                                                    "line itself, 100 the lane centre.")] = 100.0,
+    start_at: Annotated[float, typer.Option(help="The start switch: the motor is armed from this many seconds.")]
+    = 0.0,
+    stop_at: Annotated[float | None, typer.Option(help="The stop switch: disarmed (throttle 0, brake lamp) from "
+                                                  "this many seconds.", show_default=False)] = None,
+    obstacle: Annotated[float | None, typer.Option(help="Put a box in the lane this many metres ahead of the bumper (simulator): "
+                                                   "automatedDriving slows down and stops before it.",
+                                                   show_default=False)] = None,
+    trials: TrialsOpt = None,
+    min_success: MinSuccessOpt = 1.0,
     start: StartOpt = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     out: OutOpt = None,
@@ -98,26 +123,54 @@ def lane_follow_cmd(
     Examples: qcarlab lane-follow | qcarlab lane-follow --laps 1 --out runs/lane |
     qcarlab lane-follow --hsv-tune --hsv-min 20,100,100 --out runs/tune | qcarlab lane-follow --use mylab/lane.py
 
-    Exit 0 when the car stayed in its lane (and drove --laps), 1 when it did not, 2 for bad input.
+    Trials: qcarlab lane-follow --trials 5 --duration 20 (each from a random spot round the lane).
+
+    Exit 0 when the car stayed in its lane (and drove --laps; trials: in every trial), 1 when it did not,
+    2 for bad input.
     """
     if lane not in LANES:
         raise InputError(f"--lane must be one of {', '.join(LANES)}, got {lane!r}")
     cfg = LaneFollowConfig(speed=speed, lane=lane, duration=duration, laps=laps,
                            hsv_min=parse_hsv(hsv_min, "--hsv-min"), hsv_max=parse_hsv(hsv_max, "--hsv-max"),
-                           lookahead=lookahead, stop_distance=stop_distance, rate=rate)
+                           lookahead=lookahead, stop_distance=stop_distance, speed_selector=speed_selector,
+                           stop_offset=stop_offset, distance_to_lane=distance_to_lane, start_at=start_at,
+                           stop_at=stop_at, rate=rate)
     apply_tunables(cfg, params, ctx)
     cfg.check()
     mine = student_blocks(LaneFollowingLab, use, block)
     world_obj, pose = sim_world(car, world, start, "track", params)
     if world_obj is not None:
         pose = start_in_lane(world_obj, lane, pose)
+    if obstacle is not None:
+        if world_obj is None:
+            raise InputError("--obstacle puts a box in the simulated world: simulator only")
+        from qcarlab.experiments.lane_follow import place_obstacle
+
+        place_obstacle(world_obj, pose or world_obj.start, obstacle)
+    check_trials(trials, car, realtime)
+    if trials is not None:
+        if hsv_tune_:
+            raise InputError("--trials drives the lane; --hsv-tune does not drive: use one of them")
+        from dataclasses import replace
+
+        from qcarlab.experiments.trials import LANE_FOLLOW, run_trials
+
+        s0 = pose or world_obj.start
+        spec = replace(LANE_FOLLOW, along_path=lane_centre(world_obj, s0))
+        result = run_trials("lane-follow", world_obj,
+                            lambda c, w, wrap: run_lane_follow(c, cfg, w, blocks=mine, wrap=wrap),
+                            trials, seed, spec, load_params(params), s0,
+                            on_trial=progress(json_out, trials), min_success=min_success)
+        result.metrics.update({"car": car, "world": world_obj.name, "lane": cfg.lane, "speed_mps": cfg.speed})
+        emit(result, json_out, out, trials_summary)
+        return
     if hsv_tune_:
         if world_obj is None:
             raise InputError("--hsv-tune places the car at spots of the track: simulator only")
         s0 = pose or world_obj.start
         frames = []
         for spot in tune_spots(lane_centre(world_obj, s0), s0):
-            with open_from_options(car, world_obj, seed, realtime, params, start=spot) as qcar:
+            with open_from_options(car, world_obj, seed, realtime, params, start=spot, token=token) as qcar:
                 frames.append((spot, qcar.read_rgbd()))
         from qcarlab.cli.hsv_tune import run_hsv_tuner, tuned_metrics  # the sheet's tuner (issue 10)
         tuned = run_hsv_tuner([f.color for _, f in frames], None, out / "hsv.yaml" if out else None,
@@ -125,7 +178,7 @@ def lane_follow_cmd(
         result = hsv_tune(frames, cfg)
         result.metrics["tuned"] = tuned_metrics(tuned, out / "hsv.yaml" if out else None)
     else:
-        with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
+        with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
             result = run_lane_follow(qcar, cfg, world_obj, blocks=mine)
         log = result.logs["log.csv"]
         result.figures["speed.png"] = lambda f: plots.plot_speed(log, f)

@@ -14,6 +14,7 @@ from qcarlab import paths, plots
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
+    CarTokenOpt,
     KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
     check_out,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
@@ -224,6 +225,7 @@ def path_follow_cmd(
                                                    show_default=False)] = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     out: OutOpt = None,
@@ -259,7 +261,7 @@ def path_follow_cmd(
     world_obj, _ = sim_world(car, world, None, "studio", params)
 
     def open_car():
-        return open_from_options(car, world_obj, seed, realtime, params, path=ref)
+        return open_from_options(car, world_obj, seed, realtime, params, path=ref, token=token)
 
     if step_response_:
         cfg = FollowConfig(speed=speed, kp=kp, ki=ki, kff=kff, rate=rate)

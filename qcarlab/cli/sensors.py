@@ -16,6 +16,7 @@ from qcarlab.car import parse_car_uri
 from qcarlab.cli.app import app
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
+    CarTokenOpt,
     StartOpt, WorldOpt, sim_world,
     check_out,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RealtimeOpt, SeedOpt, emit, interactive, open_from_options,
@@ -82,6 +83,7 @@ def lidar_scan_cmd(
     worlds: Annotated[bool, typer.Option("--worlds", help="List the shipped worlds and exit.")] = False,
     start: StartOpt = None,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     out: OutOpt = None,
@@ -107,7 +109,7 @@ def lidar_scan_cmd(
     world_obj, pose = sim_world(car, world, start, "studio", params)
     if target is not None:
         place_target(world_obj, pose or world_obj.start, target, load_params(params))
-    with open_from_options(car, world_obj, seed, realtime or watch, params, start=pose) as qcar:
+    with open_from_options(car, world_obj, seed, realtime or watch, params, start=pose, token=token) as qcar:
         if beams is not None:
             if not hasattr(qcar, "lidar_beams"):
                 raise InputError("--beams applies to the simulator only")
@@ -119,12 +121,9 @@ def lidar_scan_cmd(
             result = capture(qcar, scans, drive, target)
         result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
         if world_obj is not None:
-            from qcarlab.experiments.worlds import render_topdown
+            from qcarlab.experiments.worlds import topdown_map
 
-            ppm = 50.0
-            top = render_topdown(world_obj, px_per_m=ppm)
-            x0, y0, x1, y1 = world_obj.bounds
-            extent = [x0, x0 + top.shape[1] / ppm, y1 - top.shape[0] / ppm, y1]
+            top, extent = topdown_map(world_obj, px_per_m=50.0)  # the extent includes the render's margin
         else:
             top, extent = None, None
     scan, cloud, poses = result.data["scan"], result.data["cloud"], result.data["poses"]
@@ -160,9 +159,11 @@ def camera_cmd(
     csi: Annotated[bool, typer.Option("--csi", help="The four CSI views and the 360 panorama (sheet 3.6).")] = False,
     start: StartOpt = None,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
-    out: Annotated[Path, typer.Option("--out", help="Folder for the images and results.json.", callback=check_out)] = Path("."),
+    out: Annotated[Path | None, typer.Option("--out", help="Folder for the images and results.json (without it "
+                                             "nothing is written).", callback=check_out, show_default=False)] = None,
     json_out: JsonOpt = False,
     realtime: RealtimeOpt = False,
     params: ParamsOpt = None,
@@ -170,12 +171,12 @@ def camera_cmd(
 ) -> None:
     """Grab camera frames (sheets 3.6, 3.7): RGBD colour + depth with a metre scale, or the CSI 360 views.
 
-    Examples: qcarlab camera --rgbd --world track --out cam/ | qcarlab camera --csi --world hallway
+    Examples: qcarlab camera --rgbd --world track --out cam/ | qcarlab camera --csi --world hallway --out cam/
     """
     if not (rgbd or csi):
         rgbd = True
     world_obj, pose = sim_world(car, world, start, "track", params)
-    with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
+    with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
         result = grab(qcar, rgbd=rgbd, csi=csi)
         result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
     if rgbd:
@@ -183,10 +184,13 @@ def camera_cmd(
         result.figures["color.png"] = lambda f: cv2.imwrite(str(f), frame.color)
         result.figures["depth.png"] = lambda f: plots.plot_depth(frame.depth, f)
     if csi:
-        from qcarlab.experiments.worlds import stitch_panorama
+        from qcarlab.experiments.worlds import label_views, stitch_panorama
 
         frames = result.data["csi"]
-        for name, img in zip(("right", "rear", "left", "front"), frames.as_list()):
+        views = label_views(dict(zip(("right", "rear", "left", "front"), frames.as_list())))  # each names its camera
+        for name, img in views.items():
             result.figures[f"csi_{name}.png"] = lambda f, img=img: cv2.imwrite(str(f), img)
-        result.figures["panorama.png"] = lambda f: cv2.imwrite(str(f), stitch_panorama(frames))
+        result.figures["panorama.png"] = lambda f: cv2.imwrite(str(f), stitch_panorama(list(views.values())))
     emit(result, json_out, out, _camera_summary)
+    if out is None and not json_out:
+        stdout.print("(no images written: pass --out DIR to save them)", markup=False)

@@ -10,6 +10,7 @@ from qcarlab import plots
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
+    CarTokenOpt,
     StartOpt, WorldOpt, sim_world, parse_hsv, KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
     CarOpt,
     DebugOpt,
@@ -24,6 +25,8 @@ from qcarlab.cli.common import (
     stdout,
     summary_table,
 )
+from qcarlab.cli.trials import MinSuccessOpt, TrialsOpt, check_trials, progress, trials_summary
+from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.result import Result
 from qcarlab.experiments.stop_sign import (
@@ -85,9 +88,12 @@ def stop_sign_cmd(
                                                    "distance and speed).", show_default=False)] = None,
     frames: Annotated[bool, typer.Option("--frames", help="With --out: also write annotated camera frames "
                                          "(10 per second) to frames/.")] = False,
+    trials: TrialsOpt = None,
+    min_success: MinSuccessOpt = 1.0,
     start: StartOpt = None,
     rate: RateOpt = 100.0,
     car: CarOpt = "sim",
+    token: CarTokenOpt = None,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     out: OutOpt = None,
@@ -103,7 +109,10 @@ def stop_sign_cmd(
     Examples: qcarlab stop-sign | qcarlab stop-sign --speed 0.5 --out runs/stop |
     qcarlab stop-sign --behaviour hold --hold 3 --json | qcarlab stop-sign --use mylab/stop_sign.py
 
-    Exit 0 when the car stopped before the sign (hold: and drove on), 1 when it did not, 2 for bad input.
+    Trials: qcarlab stop-sign --trials 10 (start 2.1-2.9 m before the sign, the sign moved +-0.2 m).
+
+    Exit 0 when the car stopped before the sign (hold: and drove on; trials: in every trial), 1 when it
+    did not, 2 for bad input.
     """
     if behaviour not in BEHAVIOURS:
         raise InputError(f"--behaviour must be one of {', '.join(BEHAVIOURS)}, got {behaviour!r}")
@@ -113,14 +122,28 @@ def stop_sign_cmd(
     apply_tunables(cfg, params, ctx, ignore=("frames",))
     cfg.check()
     mine = student_blocks(StopSignLab, use, block)
+    check_trials(trials, car, realtime)
     world_obj, pose = sim_world(car, world, start, "stop-sign", params)
+    if trials is not None:
+        from qcarlab.experiments.trials import STOP_SIGN, run_trials
+
+        def one(c, w, wrap):
+            tr = c.truth()
+            return run_stop_sign(c, cfg, sign_ahead(w, (tr.x, tr.y, tr.yaw)), blocks=mine, world=w, wrap=wrap)
+
+        result = run_trials("stop-sign", world_obj, one, trials, seed, STOP_SIGN, load_params(params), pose,
+                            on_trial=progress(json_out, trials), min_success=min_success)
+        result.metrics.update({"car": car, "world": world_obj.name, "speed_mps": cfg.speed,
+                               "behaviour": cfg.behaviour})
+        emit(result, json_out, out, trials_summary)
+        return
     sign = None
     if world_obj is not None:
         sign = sign_ahead(world_obj, pose or world_obj.start)
         if sign is None:
             stderr.print("warning: no stop sign ahead of the car in this world; the true stop distance is not "
                           "measured", markup=False)
-    with open_from_options(car, world_obj, seed, realtime, params, start=pose) as qcar:
+    with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
         result = run_stop_sign(qcar, cfg, sign, blocks=mine, world=world_obj)
     result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
     log = result.logs["log.csv"]

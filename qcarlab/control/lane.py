@@ -18,10 +18,12 @@ from dataclasses import dataclass
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 
-__all__ = ["LOOKAHEAD", "LaneCamera", "automated_driving", "line_offset", "steering_calculation"]
+__all__ = ["CRAWL_SPEED", "LOOKAHEAD", "LaneCamera", "automated_driving", "line_offset", "steering_calculation",
+           "user_inputs"]
 
 LOOKAHEAD = 0.5  # m ahead of the camera where the fitted line is read (image row ~412)
 LANE_HALF_WIDTH = 0.2  # m: lane centre to its lines (0.4 m lanes)
+CRAWL_SPEED = 0.05  # m/s: the slowest automated_driving asks for before the stop distance
 
 
 @dataclass(frozen=True)
@@ -89,15 +91,18 @@ def steering_calculation(fit, offset: float, cam: LaneCamera = LaneCamera(), loo
 
 
 def automated_driving(desired_speed: float, obstacle_distance: float, stop_distance: float = 0.6,
-                      nominal_distance: float | None = None) -> float:
+                      nominal_distance: float | None = None, crawl: float = CRAWL_SPEED) -> float:
     """The ``automatedDriving`` block: speed command (m/s) from the obstacle distance (m).
 
         d <= 0 (nothing seen)          -> desired_speed
         d <= stop_distance             -> 0
-        stop < d < nominal             -> desired * (d - stop) / (nominal - stop)
+        stop < d < nominal             -> max(desired * (d - stop) / (nominal - stop), min(crawl, desired))
         d >= nominal                   -> desired_speed
 
     ``nominal_distance`` (the sheet's nominal tracking distance) defaults to 2 x stop_distance.
+    The ``crawl`` floor (5 cm/s) makes the car reach the stop distance: the ramp alone slows it
+    in proportion to the gap left, so the gap only halves every few seconds and the command never
+    gets to 0 (a car 1 cm from its stop distance was still asked for 2 mm/s after 10 s).
     """
     d = float(obstacle_distance)
     if not math.isfinite(d) or d <= 0.0:
@@ -107,4 +112,27 @@ def automated_driving(desired_speed: float, obstacle_distance: float, stop_dista
         return 0.0
     if d >= nominal or nominal <= stop_distance:
         return desired_speed
-    return desired_speed * (d - stop_distance) / (nominal - stop_distance)
+    ramp = desired_speed * (d - stop_distance) / (nominal - stop_distance)
+    return max(ramp, min(float(crawl), desired_speed))
+
+
+def user_inputs(speed_selector: float, stop_offset: float, distance_to_lane: float, max_speed: float = 0.3,
+                min_stop_distance: float = 0.6) -> tuple[float, float, float]:
+    """The lane example's ``userInputs`` sliders (block 10): ``(desired_speed m/s, stop_distance m,
+    lane_gain)`` from three percentages and the model's section-1 constants::
+
+        desired_speed = max_speed * speed_selector / 100               (Speed Selector, 0..100 %)
+        stop_distance = min_stop_distance * (1 + stop_offset / 100)    (Stopping Distance Offset:
+                                                                        0 % -> 0.6 m, 100 % -> 1.2 m)
+        lane_gain     = distance_to_lane / 100                         (Distance To Lane: 0 % follows
+                                                                        the line itself, 100 % the
+                                                                        lane's centre)
+
+    ``lane_gain`` scales :func:`line_offset`, where the tracked line should be seen from the car.
+    """
+    for name, value in (("speed_selector", speed_selector), ("stop_offset", stop_offset),
+                        ("distance_to_lane", distance_to_lane)):
+        if not (math.isfinite(value) and 0.0 <= value <= 100.0):
+            raise ValueError(f"{name} must be a percentage in 0..100, got {value}")
+    return (max_speed * speed_selector / 100.0, min_stop_distance * (1.0 + stop_offset / 100.0),
+            distance_to_lane / 100.0)

@@ -9,11 +9,15 @@ The model, :class:`AvoidLab`, is the sheet's Figure 59; each tick (``rate``, 100
         steer:    v_ref = speed, delta = lidar_steer(d, h, speed)          (Task 3)
         combined: v_ref, delta = lidar_avoid(d, h, speed)                  (Task 4, open problem)
         student:  the same with the student's own lidar_avoid
+    depth (the race-car report's strategy, on the RGBD camera instead of the LIDAR):
+        on a new depth frame (30 Hz): l, m, r = depth_windows(depth)       # mean depth, 3 windows
+                                      v_ref, delta = depth_avoid(l, m, r, speed)   # the state machine
     u      = speed_controller(v_ref, v, dt)                    # feed-forward PI -> throttle
     lamps  = indicator_and_lamps(delta, v_ref)
 
-Every block is looked up by its sheet name: ``--use mine.py`` with ``lidar_stop``, ``lidar_steer``
-or ``lidar_avoid`` runs the same model with the student's functions.
+Every block is looked up by its sheet name: ``--use mine.py`` with ``lidar_stop``, ``lidar_steer``,
+``lidar_avoid``, ``depth_windows`` or ``depth_avoid`` runs the same model with the student's
+functions.
 
 The PI controller is disarmed (integrator reset, throttle 0) while ``v_ref = 0`` and the car is at
 rest, so a stopped car does not creep on the integrator's charge.
@@ -45,6 +49,7 @@ from qcarlab.blocks import BlockSpec
 from qcarlab.car.base import Car, Command, Readout
 from qcarlab.car.lamps import lamps_named
 from qcarlab.constants import QCarParams
+from qcarlab.control.depth_avoid import DepthAvoid
 from qcarlab.control.lidar_avoid import LidarAvoid, forward_range, lidar_steer, lidar_stop
 from qcarlab.control.speed import KFF, KI, KP, SpeedController, basic_speed_estimation
 from qcarlab.errors import InputError
@@ -54,8 +59,9 @@ from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
 from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, INDICATOR_AND_LAMPS, SPEED_CONTROLLER, LabModel, finish
 from qcarlab.experiments.result import Result
 from qcarlab.experiments.safety import Clearance
+from qcarlab.perception.depth_windows import depth_windows
 
-STRATEGIES = ("stop", "steer", "combined", "student")
+STRATEGIES = ("stop", "steer", "combined", "student", "depth")
 REST_SPEED = 0.01  # m/s: below this the car counts as at rest
 
 
@@ -120,9 +126,23 @@ BLOCKS = (
               "steering_cmd rad). A class (with __call__ and an optional reset) may keep a state between "
               "scans, as the race-car report's state machine does.",
               example="lidar_avoid(np.array([0.25]), np.array([0.0]), 0.3)[0] == 0.0 (about to touch: stop)"),
+    BlockSpec("depth_windows", "depth_windows(depth) -> (left, middle, right)",
+              "m image (0 = no data) -> m, m, m (0 = no data in that window)", "race-car report (seeds 003)",
+              "--strategy depth: the mean depth of three windows at the left, middle and right of the RGBD "
+              "depth image."),
+    BlockSpec("depth_avoid", "depth_avoid(left, middle, right, desired_speed) -> (speed_cmd, steering_cmd)",
+              "m, m, m, m/s -> (m/s, rad)", "race-car report (seeds 003)",
+              "--strategy depth: the report's state machine (stop, straight, straight left/right, turn "
+              "left/right, back) on the three windows (a class: it keeps its state).", "speed_steering",
+              stateful=True),
     SPEED_CONTROLLER,
     INDICATOR_AND_LAMPS,
 )
+
+
+def lamp_text(names) -> str:
+    """The lamps a block lit, for the log: names joined by '+' ('' = all off)."""
+    return "+".join(names)
 
 
 class AvoidLab(LabModel):
@@ -144,6 +164,8 @@ class AvoidLab(LabModel):
         self.rest = None
         self.scans: list[tuple[np.ndarray, tuple[float, float, float] | None]] = []
         self.scan_pose = None  # (t) -> the LIDAR's world pose, on a simulator
+        self.frame_dt, self.next_frame, self.n_frames = 1.0 / params.rgbd_rate, 0.0, 0
+        self.windows = (math.nan, math.nan, math.nan)
 
     def reference_blocks(self) -> dict[str, Any]:
         c, p = self.cfg, self.p
@@ -152,13 +174,43 @@ class AvoidLab(LabModel):
             "lidar_stop": partial(lidar_stop, stop_distance=c.stop_distance, half_width=c.half_width),
             "lidar_steer": lidar_steer,
             "lidar_avoid": LidarAvoid(stop_distance=c.stop_distance, params=p),
+            "depth_windows": depth_windows,
+            "depth_avoid": DepthAvoid(),
             "speed_controller": SpeedController(c.kp, c.ki, c.kff, throttle_limit=self.throttle_limit),
             "indicator_and_lamps": partial(indicator_and_lamps, threshold=0.2),
         }
 
+    def _depth(self, t: float) -> None:
+        """--strategy depth: on a new RGBD frame, the three windows and the state machine."""
+        if t + 1e-9 < self.next_frame:
+            return
+        self.next_frame = (math.floor((t + 1e-9) / self.frame_dt) + 1) * self.frame_dt
+        frame = self.read_rgbd()
+        if frame is None or getattr(frame, "depth", None) is None:
+            self.v_ref, self.delta, self.state = 0.0, 0.0, "stop"  # the report: no data, Stop
+            return
+        self.n_frames += 1
+        left, middle, right = self.depth_windows(frame.depth)
+        self.windows = (float(left), float(middle), float(right))
+        self.front = float(middle) if middle > 0 else 0.0
+        self.v_ref, self.delta = self.depth_avoid(left, middle, right, self.cfg.speed)
+        self.state = str(getattr(self.depth_avoid, "state", "depth"))
+
     def step(self, t: float, r: Readout, dt: float) -> Step:
         c = self.cfg
         v = self.basic_speed_estimation(r.tach)
+        if c.strategy == "depth":
+            self._depth(t)
+            v_ref, delta = self.v_ref, self.delta
+            if v_ref == 0.0 and abs(v) < REST_SPEED and self.rest is None and self.front > 0:
+                self.rest = {"t": t, "range_m": self.front}
+            throttle = self.speed_controller(v_ref, v, dt)
+            left, middle, right = self.windows
+            names = tuple(self.indicator_and_lamps(delta, v_ref))
+            return Step(Command(throttle, delta, lamps_named(names)),
+                        {"v_ref": v_ref, "v_meas": v, "front_range": self.front, "state": self.state,
+                         "depth_left": left, "depth_middle": middle, "depth_right": right,
+                         "lamps": lamp_text(names)})
         scan = self.read_lidar()
         if scan is not None and scan.t != self.scan_t:
             self.scan_t = scan.t
@@ -178,8 +230,10 @@ class AvoidLab(LabModel):
         if v_ref == 0.0 and abs(v) < REST_SPEED and self.rest is None and math.isfinite(self.front):
             self.rest = {"t": t, "range_m": self.front}
         throttle = self.speed_controller(v_ref, v, dt)  # speed_controller holds a car at rest with throttle 0
-        return Step(Command(throttle, delta, lamps_named(tuple(self.indicator_and_lamps(delta, v_ref)))),
-                    {"v_ref": v_ref, "v_meas": v, "front_range": self.front, "state": self.state})
+        names = tuple(self.indicator_and_lamps(delta, v_ref))
+        return Step(Command(throttle, delta, lamps_named(names)),
+                    {"v_ref": v_ref, "v_meas": v, "front_range": self.front, "state": self.state,
+                     "lamps": lamp_text(names)})
 
 
 class _Collisions:
@@ -211,11 +265,12 @@ class _Collisions:
 
 
 def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
-          blocks: Mapping[str, Any] | None = None) -> Result:
+          blocks: Mapping[str, Any] | None = None, wrap=None) -> Result:
     """Drive ``car`` with the LIDAR strategy ``cfg.strategy``; return metrics, the log, the scans.
 
     ``world`` (the simulator's, when local) enables the collision check and the drive figure.
-    ``blocks`` replaces any block of :data:`BLOCKS` by name.
+    ``blocks`` replaces any block of :data:`BLOCKS` by name. ``wrap(model) -> model`` wraps the
+    model the loop runs (the trials roll their balls that way).
     """
     world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     p = car.params
@@ -223,11 +278,13 @@ def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
     truth0 = car.truth()
     lab = AvoidLab(cfg, p, car.throttle_limit, blocks)
     lab.read_lidar = car.read_lidar
+    lab.read_rgbd = car.read_rgbd
     if truth0 is not None:
         lab.scan_pose = lambda t: lidar_world_pose(car, t)
     guard = _Collisions(lab, world, car) if (world is not None and truth0 is not None) else None
     dt = 1.0 / cfg.rate
-    log = run_loop(car, guard or lab, cfg.duration, cfg.rate, on_tick=on_tick)
+    model = guard or lab
+    log = run_loop(car, wrap(model) if wrap else model, cfg.duration, cfg.rate, on_tick=on_tick)
     cols: dict[str, np.ndarray] = log.arrays()
     n = log.ticks
     if "clearance" not in cols:
@@ -240,7 +297,7 @@ def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
         distance = float(np.sum(np.abs(cols["v_meas"]))) * dt if n else 0.0
     rest = lab.rest
     states = {}
-    if n and cfg.strategy in ("combined", "student"):
+    if n and cfg.strategy in ("combined", "student", "depth"):
         names, counts = np.unique(cols["state"].astype(str), return_counts=True)
         states = {str(k): float(c) * dt for k, c in zip(names, counts)}
     collision = guard.collision if guard else None
@@ -259,8 +316,11 @@ def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
         "stopped_at_s": rest["t"] if rest else None,
         "scans": lab.n_scans,
     }
-    if cfg.strategy in ("combined", "student"):
-        metrics["backups"] = getattr(lab.lidar_avoid, "backups", None)
+    if cfg.strategy == "depth":
+        metrics["depth_frames"] = lab.n_frames
+    if cfg.strategy in ("combined", "student", "depth"):
+        machine = lab.depth_avoid if cfg.strategy == "depth" else lab.lidar_avoid
+        metrics["backups"] = getattr(machine, "backups", None)
         metrics["time_in_state_s"] = states
     metrics["config"] = asdict(cfg)
     finish(metrics, log, lab, None, goal=not collision, goal_text="")
@@ -268,7 +328,7 @@ def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
         metrics["goal_reached"], metrics["failure"] = False, (
             f"collision at ({collision['x']:.2f}, {collision['y']:.2f}) m, t = {collision['t']:.2f} s")
     keep = ["t", "true_x", "true_y", "true_yaw", "true_speed", "throttle", "steering", "v_ref", "v_meas",
-            "front_range", "clearance", "state"]
+            "front_range", "clearance", "state", "depth_left", "depth_middle", "depth_right", "lamps"]
     log_cols = {k: cols[k] for k in keep if k in cols}
     return Result("avoid", metrics, logs={"log.csv": log_cols}, data={"scans": lab.scans, "log": cols})
 

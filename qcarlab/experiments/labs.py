@@ -87,7 +87,8 @@ LABS: tuple[Lab, ...] = (
          "view, driving on after the stop)."),
         "qcarlab stop-sign --use stop_sign.py --params params.yaml"),
     Lab("lane-follow", "lane-following", "5.3", "Vision lane following", LaneFollowingLab, LaneFollowConfig,
-        ("hsv_min", "hsv_max", "speed", "lookahead", "stop_distance", "kp", "ki", "kff"),
+        ("hsv_min", "hsv_max", "speed", "speed_selector", "lookahead", "stop_distance", "stop_offset",
+         "distance_to_lane", "kp", "ki", "kff"),
         ("5.3 Task: Which HSV ranges did you choose so that only the yellow line is detected? How did you "
          "check them at different spots of the track (the brightness changes)?",
          "What happens when the yellow line leaves the camera's view in a tight curve?"),

@@ -2,18 +2,22 @@
 
 The model, :class:`LaneFollowingLab`, is the lane example's diagram; each tick (100 Hz)::
 
+    at the start: v_max, d_stop, gain = user_inputs(speed_selector %, stop_offset %, distance_to_lane %)
     v     = basic_speed_estimation(tach)                         # encoder -> m/s
     on each new RGBD frame (30 Hz):
         roi   = image_selector(color)                            # the region the line is expected in
         mask  = color_thresholding_hsv(roi)                      # the yellow centre line
         fit   = linear_poly_fit(mask)                            # u = slope v + intercept (or None)
               (no yellow: the white edge line, the same way, as a backup)
-        delta = steering_calculation(fit, line_offset(lane, line))
+        delta = steering_calculation(fit, gain * line_offset(lane, line))
         box   = draw_box(depth.shape, delta); d_obs = calculate_distance(depth, box)
-    v_ref = automated_driving(v_desired, d_obs)                  # slower, then 0, before an obstacle
+    v_ref = automated_driving(v_max, d_obs)                      # slower, then 0, before an obstacle
     v_ref = turn_speed_handling(v_ref, delta)                    # cos(delta)^8, clipped to 0.5..1
     u     = speed_controller(v_ref, v, dt)                       # feed-forward PI -> throttle
-    lamps = indicator_and_lamps(delta, v_ref)
+    lamps = indicator_and_lamps(delta, v_ref)                    # logged as "lamps"
+
+Start/stop (the model's arm switch): before ``start_at`` s and from ``stop_at`` s the motor is
+disarmed: v_ref = 0, throttle 0, the speed controller's integrator reset, the brake lamp on.
 
 Every block is looked up by its sheet name; ``--use`` replaces any of them.
 
@@ -50,6 +54,7 @@ from qcarlab.control.lane import (
     automated_driving,
     line_offset,
     steering_calculation,
+    user_inputs,
 )
 from qcarlab.control.speed import KFF, KI, KP
 from qcarlab.control.speed import (
@@ -101,7 +106,12 @@ class LaneFollowConfig:
     lookahead: float = 0.5  # m ahead of the camera
     white_backup: bool = True
     turn_speed: bool = True
-    stop_distance: float = 0.6  # m
+    stop_distance: float = 0.6  # m: the minimum stopping distance (section 1 of userInputs)
+    speed_selector: float = 100.0  # %: of speed, the maximum speed (userInputs' Speed Selector)
+    stop_offset: float = 0.0  # %: added to stop_distance (Stopping Distance Offset: 100 % doubles it)
+    distance_to_lane: float = 100.0  # %: 0 follows the line itself, 100 the lane centre
+    start_at: float = 0.0  # s: the start switch (the motor is armed from then)
+    stop_at: float | None = None  # s: the stop switch (disarmed from then; None = never)
     hold_lost: float = 1.0  # s the last steering is kept when the line is lost
     kp: float = KP
     ki: float = KI
@@ -125,6 +135,15 @@ class LaneFollowConfig:
             raise InputError(f"--lookahead must be 0.3..1.5 m, got {self.lookahead}")
         if not (math.isfinite(self.stop_distance) and 0.0 <= self.stop_distance <= 1.2):
             raise InputError(f"--stop-distance must be 0..1.2 m, got {self.stop_distance}")
+        for name in ("speed_selector", "stop_offset", "distance_to_lane"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0.0 <= value <= 100.0):
+                raise InputError(f"--{name.replace('_', '-')} must be a percentage in 0..100, got {value}")
+        if not (math.isfinite(self.start_at) and 0.0 <= self.start_at <= 3600.0):
+            raise InputError(f"--start-at must be 0..3600 s, got {self.start_at}")
+        if self.stop_at is not None and not (math.isfinite(self.stop_at) and self.start_at < self.stop_at <= 3600.0):
+            raise InputError(f"--stop-at must be after --start-at ({self.start_at:g} s) and at most 3600 s, "
+                             f"got {self.stop_at}")
         for name in ("kp", "ki", "kff"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
@@ -223,6 +242,10 @@ BLOCKS = (
     TURN_SPEED_HANDLING,
     SPEED_CONTROLLER,
     INDICATOR_AND_LAMPS,
+    BlockSpec("user_inputs", "user_inputs(speed_selector, stop_offset, distance_to_lane) -> "
+              "(desired_speed, stop_distance, lane_gain)", "%, %, % -> m/s, m, 0..1", "lane example block 10",
+              "The sliders: Speed Selector (% of the maximum speed), Stopping Distance Offset (% added to the "
+              "0.6 m minimum), Distance To Lane (0 % the line, 100 % the lane centre); read at the start."),
 )
 
 
@@ -243,6 +266,7 @@ class LaneFollowingLab(LabModel):
         self.det = LaneDetection(None, None)
         self.frame = self.box = self.shown = None
         self.frames = self.lost = self.white = 0
+        self.desired_speed, self.stop_distance, self.lane_gain = cfg.speed, cfg.stop_distance, 1.0
 
     def reference_blocks(self) -> dict[str, Any]:
         c = self.cfg
@@ -254,11 +278,34 @@ class LaneFollowingLab(LabModel):
             "steering_calculation": partial(steering_calculation, cam=self.cam, lookahead=c.lookahead),
             "draw_box": draw_box,
             "calculate_distance": calculate_distance,
-            "automated_driving": partial(automated_driving, stop_distance=c.stop_distance),
+            "automated_driving": self._automated_driving,
+            "user_inputs": partial(user_inputs, max_speed=c.speed, min_stop_distance=c.stop_distance),
             "turn_speed_handling": turn_speed_handling,
             "speed_controller": SpeedController(c.kp, c.ki, c.kff, throttle_limit=self.throttle_limit),
             "indicator_and_lamps": indicator_and_lamps,
         }
+
+    def _automated_driving(self, desired_speed: float, obstacle_distance: float) -> float:
+        """The reference automated_driving at the stop distance the user inputs set."""
+        return automated_driving(desired_speed, obstacle_distance, stop_distance=self.stop_distance)
+
+    def start(self, car: Any, dt: float) -> None:
+        super().start(car, dt)
+        inputs = self.user_inputs(self.cfg.speed_selector, self.cfg.stop_offset, self.cfg.distance_to_lane)
+        try:
+            v, d, g = (float(x) for x in inputs)
+        except (TypeError, ValueError):
+            from qcarlab.blocks import StudentBlockError
+
+            raise StudentBlockError(f"block user_inputs returned {inputs!r}; expected (desired_speed m/s, "
+                                    "stop_distance m, lane_gain 0..1)") from None
+        if not (math.isfinite(v) and 0.0 <= v <= 3.0 and math.isfinite(d) and 0.0 <= d <= 2.4
+                and math.isfinite(g) and 0.0 <= g <= 1.0):
+            from qcarlab.blocks import StudentBlockError
+
+            raise StudentBlockError(f"block user_inputs returned {inputs!r}: out of range (speed 0..3 m/s, "
+                                    "stop distance 0..2.4 m, lane gain 0..1)")
+        self.desired_speed, self.stop_distance, self.lane_gain = v, d, g
 
     def detect(self, color: np.ndarray) -> LaneDetection:
         """The vision half of the diagram: the yellow line, else (backup) the lane's white edge line."""
@@ -281,7 +328,7 @@ class LaneFollowingLab(LabModel):
             det = self.detect(frame.color)
             self.frames += 1
             if det.fit is not None:
-                self.delta = self.steering_calculation(det.fit, line_offset(c.lane, det.source))
+                self.delta = self.steering_calculation(det.fit, self.lane_gain * line_offset(c.lane, det.source))
                 self.last_seen = t
                 self.white += det.source == "white"
             else:
@@ -293,12 +340,20 @@ class LaneFollowingLab(LabModel):
             if self.shown is None and det.source == "yellow" and t >= 1.0:
                 self.shown = (frame, det, box)
         delta = self.delta
-        v_ref = self.automated_driving(c.speed, self.d_obs)
-        v_ref = self.turn_speed_handling(v_ref, delta) if c.turn_speed else v_ref
-        throttle = self.speed_controller(v_ref, v, dt)
-        lamps = lamps_named(tuple(self.indicator_and_lamps(delta, v_ref)))
-        return Step(Command(throttle, delta, lamps), {"v_ref": v_ref, "v_meas": v, "line": self.det.source or "none",
-                                                      "obstacle_distance": self.d_obs})
+        armed = t + 1e-9 >= c.start_at and (c.stop_at is None or t + 1e-9 < c.stop_at)
+        if armed:
+            v_ref = self.automated_driving(self.desired_speed, self.d_obs)
+            v_ref = self.turn_speed_handling(v_ref, delta) if c.turn_speed else v_ref
+            throttle = self.speed_controller(v_ref, v, dt)
+        else:  # the arm switch off: no motor command, the integrator held at zero
+            v_ref, throttle = 0.0, 0.0
+            reset = getattr(self.speed_controller, "reset", None)
+            if callable(reset):
+                reset()
+        names = tuple(self.indicator_and_lamps(delta, v_ref))
+        return Step(Command(throttle, delta, lamps_named(names)),
+                    {"v_ref": v_ref, "v_meas": v, "line": self.det.source or "none", "obstacle_distance": self.d_obs,
+                     "armed": int(armed), "lamps": "+".join(names)})
 
 
 def white_edge_mask(color: np.ndarray, lane: str) -> np.ndarray:
@@ -334,11 +389,12 @@ class _Laps:
         return STOP if self.along >= self.laps * L else out
 
 
-def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapping[str, Any] | None = None
-                    ) -> Result:
+def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapping[str, Any] | None = None,
+                    wrap=None) -> Result:
     """Follow the lane at ``cfg.speed`` for ``cfg.duration`` s (or ``cfg.laps`` laps).
 
-    ``blocks`` replaces any block of :data:`BLOCKS` by name.
+    ``blocks`` replaces any block of :data:`BLOCKS` by name; ``wrap(model) -> model`` wraps the
+    model the loop runs (trials).
     """
     world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     cfg.check()
@@ -358,7 +414,7 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     if duration is None:  # --laps sets the time it needs (half as much again, for the turns)
         duration = min(3600.0, 1.5 * cfg.laps * Polyline(centre).length / cfg.speed + 10.0) \
             if (cfg.laps is not None and centre is not None) else 30.0
-    log = run_loop(car, model, duration, cfg.rate)
+    log = run_loop(car, wrap(model) if wrap else model, duration, cfg.rate)
     cols = log.arrays()
     n = log.ticks
     duration = n * dt
@@ -378,7 +434,11 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
         "frames": lab.frames,
         "frames_line_lost": lab.lost,
         "frames_white_backup": lab.white,
-        "stopped_for_obstacle_s": float(np.count_nonzero(cols["v_ref"] == 0.0) * dt) if n else 0.0,
+        "stopped_for_obstacle_s": float(np.count_nonzero((cols["v_ref"] == 0.0) & (cols["armed"] == 1)
+                                                         & (cols["obstacle_distance"] > 0.0)) * dt) if n else 0.0,
+        "brake_lamp_s": float(sum("brake" in str(x).split("+") for x in cols["lamps"]) * dt) if n else 0.0,
+        "user_inputs": {"desired_speed_mps": lab.desired_speed, "stop_distance_m": lab.stop_distance,
+                        "lane_gain": lab.lane_gain},
     })
     metrics["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()}
     goal, why = True, ""
@@ -417,9 +477,41 @@ def _imwrite(file, image: np.ndarray) -> None:
 
 
 def _log_columns(cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    keep = ["t", "line", "lateral_deviation", "obstacle_distance", "v_ref", "v_meas", "true_speed", "throttle",
-            "steering", "true_x", "true_y", "true_yaw"]
+    keep = ["t", "line", "lateral_deviation", "obstacle_distance", "armed", "v_ref", "v_meas", "true_speed",
+            "throttle", "steering", "lamps", "true_x", "true_y", "true_yaw"]
     return {k: cols[k] for k in keep if k in cols}
+
+
+# ------------------------------------------------------------------------------- an obstacle
+OBSTACLE_SIZE = (0.25, 0.25, 0.3)  # m: a box as long, wide and tall as a cardboard box on the road
+
+
+def place_obstacle(world, start: tuple[float, float, float], distance: float) -> tuple[float, float, float]:
+    """Put a box (:data:`OBSTACLE_SIZE`) in the car's lane, its near face ``distance`` m ahead of the
+    front bumper of the car at ``start``, measured along the lane centre (straight ahead when the
+    world has no lane), through :meth:`World.add_box`; returns its pose (x, y, yaw). For the
+    sheet's obstacle detection (``lane-follow --obstacle``)."""
+    if not (math.isfinite(distance) and 0.3 <= distance <= 20.0):
+        raise InputError(f"--obstacle must be a distance of 0.3..20 m ahead, got {distance}")
+    length, width, height = OBSTACLE_SIZE
+    centre = lane_centre(world, start)
+    x, y, yaw = start
+    ahead = distance + world.params.length / 2.0 + length / 2.0  # car centre to box centre
+    if centre is None:
+        d = ahead
+        pose = (x + d * math.cos(yaw), y + d * math.sin(yaw), yaw)
+    else:
+        poly = Polyline(centre)
+        s0 = float(poly.nearest(np.array([start[:2]]))[1][0])
+        _p, j = poly.point_at(s0)
+        seg = centre[j + 1] - centre[j]
+        forward = 1.0 if math.cos(math.atan2(seg[1], seg[0]) - yaw) >= 0 else -1.0
+        s = (s0 + forward * ahead) % poly.length
+        p, j = poly.point_at(s)
+        seg = centre[j + 1] - centre[j]
+        pose = (float(p[0]), float(p[1]), math.atan2(seg[1], seg[0]))
+    world.add_box(pose[0], pose[1], length, width, pose[2], height)
+    return pose
 
 
 # ------------------------------------------------------------------------------- HSV tuning

@@ -266,12 +266,13 @@ class StopSignLab(LabModel):
 
 
 def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None, *, blocks: Mapping[str, Any] | None = None,
-                  world: Any = None) -> Result:
+                  world: Any = None, wrap=None) -> Result:
     """Drive straight at ``cfg.speed`` and stop for the stop sign; return metrics, log, figures.
 
     ``sign`` is the world's :class:`~qcarlab.sim.world.Sign` the car drives towards (for the true
     stop distance); without it (a real car) the true-distance metrics are None. ``blocks``
-    replaces any block of :data:`BLOCKS` by name.
+    replaces any block of :data:`BLOCKS` by name; ``wrap(model) -> model`` wraps the model the
+    loop runs (trials).
     """
     world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     cfg.check()
@@ -292,7 +293,8 @@ def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None, *, blocks: Mapping[s
     watch = WorldWatch.for_car(car, world)
     max_time = cfg.max_time or (2.0 * (start_distance or 3.0) / cfg.speed + (cfg.hold if lab.behaviour else 0.0)
                                 + 8.0)
-    log = run_loop(car, watch.wrap(lab) if watch else lab, max_time, cfg.rate)
+    model = watch.wrap(lab) if watch else lab
+    log = run_loop(car, wrap(model) if wrap else model, max_time, cfg.rate)
     cols = log.arrays()
     n = log.ticks
     found = np.flatnonzero(cols["sign_found"] == 1) if n else np.zeros(0, int)

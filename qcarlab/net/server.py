@@ -17,6 +17,11 @@ One thread per connection (blocking sockets, TCP_NODELAY). The rules (docs/proto
   only ever held for one quick backend call (never for a sensor reading): no command from the
   controller for ``watchdog`` seconds -> throttle 0, wheels straight, hazard and brake lamps (in
   lock-step any frame from the controller counts, since simulated time only moves when it says so).
+- **lock-step runs start from the start state**: in lock-step each new controller starts from the
+  car's start state (``reset()``: start pose, at rest, time 0, noise re-seeded), so the same client
+  run twice gets the same numbers.
+- **the watchdog is armed by the controller's first** ``COMMAND`` **or** ``STOP``: before it the car
+  stands stopped anyway, and a client that reads its first (slow) sensor frame is not stopped for it.
 - **dropped connection**: when the controller leaves (bye, close, reset, protocol error) the car is
   stopped before its socket is closed.
 - **limits**: every command goes through ``Car.write`` (non-finite values refused and the car
@@ -261,6 +266,7 @@ class CarServer:
         self.last_feed = time.monotonic()
         self.tripped = False
         self.trip_time = 0.0
+        self.armed = False  # the watchdog guards from the controller's first command on
         self.trips = 0
         self.watchdog_priority = "normal"  # what raise_thread_priority() got for the watchdog thread
         self.trip_delays: deque[float] = deque(maxlen=1000)  # s from the last command to each stop
@@ -498,7 +504,7 @@ class CarServer:
             self._kick.clear()
             ctl = self.controller
             now = time.monotonic()
-            if ctl is None or self.tripped:
+            if ctl is None or self.tripped or not self.armed:
                 self._kick.wait(0.1)
                 continue
             due = self.last_feed + self.watchdog
@@ -809,6 +815,7 @@ class _Session:
         stopped = ""
         if was_controller:
             ok = server.release(self)
+            server.armed = False
             stopped = "; car stopped" if ok else "; STOPPING THE CAR FAILED"
         if self.errors > MAX_LOGGED_ERRORS:
             reason += f"; {self.errors} error frames in all"
@@ -985,6 +992,12 @@ class _Session:
             refusal = server.claim_control(self)
             if refusal is not None:
                 raise self.fatal("busy", refusal, frame.seq)
+            server.armed = False
+            reset = getattr(self.car, "reset", None)
+            if server.lockstep and callable(reset):  # a new run: from the start state, not the last client's
+                with server.drive_lock:
+                    reset()
+                    server.cache_readout = None
             if server.priority:
                 raise_thread_priority(PRIORITY_CONTROLLER)  # this thread serves the controller from now on
         elif server.priority and server.tuned:
@@ -1042,6 +1055,7 @@ class _Session:
             raise InputError(f"command flags 0x{flags:08x} set reserved bits (only bit 0, read back, is defined)")
         with server.drive_lock:
             server.feed()
+            server.armed = True
             cmd = self.car.write(throttle, steering, leds)
             readout = self.car.read() if flags & P.FLAG_READ_BACK else None
         if readout is not None:
@@ -1056,6 +1070,7 @@ class _Session:
         _expect_empty(frame)
         with server.drive_lock:
             server.feed()
+            server.armed = True
             self.car.stop()
         self.send(M.OK, frame.seq)
 

@@ -179,7 +179,9 @@ def _stop_sprites() -> tuple[np.ndarray, np.ndarray]:
     font = cv2.FONT_HERSHEY_DUPLEX
     scale = cv2.getFontScaleFromHeight(font, int(s * 0.24), 3)
     (tw, th), _ = cv2.getTextSize("STOP", font, scale, 3)
+    alpha = front[:, :, 3].copy()  # anti-aliased text blends the alpha too: the letters' edges went see-through
     cv2.putText(front, "STOP", (int(c - tw / 2), int(c + th / 2)), font, scale, (235, 235, 235, 255), 3, cv2.LINE_AA)
+    front[:, :, 3] = alpha
     cv2.fillPoly(back, [octagon(s / 2.0)], (150, 150, 150, 255), cv2.LINE_AA, 4)
     return front, back
 
