@@ -358,6 +358,8 @@ class CarServer:
                 self.car.prepare_sensors()
             except Exception as exc:  # a sensor that cannot be built fails its requests later, not the server
                 _log(logging.WARNING, "could not prepare the sensors: %s", _one_line(str(exc)))
+        if self.worker is None and not self.lockstep and callable(getattr(self.car, "warm_physics", None)):
+            self.car.warm_physics()  # a first-use cost paid now, not under the drive lock later
         self._listener = listener
         self._bound = (bound[0], bound[1])
         self._wake_r, self._wake_w = socket.socketpair()
