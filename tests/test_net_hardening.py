@@ -102,7 +102,8 @@ def test_the_simulators_first_lidar_read_does_not_delay_the_watchdog(served):
             probe.hello("monitor")
             assert wait_for(lambda: P.unpack_readout(probe.request(M.READ).payload)[0]["throttle"] == 0.0, timeout=2.0)
         assert time.monotonic() - last < 0.1 + 0.3
-        assert mon.recv().type == M.LIDAR
+        assert server.trip_delays[0] < 0.1 + 0.1  # as the server timed it (was: + 0.3-0.5 s, the physics
+        assert mon.recv().type == M.LIDAR         # switching to its compiled kernel under the drive lock)
 
 
 # --- 2. deadlines per handshake and per frame ----------------------------------------------------------
