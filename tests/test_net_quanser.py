@@ -138,3 +138,36 @@ def test_the_physical_car_served_over_tcp(fake_quanser):
         assert np.allclose(angles[remote.read_lidar().ranges > 0], [0.0, math.pi / 2, math.pi, 3 * math.pi / 2])
         assert remote.truth() is None  # a real car has no ground truth
     assert out[("pwm", 0)] == 0.0  # the controller left: stopped
+
+
+def test_a_slow_lidar_holds_up_neither_commands_nor_the_watchdog(fake_quanser, monkeypatch):
+    """Was: the LIDAR and cameras were read under the lock the HIL board's writes need."""
+    import quanser.devices as devices
+
+    from qcarlab.car.quanser import QuanserCar
+    from qcarlab.net.protocol import MsgType as M
+    from qcarlab.net.testing import RawClient
+
+    fake_quanser.reset(car=1, lidar_script=["scan"])
+    read = devices.RPLIDAR.read
+
+    def slow_read(self, *args):
+        time.sleep(1.0)  # the device waits for a full turn
+        return read(self, *args)
+
+    monkeypatch.setattr(devices.RPLIDAR, "read", slow_read)
+    out = fake_quanser.STATE.outputs
+    with QuanserCar() as qcar, CarServer(qcar, "127.0.0.1", 0, watchdog=0.1) as server, \
+            TcpCar(*server.address) as ctl, RawClient(server.address, timeout=5.0) as mon:
+        mon.hello("monitor")
+        ctl.write(0.2, 0.0)
+        mon.send(M.GET_LIDAR)  # a 1 s reading starts
+        time.sleep(0.02)
+        t0 = time.monotonic()
+        ctl.write(0.15, 0.0)
+        assert time.monotonic() - t0 < 0.5 and out[("pwm", 0)] == -0.15
+        sent = time.monotonic()
+        while out[("pwm", 0)] != 0.0 and time.monotonic() - sent < 1.0:
+            time.sleep(0.002)
+        assert out[("pwm", 0)] == 0.0 and time.monotonic() - sent < 0.1 + 0.2  # the watchdog
+        assert mon.recv().type == M.LIDAR

@@ -47,21 +47,10 @@ def served():
 
 
 def connect(server, **kw):
-    """A TCP car on ``server``; a controller that just left may not be gone yet on a busy machine
-    (the server notices the closed socket on its next read): retry ``busy`` for up to 5 s."""
-    import time
-
-    from qcarlab.car.tcp import TcpConnectError
-
+    """A TCP car on ``server``. (No retry on ``busy``: a controller that has just closed is gone
+    for the server at once, which test_net_hardening checks; a ``busy`` here is a real one.)"""
     host, port = server.address
-    deadline = time.monotonic() + 5.0
-    while True:
-        try:
-            return TcpCar(host, port, timeout=2.0, **kw)
-        except TcpConnectError as exc:
-            if exc.kind != "busy" or time.monotonic() > deadline:
-                raise
-            time.sleep(0.05)
+    return TcpCar(host, port, timeout=2.0, **kw)
 
 
 def lamps_on(leds):

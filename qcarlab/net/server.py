@@ -350,7 +350,8 @@ class CarServer:
                 f"refusing to serve on {shown} without a token: that address is not loopback, anyone on its "
                 "network could drive the car; set QCARLAB_TOKEN (qcarlab serve --new-token makes one), or bind to 127.0.0.1"
             )
-        if self.render_process and not self.lockstep and hasattr(self.car, "sensor_recipe"):
+        if self.render_process and not self.lockstep and callable(getattr(type(self.car), "sensor_recipe", None)):
+            # (the car's own class: a wrapper that records frames must see them pass)
             self._start_worker()
         if self.prepare and self.worker is None:
             try:
