@@ -49,10 +49,14 @@ def _serve(kind: str, conn, watchdog: float, hello_timeout: float, options: dict
     from qcarlab.net.testing import SyntheticCar
 
     lines = [0]
+    notable: list[str] = []
 
     class Count(logging.Handler):
         def emit(self, record):
             lines[0] += 1
+            text = record.getMessage()
+            if "process" in text and len(notable) < 5:  # the render process's start or end
+                notable.append(text)
 
     logging.getLogger("qcarlab").setLevel(logging.ERROR)  # clamp warnings of the fuzz, not its subject
     logger = logging.getLogger("qcarlab.net")
@@ -81,7 +85,8 @@ def _serve(kind: str, conn, watchdog: float, hello_timeout: float, options: dict
     server.stop()
     conn.send({"log_lines": lines[0], "watchdog_trips": server.trips, "sessions_left": len(server.sessions),
                "takeovers": server.takeovers, "evicted": server.evicted, "trip_delays": list(server.trip_delays),
-               "watchdog_priority": server.watchdog_priority,
+               "watchdog_priority": server.watchdog_priority, "render_process": server.worker is not None,
+               "notable": notable,
                "readings": {int(k): v for k, v in server.sensors.readings.items()}})
     car.close()
 
@@ -92,7 +97,8 @@ class Served:
     def __init__(self, kind: str = "sim", watchdog: float = 0.25, hello_timeout: float = 2.0, **options):
         self.ctx = mp.get_context("spawn")
         self.parent, child = self.ctx.Pipe()
-        self.proc = self.ctx.Process(target=_serve, args=(kind, child, watchdog, hello_timeout, options), daemon=True)
+        # not a daemon: the server starts a process of its own to draw sensor frames, as serve does
+        self.proc = self.ctx.Process(target=_serve, args=(kind, child, watchdog, hello_timeout, options), daemon=False)
         self.report: dict = {}
 
     def __enter__(self) -> int:

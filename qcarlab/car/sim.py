@@ -221,6 +221,17 @@ class SimCar(Car):
         """Load the world and build every sensor now (no frame is taken, no noise drawn)."""
         for kind in ("lidar", "rgbd", "csi"):
             self._sensor(kind)
+        _warm_physics(self.params)
+
+    def warm_physics(self) -> None:
+        """Load numba and the compiled physics now. A sensor's first frame loads numba, which
+        switches the physics to its compiled kernel, whose first call takes 0.1-0.5 s: a server
+        calls this at start, so that call is not a step it makes under its drive lock later."""
+        try:
+            import numba  # noqa: F401
+        except ImportError:
+            return
+        _warm_physics(self.params)
 
     def sensor_recipe(self) -> dict[str, Any]:
         """What another process needs to draw this car's sensor frames: ``SimCar(**recipe)`` there
@@ -283,6 +294,17 @@ class _FrameJob:
 
     def __call__(self) -> Any:
         if self.frame is None:
-            self.frame = self.render(self.car._sensor(self.kind), self.pose, self.t)
+            first = self.kind not in self.car._sensors
+            sensor = self.car._sensor(self.kind)
+            if first:  # building it may have loaded numba: load the compiled physics here too, off any lock
+                _warm_physics(self.car.params)
+            self.frame = self.render(sensor, self.pose, self.t)
             self.car._frames[self.kind] = (self.k, self.frame)
         return self.frame
+
+
+def _warm_physics(params: QCarParams) -> None:
+    """Once numba is loaded the physics runs its compiled kernel, whose first call loads it (some
+    0.1-0.5 s): make that call on a scratch body now, not in the car's next step (which a server
+    makes under the lock its watchdog needs)."""
+    Vehicle(params, on_stand=True).step(params.physics_dt)

@@ -107,6 +107,9 @@ class SensorHub:
             except WorkerGone as exc:
                 log.warning("%s; drawing sensor frames in the server's own process from now on", exc)
                 self.worker = None
+                warm = getattr(self.car, "warm_physics", None)
+                if callable(warm):
+                    warm()  # drawing here loads numba: the physics' first compiled step now, not under the drive lock
         if arrays is None:
             if reply in self.started:
                 obj = job()

@@ -358,6 +358,8 @@ class CarServer:
                 self.car.prepare_sensors()
             except Exception as exc:  # a sensor that cannot be built fails its requests later, not the server
                 _log(logging.WARNING, "could not prepare the sensors: %s", _one_line(str(exc)))
+        if self.worker is None and not self.lockstep and callable(getattr(self.car, "warm_physics", None)):
+            self.car.warm_physics()  # a first-use cost paid now, not under the drive lock later
         self._listener = listener
         self._bound = (bound[0], bound[1])
         self._wake_r, self._wake_w = socket.socketpair()
@@ -488,6 +490,12 @@ class CarServer:
             bits |= P.STATUS_LOCKSTEP
         return bits
 
+    def arm(self) -> None:
+        """The controller's first command arms the watchdog (at once: the watchdog may be waiting)."""
+        if not self.armed:
+            self.armed = True
+            self._kick.set()
+
     def note(self, level: int, msg: str, *args: Any) -> None:
         """A log line from a thread that must never block on a write (the watchdog)."""
         self._notes.append((level, msg, args))
@@ -538,9 +546,9 @@ class CarServer:
                       ctl.peer, self.watchdog)
 
     def controller_stale(self, ctl: _Session, now: float) -> bool:
-        """The controller has lost its claim: the watchdog stopped the car and it has sent nothing
-        for ``controller_timeout`` s."""
-        return self.tripped and now - ctl.last_frame >= self.controller_timeout
+        """The controller has lost its claim: the car is stopped (the watchdog stopped it, or it
+        never sent a command) and it has sent nothing for ``controller_timeout`` s."""
+        return (self.tripped or not self.armed) and now - ctl.last_frame >= self.controller_timeout
 
     # --- housekeeping: log lines, the real-time simulator's clock ---------------------------------
     def _housekeeping_loop(self) -> None:
@@ -1055,7 +1063,7 @@ class _Session:
             raise InputError(f"command flags 0x{flags:08x} set reserved bits (only bit 0, read back, is defined)")
         with server.drive_lock:
             server.feed()
-            server.armed = True
+            server.arm()
             cmd = self.car.write(throttle, steering, leds)
             readout = self.car.read() if flags & P.FLAG_READ_BACK else None
         if readout is not None:
@@ -1070,7 +1078,7 @@ class _Session:
         _expect_empty(frame)
         with server.drive_lock:
             server.feed()
-            server.armed = True
+            server.arm()
             self.car.stop()
         self.send(M.OK, frame.seq)
 
