@@ -249,7 +249,7 @@ def bench_rgbd(seconds: float) -> dict:
 
 # --- 3. one controller + 8 monitors -----------------------------------------------------------------
 def _load_client(port: int, role: str, duration: float, start, results) -> None:
-    from qcarlab.net import protocol as P
+    from qcarlab.wire import protocol as P
 
     stats = {"role": role, "replies": 0, "errors": 0, "frames": 0, "watchdog_readouts": 0, "error": None}
     try:
@@ -583,7 +583,7 @@ def bench_flood(seconds: float, squatters: int = 16) -> dict:
 def bench_fuzz(min_frames: int) -> dict:
     from hypothesis import HealthCheck, given, settings
 
-    from qcarlab.net.protocol import MsgType as M
+    from qcarlab.wire.protocol import MsgType as M
     from qcarlab.net.testing import RawClient, fuzz_strategy, run_fuzz_case
 
     counts = {"cases": 0, "frames": 0, "moving_after": 0, "not_closed": 0}

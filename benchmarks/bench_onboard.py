@@ -31,8 +31,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from onboard_support import Served, car_python  # noqa: E402
 
-from qcarlab.net import protocol as P  # noqa: E402
-from qcarlab.net.protocol import MsgType as M  # noqa: E402
+from qcarlab.wire import protocol as P  # noqa: E402
+from qcarlab.wire.protocol import MsgType as M  # noqa: E402
 from qcarlab.net.testing import RawClient  # noqa: E402
 
 OFF = (0.0,) * 12

@@ -263,14 +263,9 @@ def _import_file(path: Path) -> Any:
     return module
 
 
-def _unfilled(path: Path, name: str) -> bool:
-    """True when ``name`` in ``path`` still has a template's body: only ``raise NotImplementedError``
-    (after its docstring), or a class whose ``__call__`` is like that."""
-    try:
-        tree = ast.parse(path.read_text(encoding="utf-8"))
-    except (OSError, SyntaxError, ValueError):
-        return False
-
+def is_stub(tree: ast.Module, name: str) -> bool:
+    """True when ``name`` in the parsed module still has a template's body: only ``raise
+    NotImplementedError`` (after its docstring), or a class whose ``__call__`` is like that."""
     def stub(fn: ast.AST) -> bool:
         body = [s for s in fn.body if not (isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant))]
         if len(body) != 1 or not isinstance(body[0], ast.Raise) or body[0].exc is None:
@@ -285,6 +280,17 @@ def _unfilled(path: Path, name: str) -> bool:
         if isinstance(node, ast.ClassDef) and node.name == name:
             return any(isinstance(m, ast.FunctionDef) and m.name == "__call__" and stub(m) for m in node.body)
     return False
+
+
+def _unfilled(path: Path, name: str) -> bool:
+    """True when ``name`` in ``path`` still has a template's body: only ``raise NotImplementedError``
+    (after its docstring), or a class whose ``__call__`` is like that."""
+    try:
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+    except (OSError, SyntaxError, ValueError):
+        return False
+
+    return is_stub(tree, name)
 
 
 def _defined_names(path: Path) -> set[str]:

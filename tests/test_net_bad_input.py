@@ -9,8 +9,8 @@ import time
 
 import pytest
 
-from qcarlab.net import protocol as P
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire import protocol as P
+from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.server import CarServer
 from qcarlab.net.testing import RawClient, SyntheticCar, error_of
 

@@ -8,9 +8,9 @@ import pytest
 from qcarlab.car.sim import SimCar
 from qcarlab.car.tcp import TcpCar
 from qcarlab.errors import CarError, NotBuiltError
-from qcarlab.net import protocol as P
-from qcarlab.net.frames import frame_class
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire import protocol as P
+from qcarlab.wire.frames import frame_class
+from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.server import CarServer
 from qcarlab.net.testing import RawClient, SyntheticCar, error_of
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 from hypothesis import HealthCheck, given, settings
 
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.server import CarServer
 from qcarlab.net.testing import RawClient, SyntheticCar, fuzz_strategy, run_fuzz_case
 

@@ -14,8 +14,8 @@ from qcarlab.car.sim import SimCar
 from qcarlab.car.tcp import TcpCar, TcpConnectError
 from qcarlab.errors import InputError
 from qcarlab.net import guard
-from qcarlab.net import protocol as P
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire import protocol as P
+from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.server import CarServer
 from qcarlab.net.testing import RawClient, SyntheticCar, error_of
 

@@ -10,7 +10,7 @@ import threading
 import pytest
 
 from qcarlab.cli.net import _stats, normalise_uri
-from qcarlab.net import protocol as P
+from qcarlab.wire import protocol as P
 from qcarlab.net.server import CarServer
 from qcarlab.net.testing import SyntheticCar
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from qcarlab.car.base import Readout, Truth
-from qcarlab.net import protocol as P
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire import protocol as P
+from qcarlab.wire.protocol import MsgType as M
 
 
 def test_header_layout_is_16_little_endian_bytes():

@@ -145,7 +145,7 @@ def test_a_slow_lidar_holds_up_neither_commands_nor_the_watchdog(fake_quanser, m
     import quanser.devices as devices
 
     from qcarlab.car.quanser import QuanserCar
-    from qcarlab.net.protocol import MsgType as M
+    from qcarlab.wire.protocol import MsgType as M
     from qcarlab.net.testing import RawClient
 
     fake_quanser.reset(car=1, lidar_script=["scan"])

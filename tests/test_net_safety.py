@@ -10,8 +10,8 @@ import pytest
 from qcarlab.car.lamps import LAMP_NAMES
 from qcarlab.car.tcp import TcpCar, TcpConnectError
 from qcarlab.errors import CarError, InputError
-from qcarlab.net import protocol as P
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire import protocol as P
+from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.server import CarServer, is_loopback
 from qcarlab.net.testing import RawClient, SyntheticCar, error_of
 

@@ -133,13 +133,13 @@ def test_the_rate_option_documents_the_range_it_accepts(cli):
 # --- --token on the lab commands, and qcarlab --version ---------------------------------------
 def test_lab_commands_take_the_token_of_a_served_car(cli, monkeypatch):
     monkeypatch.delenv("QCARLAB_TOKEN", raising=False)
-    server = CarServer(SimCar(seed=1), "127.0.0.1", 0, token="s3cret", watchdog=5.0).start()
+    server = CarServer(SimCar(seed=1), "127.0.0.1", 0, token="s3cret-token-of-16+", watchdog=5.0).start()
     try:
         code, out, err = cli("io-test", "--car", server.uri, "--duration", "0.2", "--json")
         assert code == 1 and "wrong token" in err and "--token" in err
-        code, out, err = cli("io-test", "--car", server.uri, "--token", "s3cret", "--duration", "0.2", "--json")
+        code, out, err = cli("io-test", "--car", server.uri, "--token", "s3cret-token-of-16+", "--duration", "0.2", "--json")
         assert code == 0, err
-        code, out, err = cli("avoid", "--car", server.uri, "--token", "s3cret", "--duration", "0.2", "--json")
+        code, out, err = cli("avoid", "--car", server.uri, "--token", "s3cret-token-of-16+", "--duration", "0.2", "--json")
         assert code == 0, err
     finally:
         server.stop()
@@ -187,4 +187,4 @@ def test_the_depth_camera_reads_the_stop_signs_letters_at_the_signs_distance():
     white = inside & (c.min(axis=2) > 170)
     assert white.sum() > 200  # the letters are there
     plate = float(np.median(d[inside]))
-    assert 0.4 < plate < 0.6 and np.abs(d[inside] - plate).max() < 0.02
+    assert 0.4 < plate < 0.7 and np.abs(d[inside] - plate).max() < 0.02  # the camera 13 cm behind the bumper

@@ -15,8 +15,8 @@ import pytest
 from onboard_support import Served
 
 from qcarlab.constants import params_from_mapping
-from qcarlab.net import protocol as P
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire import protocol as P
+from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.testing import RawClient, error_of
 from qcarlab.onboard import car_server as cs
 

@@ -19,8 +19,8 @@ import time
 import pytest
 from onboard_support import Served, fake_env, fake_quanser, journal  # noqa: F401  (fixture)
 
-from qcarlab.net import protocol as P
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire import protocol as P
+from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.testing import RawClient, error_of
 from qcarlab.onboard import car_server as cs
 

@@ -352,6 +352,29 @@ def test_control_perception_and_sim_do_not_import_upwards():
     assert not bad, bad
 
 
+def test_no_package_cycles_car_net_and_sim_world_raster():
+    import ast
+
+    root = Path(qcarlab.__file__).parent
+
+    def imports(file):
+        out = []
+        for node in ast.walk(ast.parse(file.read_text())):
+            if isinstance(node, ast.Import):
+                out += [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                out.append(node.module)
+        return out
+
+    bad = [f"car/{f.name} imports {n}" for f in (root / "car").glob("*.py") for n in imports(f)
+           if n.startswith("qcarlab.net")]
+    bad += [f"wire/{f.name} imports {n}" for f in (root / "wire").glob("*.py") for n in imports(f)
+            if n.startswith(("qcarlab.net", "qcarlab.car"))]
+    bad += [f"sim/world.py imports {n}" for n in imports(root / "sim" / "world.py")
+            if n.startswith(("qcarlab.sim.raster", "qcarlab.sim.render", "qcarlab.sim.camera", "qcarlab.sim.lidar"))]
+    assert not bad, bad
+
+
 def test_cli_does_not_import_the_simulator():
     import ast
 

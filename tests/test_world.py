@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from qcarlab.errors import InputError
-from qcarlab.sim.raster import build_raster
+from qcarlab.sim.raster import build_raster, floor_texture
 from qcarlab.sim.render import render_topdown, world_to_pixel
 from qcarlab.sim.world import COLORS, list_worlds, load_world, world_from_dict
 
@@ -125,7 +125,7 @@ def test_balls_roll_wait_and_stop():
 
 def test_floor_texture_has_the_marking_where_it_is_painted():
     w = world_from_dict(base(markings=[{"points": [[-2, 0.5], [2, 0.5]], "width": 0.05, "color": "yellow"}]))
-    tex, (x0, y1, ppm) = w.floor_texture(100)
+    tex, (x0, y1, ppm) = floor_texture(w, 100)
     col = int((1.0 - x0) * ppm)
     row_on = int((y1 - 0.5) * ppm)
     row_off = int((y1 - 0.8) * ppm)
@@ -135,7 +135,7 @@ def test_floor_texture_has_the_marking_where_it_is_painted():
 
 def test_regions_scale_the_floor():
     w = world_from_dict(base(regions=[{"rect": [0, 0, 2, 2], "brightness": 0.5}]))
-    tex, (x0, y1, ppm) = w.floor_texture(50)
+    tex, (x0, y1, ppm) = floor_texture(w, 50)
     lit = tex[int((y1 - 1) * ppm), int((1 - x0) * ppm)].astype(int)
     plain = tex[int((y1 + 1) * ppm), int((-1 - x0) * ppm)].astype(int)
     assert np.allclose(lit, plain * 0.5, atol=1)

@@ -126,8 +126,8 @@ class QuanserCar(Car):
             raise NotBuiltError(f"QCar: the {what} is not available ({self.hw.missing.get(name, 'not opened')})")
 
     def read_lidar(self) -> Any:
-        from qcarlab.net.frames import make_frame
-        from qcarlab.net.protocol import MsgType
+        from qcarlab.wire.frames import make_frame
+        from qcarlab.wire.protocol import MsgType
 
         self._need("lidar", "LIDAR")
         try:
@@ -138,8 +138,8 @@ class QuanserCar(Car):
 
     def read_rgbd(self) -> Any:
         """Colour and depth; depth is NOT aligned to colour on the car (see the README)."""
-        from qcarlab.net.frames import make_frame
-        from qcarlab.net.protocol import MsgType
+        from qcarlab.wire.frames import make_frame
+        from qcarlab.wire.protocol import MsgType
 
         self._need("rgbd", "RGBD camera")
         try:
@@ -149,8 +149,8 @@ class QuanserCar(Car):
         return make_frame(MsgType.RGBD, t, [color.copy(), depth.copy()])
 
     def read_csi(self) -> Any:
-        from qcarlab.net.frames import make_frame
-        from qcarlab.net.protocol import MsgType
+        from qcarlab.wire.frames import make_frame
+        from qcarlab.wire.protocol import MsgType
 
         self._need("csi", "CSI cameras")
         try:

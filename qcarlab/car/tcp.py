@@ -27,9 +27,9 @@ from typing import Any
 from qcarlab.car.base import Car, Command, Identity, Readout, Truth
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams, params_from_mapping
 from qcarlab.errors import CarError, InputError, NotBuiltError
-from qcarlab.net import protocol as P
-from qcarlab.net.frames import make_frame
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire import protocol as P
+from qcarlab.wire.frames import make_frame
+from qcarlab.wire.protocol import MsgType as M
 
 log = logging.getLogger("qcarlab")
 

@@ -79,9 +79,12 @@ def _interrupt(signum: int, _frame: object) -> None:
 
 
 def _term_as_interrupt() -> object:
-    """SIGTERM ends a run like Ctrl-C: the car is stopped and the results so far are saved."""
+    """SIGTERM ends a run like Ctrl-C: the car is stopped and the results so far are saved. SIGINT
+    is Ctrl-C even when the process was started with it ignored (a background job of a script)."""
     if threading.current_thread() is not threading.main_thread():
         return None
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     return signal.signal(signal.SIGTERM, _interrupt)
 
 

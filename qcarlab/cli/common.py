@@ -171,6 +171,8 @@ def apply_tunables(cfg: Any, params: Path | None, ctx: typer.Context | None, ign
     known = {f.name: f for f in dataclasses.fields(cfg) if f.name not in ignore}
     for key, value in lab.items():
         name = str(key).replace("-", "_")
+        if name in ignore:  # set by the command itself (e.g. a look-ahead sweep)
+            continue
         if name not in known:
             raise InputError(f"{params}: lab: unknown tunable {key!r} (known: {', '.join(known)})")
         if ctx is not None:

@@ -16,7 +16,7 @@ from qcarlab.car import open_car, parse_car_uri
 from qcarlab.cli.app import app
 from qcarlab.cli.common import DebugOpt, JsonOpt, LiveOpt, LivePortOpt, ParamsOpt, SeedOpt, WorldOpt
 from qcarlab.errors import CarError, InputError, NotBuiltError
-from qcarlab.net.protocol import DEFAULT_PORT, VERSION
+from qcarlab.wire.protocol import DEFAULT_PORT, VERSION
 
 TokenOpt = Annotated[
     str | None,

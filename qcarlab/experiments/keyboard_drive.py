@@ -647,7 +647,9 @@ def world_map(world: Any, cols: int = 40, rows: int = 16, supersample: int = 4) 
     bg = tuple(int(c) for c in getattr(world, "background", (60, 60, 70)))
     hi = np.empty((H, W, 3), np.uint8)
     hi[:] = bg
-    tex, (tx0, ty1, tppm) = world.floor_texture(min(hp, 200.0))
+    from qcarlab.sim.raster import floor_texture
+
+    tex, (tx0, ty1, tppm) = floor_texture(world, min(hp, 200.0))
     sc = hp / tppm
     A = np.array([[sc, 0.0, (tx0 - x0) * hp + 0.5 * sc - 0.5], [0.0, sc, (y1 - ty1) * hp + 0.5 * sc - 0.5]])
     cv2.warpAffine(tex, A, (W, H), dst=hi, flags=cv2.INTER_AREA if sc < 1 else cv2.INTER_LINEAR,

@@ -62,7 +62,7 @@ from qcarlab.perception.stop_sign import (
     RED_HSV_MAX,
     RED_HSV_MIN,
     StopSignDetection,
-    calculate_distance,
+    depth_at,
     check_hsv,
     color_thresholding_hsv,
     detection_image,
@@ -150,8 +150,8 @@ def sign_distance(depth: np.ndarray, centroid, mask: np.ndarray | None = None) -
     sign's centroid, or of every valid pixel there when no red pixel has depth; 0 = unknown."""
     if centroid is None:
         return 0.0
-    d = calculate_distance(depth, centroid, mask=mask)
-    return d if d > 0.0 else calculate_distance(depth, centroid)
+    d = depth_at(depth, centroid, mask=mask)
+    return d if d > 0.0 else depth_at(depth, centroid)
 
 
 #: The blocks of the Stop.slx diagram (sheet 5.2, Figure 50), in the sheet's order.

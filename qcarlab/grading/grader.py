@@ -150,7 +150,13 @@ def _used(task: Task, results: dict) -> str | None:
     mine = results.get("student_blocks")
     if mine is None and isinstance(results.get("best"), dict):  # a sweep: its best run's blocks
         mine = results["best"].get("student_blocks")
-    mine = mine or {}
+    if mine is None:  # an aggregate without the runs' block reports (trials): what the command line gave
+        params = (results.get("invocation") or {}).get("params") or {}
+        given = {str(b).split("=", 1)[0].strip() for b in params.get("block") or []}
+        for name in task.uses:
+            if name not in given and not params.get("use"):
+                return f"the run did not use your {name}"
+        return None
     for name in task.uses:
         timing = mine.get(name)
         if not isinstance(timing, dict):

@@ -17,6 +17,8 @@ import ast
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from qcarlab.blocks import is_stub as _is_stub
+
 from qcarlab.errors import InputError
 
 MAX_FILE = 2**20  # bytes per file the grader takes from a submission
@@ -87,23 +89,6 @@ class Submission:
         if self.unfilled(name):
             return f"{fname}: {name} is not filled in yet (its body still raises NotImplementedError)"
         return None
-
-
-def _is_stub(tree: ast.Module, name: str) -> bool:
-    def stub(fn: ast.AST) -> bool:
-        body = [s for s in fn.body if not (isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant))]
-        if len(body) != 1 or not isinstance(body[0], ast.Raise) or body[0].exc is None:
-            return False
-        exc = body[0].exc
-        called = exc.func if isinstance(exc, ast.Call) else exc
-        return isinstance(called, ast.Name) and called.id == "NotImplementedError"
-
-    for node in tree.body:
-        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name == name:
-            return stub(node)
-        if isinstance(node, ast.ClassDef) and node.name == name:
-            return any(isinstance(m, ast.FunctionDef) and m.name == "__call__" and stub(m) for m in node.body)
-    return False
 
 
 def folder_for(root: Path, names: list[str | None]) -> Path:

@@ -1,4 +1,5 @@
-"""The car over the network: the qcarlab protocol (``protocol``), the server that exposes any Car
-(``server``), sensor frame types shared by both ends (``frames``) and test helpers (``testing``).
-The client is :class:`qcarlab.car.tcp.TcpCar`; the wire format is documented in docs/protocol.md.
+"""The car over the network: the server that exposes any Car (``server``), its guards and sensor
+pacing, and test helpers (``testing``). The wire format both ends speak lives below ``car/`` and
+``net/`` in :mod:`qcarlab.wire`; the client is :class:`qcarlab.car.tcp.TcpCar`; docs/protocol.md
+documents it.
 """

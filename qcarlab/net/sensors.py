@@ -25,9 +25,9 @@ import threading
 import time
 from typing import Any
 
-from qcarlab.net import protocol as P
-from qcarlab.net.frames import frame_arrays
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire import protocol as P
+from qcarlab.wire.frames import frame_arrays
+from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.render_worker import WorkerGone
 
 log = logging.getLogger("qcarlab.net")

@@ -55,9 +55,9 @@ from typing import Any
 from qcarlab.car.base import Car, Readout
 from qcarlab.car.lamps import parse_lamps
 from qcarlab.errors import CarError, InputError, NotBuiltError, QcarlabError
-from qcarlab.net import protocol as P
+from qcarlab.wire import protocol as P
 from qcarlab.net.guard import RefusalLog, TokenGuard, token_matches, token_problem
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.sensors import SENSORS, NoData, SensorHub
 
 log = logging.getLogger("qcarlab.net")

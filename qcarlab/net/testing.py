@@ -22,9 +22,9 @@ import numpy as np
 from qcarlab.car.base import Car, Command, Identity, Readout
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import NotBuiltError
-from qcarlab.net import protocol as P
-from qcarlab.net.frames import make_frame
-from qcarlab.net.protocol import MsgType as M
+from qcarlab.wire import protocol as P
+from qcarlab.wire.frames import make_frame
+from qcarlab.wire.protocol import MsgType as M
 
 
 class SyntheticCar(Car):

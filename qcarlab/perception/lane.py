@@ -295,16 +295,20 @@ def draw_box(shape: Sequence[int], steering: float, width: int = BOX_WIDTH,
     return x0, y0, x1, y1
 
 
-def calculate_distance(depth: np.ndarray, box: Sequence[int], depth_range: tuple[float, float] = DEPTH_RANGE) -> float:
+def obstacle_distance(depth: np.ndarray, box: Sequence[int], depth_range: tuple[float, float] = DEPTH_RANGE) -> float:
     """Mean depth (m) of the pixels of ``box`` (x0, y0, x1, y1) whose depth lies in ``depth_range``
     (0.06..2 m); 0.0 when there is none (nothing within 2 m)."""
     d = np.asarray(depth, dtype=np.float32)
     if d.ndim != 2:
-        raise InputError(f"calculate_distance: expected a 2-D depth image, got shape {d.shape}")
+        raise InputError(f"obstacle_distance: expected a 2-D depth image, got shape {d.shape}")
     x0, y0, x1, y1 = (int(v) for v in box)
     patch = d[y0:y1, x0:x1]
     ok = (patch > depth_range[0]) & (patch < depth_range[1])
     return float(patch[ok].mean()) if ok.any() else 0.0
+
+
+#: The lane example's block name (obstacleDetection's calculateDistance): the obstacle window's depth.
+calculate_distance = obstacle_distance
 
 
 @dataclass(frozen=True)

@@ -41,6 +41,7 @@ __all__ = [
     "ImageObject",
     "StopSignDetection",
     "calculate_distance",
+    "depth_at",
     "color_thresholding_hsv",
     "detect_stop_sign",
     "detection_image",
@@ -160,7 +161,7 @@ def find_objects(mask: np.ndarray, min_area: int = MIN_AREA, shape_check: bool =
     return None
 
 
-def calculate_distance(
+def depth_at(
     depth: np.ndarray,
     where: Sequence[float],
     window: int = WINDOW,
@@ -174,14 +175,14 @@ def calculate_distance(
     """
     d = np.asarray(depth)
     if d.ndim != 2:
-        raise InputError(f"calculate_distance: expected a 2-D depth image, got shape {d.shape}")
+        raise InputError(f"depth_at: expected a 2-D depth image, got shape {d.shape}")
     if len(where) == 4:
         x, y, w, h = (float(v) for v in where)
         u, v = x + (w - 1) / 2.0, y + (h - 1) / 2.0
     elif len(where) == 2:
         u, v = (float(c) for c in where)
     else:
-        raise InputError(f"calculate_distance: expected (u, v) or (x, y, w, h), got {where!r}")
+        raise InputError(f"depth_at: expected (u, v) or (x, y, w, h), got {where!r}")
     if not (np.isfinite(u) and np.isfinite(v)):
         return 0.0
     H, W = d.shape
@@ -196,6 +197,10 @@ def calculate_distance(
     if not ok.any():
         return 0.0
     return float(np.median(patch[ok]))
+
+
+#: The sheet's block name (RGBD Imaging's distance block): the depth at the sign.
+calculate_distance = depth_at
 
 
 @dataclass(frozen=True)

@@ -63,7 +63,7 @@ def _dash(points: np.ndarray, closed: bool, paint: float, gap: float) -> list[np
 
 
 def draw_floor(world: World, px_per_m: float) -> tuple[np.ndarray, tuple[float, float, float]]:
-    """The floor texture: (BGR uint8 image, (x0, y1, px_per_m)); see :meth:`World.floor_texture`."""
+    """The floor texture: (BGR uint8 image, (x0, y1, px_per_m)); see :func:`floor_texture`."""
     fw, fh = world.floor_size
     ppm = float(px_per_m)
     if fw * fh * ppm * ppm > MAX_TEXTURE_PIXELS:
@@ -116,7 +116,7 @@ def floor_pyramid(world: World, px_per_m: float, levels: int = 6) -> tuple[list[
     key = ("floor_pyramid", float(px_per_m), int(levels))
     if key in world._cache:
         return world._cache[key]
-    tex, frame = world.floor_texture(px_per_m)
+    tex, frame = floor_texture(world, px_per_m)
     out = [cv2.cvtColor(tex, cv2.COLOR_BGR2BGRA)]
     for _ in range(levels - 1):
         if min(out[-1].shape[:2]) < 8:
@@ -315,3 +315,15 @@ def build_raster(world: World, z: float | None = None, res: float | None = None)
     )
     world._cache[key] = out
     return out
+
+
+def floor_texture(world: World, px_per_m: float = 200.0) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """The floor seen from above: (BGR image, (x0, y1, px_per_m)) with markings and brightness.
+
+    Pixel (col, row) covers world x = x0 + (col + 0.5) / px_per_m, y = y1 - (row + 0.5) / px_per_m
+    (row 0 is the top edge, y = y1). Cached per resolution in the world.
+    """
+    key = ("floor", float(px_per_m))
+    if key not in world._cache:
+        world._cache[key] = draw_floor(world, px_per_m)
+    return world._cache[key]

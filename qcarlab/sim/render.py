@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS
+from qcarlab.sim.raster import floor_texture
 from qcarlab.sim.world import World, load_world
 
 __all__ = ["render_topdown", "world_to_pixel"]
@@ -80,7 +81,7 @@ def render_topdown(
         return np.round(world_to_pixel(w, p, ppm) * _ONE).astype(np.int32)
 
     # the floor texture, placed and scaled into the frame
-    tex, (tx0, ty1, tppm) = w.floor_texture(min(ppm, 200.0))
+    tex, (tx0, ty1, tppm) = floor_texture(w, min(ppm, 200.0))
     s = ppm / tppm
     A = np.array([[s, 0.0, (tx0 - x0) * ppm + 0.5 * s - 0.5], [0.0, s, (y1 - ty1) * ppm + 0.5 * s - 0.5]])
     cv2.warpAffine(tex, A, (W, H), dst=img, flags=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR,

@@ -381,19 +381,6 @@ class World:
             )
         return out
 
-    def floor_texture(self, px_per_m: float = 200.0) -> tuple[np.ndarray, tuple[float, float, float]]:
-        """The floor seen from above: (BGR image, (x0, y1, px_per_m)) with markings and brightness.
-
-        Pixel (col, row) covers world x = x0 + (col + 0.5) / px_per_m, y = y1 - (row + 0.5) / px_per_m
-        (row 0 is the top edge, y = y1). Cached per resolution.
-        """
-        key = ("floor", float(px_per_m))
-        if key not in self._cache:
-            from qcarlab.sim.raster import draw_floor
-
-            self._cache[key] = draw_floor(self, px_per_m)
-        return self._cache[key]
-
 
 # --------------------------------------------------------------------------------------------
 # validation helpers: one line naming the file and the field

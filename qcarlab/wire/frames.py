@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from qcarlab.net.protocol import FRAME_FIELDS, MsgType
+from qcarlab.wire.protocol import FRAME_FIELDS, MsgType
 
 
 @dataclass(frozen=True)
