@@ -44,7 +44,7 @@ SERVER_VERSION = "qcarlab-car-server 0.1.0"
 log = logging.getLogger("qcarlab.car_server")
 
 # =================================================================================================
-# Protocol v1 (docs/protocol.md). The same numbers as qcarlab/net/protocol.py; a test compares them.
+# Protocol v1 (docs/protocol.md). The same numbers as qcarlab/wire/protocol.py; a test compares them.
 # =================================================================================================
 MAGIC = b"QC"
 PROTOCOL = 1
