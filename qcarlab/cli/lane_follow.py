@@ -8,7 +8,7 @@ import typer
 
 from qcarlab import plots
 from qcarlab.cli.app import app
-from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
+from qcarlab.cli.common import recordable, sim_realism  # noqa: I001  (--record, --live, --realism)
 from qcarlab.cli.common import (
     CarTokenOpt,
     StartOpt, WorldOpt, sim_world, parse_hsv, UseOpt, BlockOpt, student_blocks, apply_tunables,
@@ -160,7 +160,7 @@ def lane_follow_cmd(
         result = run_trials("lane-follow", world_obj,
                             lambda c, w, wrap: run_lane_follow(c, cfg, w, blocks=mine, wrap=wrap),
                             trials, seed, spec, load_params(params), s0,
-                            on_trial=progress(json_out, trials), min_success=min_success)
+                            on_trial=progress(json_out, trials), min_success=min_success, realism=sim_realism())
         result.metrics.update({"car": car, "world": world_obj.name, "lane": cfg.lane, "speed_mps": cfg.speed})
         emit(result, json_out, out, trials_summary)
         return
