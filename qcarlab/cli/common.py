@@ -120,12 +120,13 @@ def recordable(command):
     def run(*args, record=None, record_exact=False, live=False, live_port=None, topics=None, realism=None, **kwargs):
         from qcarlab.cli import recording
 
-        token = _realism_choice.set(realism)
+        token, opened = _realism_choice.set(realism), _opened_realism.set(None)
         try:
             with recording.request(record, record_exact, live, live_port, topics):
                 return command(*args, **kwargs)
         finally:
             _realism_choice.reset(token)
+            _opened_realism.reset(opened)
 
     sig = inspect.signature(command, eval_str=True)
     extra = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)

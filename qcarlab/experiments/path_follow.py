@@ -306,6 +306,10 @@ def score_run(cols: dict[str, np.ndarray], route: np.ndarray, cfg: FollowConfig,
         drift = np.hypot(cols["est_x"] - cols["true_x"], cols["est_y"] - cols["true_y"])
         metrics["pose_drift_m"] = float(drift[-1])
         metrics["pose_drift_max_m"] = float(drift.max())
+        # the tracking as the car itself sees it (its estimate against the path): the controller's
+        # own quality, apart from the drift of the pose it was given
+        est_errors = cross_track_errors(np.c_[cols["est_x"], cols["est_y"]], route)
+        metrics["rms_cross_track_estimate_m"] = float(np.sqrt(np.mean(est_errors**2)))
         metrics["distance_driven_m"] = float(step_len.sum())
         metrics["pose_drift_per_m"] = float(drift[-1] / step_len.sum()) if step_len.sum() > 0 else 0.0
     return metrics
