@@ -645,42 +645,435 @@ def finish_depth(depth, noise, na, nb, coef, dmin, dmax):
         _finish_depth_row(depth[v], noise, na + v, nb, noisy, c, lo, hi)
 
 
-@njit(**_JIT)
-def finish_frame(color, depth, v0, r0, bg, floor, row_depth, finish, noise, na, nb, coef, dmin, dmax):
-    """Rows v0.. of an upright frame drawn with markers (see :func:`render_columns`), in place.
+# --------------------------------------------------------------------------------------------
+# the RGBD camera, row-major: layers per column, then one pass per image row
+# --------------------------------------------------------------------------------------------
+LMAX = 2 * (KMAX + 8)  # layers a column may hold: a front face and a top face per hit, balls
+NO_ROW = 1 << 30  # an empty layer's top row
 
-    ``color`` (n, W) uint32 and ``depth`` (n, W) float32: where nothing was drawn (colour 0; the
-    depth there is whatever the buffer held) the background ``bg`` with no depth (0) above row
-    ``r0``, the floor below it: colour from ``floor`` (uint32, (H - r0, W), upright, row 0 =
-    image row r0) and depth ``row_depth[v]`` (float32 (H,): a level pinhole sees the floor at
-    one z-depth along each row). Then, if ``finish``, the depth as the D435 reports it, as
-    :func:`finish_depth` (noise window rows from ``na + v0``, columns from ``nb``). Row by row,
-    each row finished while in cache; each loop tests the array it writes, the form LLVM
-    vectorises.
+
+@njit(**_JIT)
+def _word(b, g, r):
+    """Channel values (floats, clipped to 0..255) as one packed pixel B | G << 8 | R << 16 | 255 << 24
+    (an integer: the same on any byte order; as bytes on a little-endian machine, BGRA)."""
+    ib = int(min(max(b, 0.0), 255.0))
+    ig = int(min(max(g, 0.0), 255.0))
+    ir = int(min(max(r, 0.0), 255.0))
+    return np.uint32(ib | (ig << 8) | (ir << 16) | (255 << 24))
+
+
+@njit(**_JIT)
+def column_layers(
+    ltop, lbot, lcol, lza, lzb, lball, lbd, lbe, lbg, lrange, flo,
+    r0, H, ox, oy, cam_z, yaw, cos_c, sin_c, kcol, fy, cy, max_dist,
+    x0, y0, res, cells, kinds, heights, colors, pstart, pcount, verts, circles,
+    gain, gx0, gy0, gres, balls, light_x, light_y,
+):
+    """What each column of a level pinhole sees, as *layers* for :func:`compose_rows`; returns
+    how many layers the busiest column has (L).
+
+    Column u looks along body azimuth (cos_c[u], sin_c[u]); a point at horizontal distance d and
+    height z along it is at row cy - (z - cam_z) * kcol[u] * fy / d, z-depth d / kcol[u]. The
+    column's ray is marched through the raster (:func:`march`, hits refined by :func:`exact`, as
+    :func:`render_columns`) and its walls, obstacles and balls are sorted far to near; each
+    becomes layer l = 0, 1, ... of the column, far to near (painter's order): arrays (LMAX, W)
+    ``ltop``/``lbot`` (the rows it covers, inclusive; an empty layer has ltop = NO_ROW), ``lcol``
+    (its packed colour, :func:`_word`), depth ``lza + lzb * fy / (v - cy)`` at row v (a front
+    face: lza = d / k, lzb = 0; a top face, a horizontal plane at height h: lza = 0,
+    lzb = cam_z - h), and for a ball ``lball`` = its index (else -1) with its distance ``lbd``,
+    offset ``lbe`` from the column's plane and light gain ``lbg`` (shaded per pixel).
+    ``lrange`` (LMAX, 4): each layer's first and last row and first and past-last column over
+    all columns. ``flo`` (W,): the first row at or below ``r0`` (the first row below the
+    horizon) that no layer covers: the floor is seen only from there down.
     """
-    n, W = color.shape
-    noisy = noise.shape[0] > 0
+    W = cos_c.shape[0]
+    inv = 1.0 / res
+    px = (ox - x0) * inv
+    py = (oy - y0) * inv
+    cyaw = math.cos(yaw)
+    syaw = math.sin(yaw)
+    tmax = max_dist * inv
+    tol = 2.5 * res
+    gny, gnx = gain.shape
+    nb = balls.shape[0]
+    hd = np.empty(KMAX + 8)  # entry distance (m)
+    ho = np.empty(KMAX + 8)  # exit distance (m)
+    hl = np.empty(KMAX + 8, np.int64)  # label, or -2 - ball index
+    hnx = np.empty(KMAX + 8)
+    hny = np.empty(KMAX + 8)
+    nlay = np.zeros(W, np.int64)
+    for u in range(W):
+        dx = cos_c[u] * cyaw - sin_c[u] * syaw
+        dy = sin_c[u] * cyaw + cos_c[u] * syaw
+        k = kcol[u]
+        n = 0
+        t = 0.0
+        vcover = float(H)
+        while n < KMAX:
+            t, lab, side, _ = march(px, py, dx, dy, t, tmax, cells)
+            if lab < 0:
+                break
+            din = t * res
+            nxv = -dx  # grid walls: shade as if facing the ray
+            nyv = -dy
+            ts = t
+            te = -1.0
+            to = 0.0
+            ex_ = 0.0
+            ey_ = 0.0
+            if kinds[lab] != 0:
+                te, to, ex_, ey_ = exact(lab, ox, oy, dx, dy, din, tol, kinds, pstart, pcount, verts, circles)
+                if te >= 0.0:
+                    ts = max(t, to * inv - 2.0)
+            t2, nextlab = skip(px, py, dx, dy, ts, tmax, cells, lab)
+            dout = t2 * res
+            if te >= 0.0:
+                din = te
+                nxv = ex_
+                nyv = ey_
+                if abs(to - dout) < tol:
+                    dout = to
+            if din < 1e-3:
+                din = 1e-3
+            hd[n] = din
+            ho[n] = max(dout, din)
+            hl[n] = lab
+            hnx[n] = nxv
+            hny[n] = nyv
+            n += 1
+            h = heights[lab]
+            if h >= cam_z:
+                vtop = _row_of(h, din, cam_z, k, fy, cy)
+            else:
+                vtop = _row_of(h, max(dout, din), cam_z, k, fy, cy)
+            if vtop < vcover:
+                vcover = vtop
+            if vcover <= 0.0:
+                break
+            t = t2 + 1e-4
+        for j in range(nb):
+            if n >= KMAX + 8:
+                break
+            fx = balls[j, 0] - ox
+            fy_ = balls[j, 1] - oy
+            dc = fx * dx + fy_ * dy
+            e = abs(fx * dy - fy_ * dx)
+            r = balls[j, 2]
+            if dc <= 0.0 or e >= r:
+                continue
+            if n > 0 and dc - r > hd[n - 1] and vcover <= 0.0:
+                continue
+            hd[n] = dc
+            ho[n] = dc
+            hl[n] = -2 - j
+            hnx[n] = e
+            hny[n] = 0.0
+            n += 1
+        for a in range(1, n):  # far to near
+            b = a
+            while b > 0 and hd[b] > hd[b - 1]:
+                hd[b], hd[b - 1] = hd[b - 1], hd[b]
+                ho[b], ho[b - 1] = ho[b - 1], ho[b]
+                hl[b], hl[b - 1] = hl[b - 1], hl[b]
+                hnx[b], hnx[b - 1] = hnx[b - 1], hnx[b]
+                hny[b], hny[b - 1] = hny[b - 1], hny[b]
+                b -= 1
+        m = 0  # layers of this column
+        for a in range(n):
+            lab = hl[a]
+            din = hd[a]
+            hx = ox + dx * din
+            hy = oy + dy * din
+            gi = int((hy - gy0) / gres)
+            gj = int((hx - gx0) / gres)
+            g = gain[gi, gj] if 0 <= gi < gny and 0 <= gj < gnx else 1.0
+            if lab <= -2:  # a ball
+                j = -2 - lab
+                r = balls[j, 2]
+                e = hnx[a]
+                rs = math.sqrt(r * r - e * e)
+                top = max(int(math.ceil(_row_of(r + rs, din, cam_z, k, fy, cy))), 0)
+                bot = min(int(math.floor(_row_of(r - rs, din, cam_z, k, fy, cy))), H - 1)
+                if top <= bot:
+                    ltop[m, u] = top
+                    lbot[m, u] = bot
+                    lcol[m, u] = 0
+                    lza[m, u] = max((din - rs) / k, 1e-6)  # > 0 even from inside the ball
+                    lzb[m, u] = 0.0
+                    lball[m, u] = j
+                    lbd[m, u] = din
+                    lbe[m, u] = e
+                    lbg[m, u] = g
+                    m += 1
+                continue
+            h = heights[lab]
+            dout = ho[a]
+            lam = abs(hnx[a] * light_x + hny[a] * light_y)
+            sh = (0.72 + 0.28 * lam) * g
+            vt = _row_of(h, din, cam_z, k, fy, cy)
+            top = max(int(math.ceil(vt)), 0)
+            bot = min(int(math.floor(_row_of(0.0, din, cam_z, k, fy, cy))), H - 1)
+            if top <= bot:
+                ltop[m, u] = top
+                lbot[m, u] = bot
+                lcol[m, u] = _word(colors[lab, 0] * sh, colors[lab, 1] * sh, colors[lab, 2] * sh)
+                lza[m, u] = din / k
+                lzb[m, u] = 0.0
+                lball[m, u] = -1
+                m += 1
+            if h < cam_z and dout > din:  # the top face, seen from above
+                top = max(int(math.ceil(_row_of(h, dout, cam_z, k, fy, cy))), 0)
+                bot = min(int(math.ceil(vt)) - 1, H - 1)
+                if top <= bot:
+                    ltop[m, u] = top
+                    lbot[m, u] = bot
+                    lcol[m, u] = _word(colors[lab, 0] * 1.12 * g, colors[lab, 1] * 1.12 * g, colors[lab, 2] * 1.12 * g)
+                    lza[m, u] = 0.0
+                    lzb[m, u] = cam_z - h
+                    lball[m, u] = -1
+                    m += 1
+        nlay[u] = m
+        # the first row below the horizon no layer covers
+        v = r0
+        moved = True
+        while moved:
+            moved = False
+            for l in range(m):
+                if ltop[l, u] <= v <= lbot[l, u]:
+                    v = lbot[l, u] + 1
+                    moved = True
+        flo[u] = v
+    L = 0
+    for u in range(W):
+        L = max(L, nlay[u])
+    for l in range(L):
+        lrange[l, 0] = NO_ROW
+        lrange[l, 1] = -1
+        lrange[l, 2] = W
+        lrange[l, 3] = 0
+    for u in range(W):
+        for l in range(L):
+            if l >= nlay[u]:
+                ltop[l, u] = NO_ROW
+                lbot[l, u] = -1
+                lball[l, u] = -1
+                lcol[l, u] = 0
+                lza[l, u] = 0.0
+                lzb[l, u] = 0.0
+            else:
+                lrange[l, 0] = min(lrange[l, 0], ltop[l, u])
+                lrange[l, 1] = max(lrange[l, 1], lbot[l, u])
+                lrange[l, 2] = min(lrange[l, 2], u)
+                lrange[l, 3] = max(lrange[l, 3], u + 1)
+    return L
+
+
+@njit(**_JIT)
+def _texel(tex, off, tw, th, ix, iy, bg):
+    if ix < 0 or iy < 0 or ix >= tw or iy >= th:
+        return bg
+    return int(tex[off + iy * tw + ix])
+
+
+@njit(**_JIT)
+def _lerp2(a, b, w):
+    """Two 8-bit lanes (bits 0-7 and 16-23 of a and b) blended as a + (b - a) w / 256, rounded."""
+    return ((a * (256 - w) + b * w + 0x00800080) >> 8) & 0x00FF00FF
+
+
+@njit(**_JIT)
+def _bilinear(p00, p01, p10, p11, wx, wy):
+    """Bilinear blend of four packed pixels (weights wx, wy in 0..256 for the second column / row)."""
+    m = 0x00FF00FF
+    rb = _lerp2(_lerp2(p00 & m, p01 & m, wx), _lerp2(p10 & m, p11 & m, wx), wy)
+    ga = _lerp2(_lerp2((p00 >> 8) & m, (p01 >> 8) & m, wx), _lerp2((p10 >> 8) & m, (p11 >> 8) & m, wx), wy)
+    return (rb | (ga << 8)) | 0xFF000000
+
+
+@njit(**_JIT)
+def _floor_row(crow, v, flo, tex, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy):
+    """Row v of the floor into ``crow`` where ``flo[u] <= v``: bilinear samples of a texture level
+    (``tex[off:]``, tw x th packed texels whose top byte is the run radius, see
+    ``raster.floor_runs``) at texel (X0 + u dX, Y0 + u dY) / 65536 (16.16 fixed point; texel
+    centres at integers); ``bg`` outside the texture.
+
+    A sample whose block (the 2 x 2 texels it reads) has run radius R >= 1 reads texel
+    (ix, iy) exactly, and so does every sample whose block is within R - 1 of it: x in
+    [ix - R + 1, ix + R), y likewise. The samples of a row lie on a line, so the pixels up to
+    the first that leaves that square are filled at once (the same numbers as blending each).
+    The other samples are gathered (scratch ``bu``, ``b00``.., ``bwx``, ``bwy``) and blended in
+    one vectorised pass."""
+    W = crow.shape[0]
+    inv_x = 1.0 / abs(dX) if dX != 0 else 0.0
+    inv_y = 1.0 / abs(dY) if dY != 0 else 0.0
+    n = 0
+    u = 0
+    while u < W:
+        if flo[u] > v:
+            u += 1
+            continue
+        X = X0 + u * dX
+        Y = Y0 + u * dY
+        ix = X >> 16
+        iy = Y >> 16
+        if ix >= 0 and iy >= 0 and ix + 1 < tw and iy + 1 < th:
+            k = off + iy * tw + ix
+            p = int(tex[k])
+            R = p >> 24
+            if R > 0:
+                # how many more pixels stay in the square (exact: the quotients are small)
+                m = W - 1 - u
+                fx = X & 0xFFFF
+                fy = Y & 0xFFFF
+                if dX > 0:
+                    m = min(m, int(((R << 16) - fx - 1) * inv_x))
+                elif dX < 0:
+                    m = min(m, int((((R - 1) << 16) + fx) * inv_x))
+                if dY > 0:
+                    m = min(m, int(((R << 16) - fy - 1) * inv_y))
+                elif dY < 0:
+                    m = min(m, int((((R - 1) << 16) + fy) * inv_y))
+                w = np.uint32(p | 0xFF000000)
+                seg = crow[u : u + m + 1]  # (a loop from 0: vectorised)
+                for i in range(m + 1):
+                    seg[i] = w
+                u += m + 1
+                continue
+            b00[n] = p
+            b01[n] = int(tex[k + 1])
+            b10[n] = int(tex[k + tw])
+            b11[n] = int(tex[k + tw + 1])
+        else:
+            b00[n] = _texel(tex, off, tw, th, ix, iy, bg)
+            b01[n] = _texel(tex, off, tw, th, ix + 1, iy, bg)
+            b10[n] = _texel(tex, off, tw, th, ix, iy + 1, bg)
+            b11[n] = _texel(tex, off, tw, th, ix + 1, iy + 1, bg)
+        bwx[n] = (X >> 8) & 255
+        bwy[n] = (Y >> 8) & 255
+        bu[n] = u
+        n += 1
+        u += 1
+    for i in range(n):
+        b00[i] = _bilinear(b00[i], b01[i], b10[i], b11[i], bwx[i], bwy[i])
+    for i in range(n):
+        crow[bu[i]] = np.uint32(b00[i])
+
+
+@njit(**_JIT)
+def compose_rows(
+    color, depth, va, vb, r0, sky, row_depth, rowf,
+    ftex, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
+    L, ltop, lbot, lcol, lza, lzb, lrange, lball, lbd, lbe, lbg, balls, kcol, cam_z, fy, cy,
+    sg_tab, sg_d, sg_pix,
+    finish, dnoise, na, nb, coef, dmin, dmax,
+):
+    """Rows va..vb-1 of a level pinhole's frame, upright, in place: ``color`` (H, W) packed pixels
+    (:func:`_word`), ``depth`` (H, W) float32 z-depth (inf = nothing). Each row, in cache:
+
+    1. above row ``r0`` (the horizon) the background ``sky``, depth inf; below it the floor's
+       depth ``row_depth[v]`` (a level pinhole sees the floor at one z-depth along a row) and,
+       where ``flo[u] <= v``, its colour (:func:`_floor_row`): the floor point of pixel (u, v)
+       is at forward distance ``row_dist[v]`` and left offset -(u - cx) row_dist[v] / fx of the
+       camera at (ox, oy) heading ``yaw``; the texture level ``row_lev[v]`` (``ftab``: offset,
+       width, height in ``ftex``) whose texels match the pixel's footprint;
+    2. the L layers of :func:`column_layers`, far to near (depth ``lza + lzb rowf[v]``,
+       ``rowf[v]`` = fy / (v - cy) below the horizon; balls shaded per pixel);
+    3. the stop-sign sprites: ``sg_tab`` (n, 5) rows v0..v1-1, columns u0..u1-1, offset into
+       ``sg_pix`` (packed pixels, alpha > 127 = the plate), drawn where nearer than the depth so
+       far (``sg_d``);
+    4. with ``finish``: the depth as the D435 reports it (see :func:`finish_depth`, noise window
+       from row na, column nb).
+    """
+    W = color.shape[1]
+    nballs = balls.shape[0]
+    noisy = dnoise.shape[0] > 0
     c = np.float32(coef)
     lo = np.float32(dmin)
     hi = np.float32(dmax)
-    zero = np.float32(0.0)
-    for i in range(n):
-        v = v0 + i
-        crow = color[i]
-        drow = depth[i]
+    inf = np.float32(np.inf)
+    cyaw = math.cos(yaw)
+    syaw = math.sin(yaw)
+    bu = np.empty(W, np.int64)  # the floor's blended samples of a row (see _floor_row)
+    b00 = np.empty(W, np.int64)
+    b01 = np.empty(W, np.int64)
+    b10 = np.empty(W, np.int64)
+    b11 = np.empty(W, np.int64)
+    bwx = np.empty(W, np.int64)
+    bwy = np.empty(W, np.int64)
+    for v in range(va, vb):
+        crow = color[v]
+        drow = depth[v]
         if v < r0:
             for u in range(W):
-                drow[u] = zero if crow[u] == 0 else drow[u]
+                crow[u] = sky
             for u in range(W):
-                x = crow[u]
-                crow[u] = bg if x == 0 else x
+                drow[u] = inf
         else:
             fz = row_depth[v]
-            frow = floor[v - r0]
             for u in range(W):
-                drow[u] = fz if crow[u] == 0 else drow[u]
-            for u in range(W):
-                x = crow[u]
-                crow[u] = frow[u] if x == 0 else x
+                drow[u] = fz
+            lev = row_lev[v]
+            off = ftab[lev, 0]
+            tw = ftab[lev, 1]
+            th = ftab[lev, 2]
+            sc = ppm / (1 << lev)
+            d = row_dist[v]
+            lat0 = cx * d / fx  # left offset of column 0
+            wx0 = ox + d * cyaw - lat0 * syaw
+            wy0 = oy + d * syaw + lat0 * cyaw
+            ddx = (d / fx) * syaw  # world step per column: -(d / fx) * (-sin, cos)
+            ddy = -(d / fx) * cyaw
+            i0 = ((wx0 - tx0) * ppm - 0.5) / (1 << lev)
+            j0 = ((ty1 - wy0) * ppm - 0.5) / (1 << lev)
+            X0 = int(math.floor(i0 * 65536.0 + 0.5))
+            Y0 = int(math.floor(j0 * 65536.0 + 0.5))
+            dX = int(math.floor(ddx * sc * 65536.0 + 0.5))
+            dY = int(math.floor(-ddy * sc * 65536.0 + 0.5))
+            _floor_row(crow, v, flo, ftex, off, tw, th, X0, dX, Y0, dY, int(sky), bu, b00, b01, b10, b11, bwx, bwy)
+        rf = np.float32(rowf[v])
+        for l in range(L):
+            if v < lrange[l, 0] or v > lrange[l, 1]:
+                continue
+            ua = lrange[l, 2]
+            ub = lrange[l, 3]
+            # slices from 0: a loop from an index numba cannot prove >= 0 is not vectorised
+            tops = ltop[l, ua:ub]
+            bots = lbot[l, ua:ub]
+            cols = lcol[l, ua:ub]
+            za = lza[l, ua:ub]
+            zb = lzb[l, ua:ub]
+            cs = crow[ua:ub]
+            ds = drow[ua:ub]
+            for i in range(ub - ua):
+                hit = (tops[i] <= v) & (v <= bots[i])
+                cs[i] = cols[i] if hit else cs[i]
+                ds[i] = (za[i] + zb[i] * rf) if hit else ds[i]
+            if nballs == 0:
+                continue
+            for u in range(ua, ub):
+                j = lball[l, u]
+                if j < 0 or ltop[l, u] > v or v > lbot[l, u]:
+                    continue
+                din = lbd[l, u]
+                r = balls[j, 2]
+                z = cam_z - (v - cy) * din / (kcol[u] * fy)
+                qq = (z - r) / r
+                lat = lbe[l, u] / r
+                s2 = 1.0 - qq * qq - lat * lat
+                sh = (0.35 + 0.65 * math.sqrt(s2) if s2 > 0.0 else 0.35) * lbg[l, u]
+                crow[u] = _word(balls[j, 3] * sh, balls[j, 4] * sh, balls[j, 5] * sh)
+        for s in range(sg_tab.shape[0]):
+            v0 = sg_tab[s, 0]
+            if v < v0 or v >= sg_tab[s, 1]:
+                continue
+            u0 = sg_tab[s, 2]
+            u1 = sg_tab[s, 3]
+            base = sg_tab[s, 4] + (v - v0) * (u1 - u0) - u0
+            zs = np.float32(sg_d[s])
+            for u in range(u0, u1):
+                p = sg_pix[base + u]
+                if (p >> 24) > 127 and drow[u] > zs:
+                    crow[u] = p | np.uint32(0xFF000000)
+                    drow[u] = zs
         if finish:
-            _finish_depth_row(drow, noise, na + v, nb, noisy, c, lo, hi)
+            _finish_depth_row(drow, dnoise, na + v, nb, noisy, c, lo, hi)
