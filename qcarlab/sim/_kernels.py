@@ -662,26 +662,226 @@ def _word(b, g, r):
     return np.uint32(ib | (ig << 8) | (ir << 16) | (255 << 24))
 
 
+CMAX = 32  # edge crossings a column may hold in the vector path (more: the frame is marched instead)
+NEAR = 1e-3  # m: crossings nearer than this to the camera are not seen
+TIE = 1e-9  # m: hits this close are at the same distance (coinciding faces)
+
+
+def edge_table(kinds: np.ndarray, pstart: np.ndarray, pcount: np.ndarray, verts: np.ndarray) -> np.ndarray:
+    """Every polygon edge of a raster's shape tables as one row (ax, ay, bx, by, label) for
+    :func:`vector_crossings` (float64 (E, 5))."""
+    rows = []
+    for lab in range(len(kinds)):
+        if kinds[lab] != 1:
+            continue
+        p0, n = int(pstart[lab]), int(pcount[lab])
+        for j in range(n):
+            a = verts[p0 + j]
+            b = verts[p0 + (j + 1) % n]
+            rows.append((a[0], a[1], b[0], b[1], float(lab)))
+    return np.array(rows, np.float64).reshape(-1, 5)
+
+
+@njit(**_JIT)
+def vector_crossings(cr_t, cr_e, ncr, ox, oy, yaw, cos_c, sin_c, fx, cx, edges, kinds, circles):
+    """Where every column's ray (a level pinhole's: column u looks along body azimuth (cos_c[u],
+    sin_c[u]), u = cx - fx tan(azimuth)) crosses the shapes' outlines, found per *edge*: each
+    polygon edge in front of the camera is projected to the columns it spans and intersected
+    with just those rays (a circle likewise). ``cr_t[u, i]`` (m along the ray) and ``cr_e[u, i]``
+    (the edge's row in ``edges``, or -1 - label for a circle), ``ncr[u]`` crossings, unordered.
+    An edge's points are a + s (b - a) with s in [0, 1), so a ray through a shared vertex
+    crosses once. Returns False when a column has more than CMAX crossings."""
+    W = cos_c.shape[0]
+    cyaw = math.cos(yaw)
+    syaw = math.sin(yaw)
+    for u in range(W):
+        ncr[u] = 0
+    for e in range(edges.shape[0]):
+        ax = edges[e, 0] - ox
+        ay = edges[e, 1] - oy
+        bx = edges[e, 2] - ox
+        by = edges[e, 3] - oy
+        fa = ax * cyaw + ay * syaw  # forward and left of the camera
+        la = -ax * syaw + ay * cyaw
+        fb = bx * cyaw + by * syaw
+        lb = -bx * syaw + by * cyaw
+        if fa < NEAR and fb < NEAR:
+            continue
+        if fa < NEAR:
+            q = (NEAR - fa) / (fb - fa)
+            la = la + q * (lb - la)
+            fa = NEAR
+        elif fb < NEAR:
+            q = (NEAR - fb) / (fa - fb)
+            lb = lb + q * (la - lb)
+            fb = NEAR
+        ua = cx - fx * la / fa
+        ub = cx - fx * lb / fb
+        u0 = max(int(math.floor(min(ua, ub))), 0)
+        u1 = min(int(math.ceil(max(ua, ub))), W - 1)
+        ex = bx - ax
+        ey = by - ay
+        for u in range(u0, u1 + 1):
+            dx = cos_c[u] * cyaw - sin_c[u] * syaw
+            dy = sin_c[u] * cyaw + cos_c[u] * syaw
+            den = dx * ey - dy * ex
+            if den == 0.0:
+                continue
+            sn = ax * dy - ay * dx  # the crossing's place along the edge: s = sn / den
+            if den > 0.0:
+                if sn < 0.0 or sn >= den:
+                    continue
+            elif sn > 0.0 or sn <= den:
+                continue
+            tt = (ax * ey - ay * ex) / den
+            if tt < NEAR:
+                continue
+            c = ncr[u]
+            if c >= CMAX:
+                return False
+            cr_t[u, c] = tt
+            cr_e[u, c] = e
+            ncr[u] = c + 1
+    for lab in range(kinds.shape[0]):
+        if kinds[lab] != 2:
+            continue
+        qx = circles[lab, 0] - ox
+        qy = circles[lab, 1] - oy
+        r = circles[lab, 2]
+        fc = qx * cyaw + qy * syaw
+        lc = -qx * syaw + qy * cyaw
+        dist = math.sqrt(fc * fc + lc * lc)
+        if fc + r < NEAR:
+            continue
+        if dist <= r * 1.000001 or fc - r < NEAR:  # around or beside the camera: every column
+            u0 = 0
+            u1 = W - 1
+        else:
+            th = math.atan2(lc, fc)
+            al = math.asin(r / dist)
+            u0 = max(int(math.floor(cx - fx * math.tan(min(th + al, 1.5707)))), 0)
+            u1 = min(int(math.ceil(cx - fx * math.tan(max(th - al, -1.5707)))), W - 1)
+        for u in range(u0, u1 + 1):
+            dx = cos_c[u] * cyaw - sin_c[u] * syaw
+            dy = sin_c[u] * cyaw + cos_c[u] * syaw
+            b = -(qx * dx + qy * dy)
+            cc = qx * qx + qy * qy - r * r
+            disc = b * b - cc
+            if disc < 0.0:
+                continue
+            sq = math.sqrt(disc)
+            for tt in (-b - sq, -b + sq):
+                if tt < NEAR:
+                    continue
+                c = ncr[u]
+                if c >= CMAX:
+                    return False
+                cr_t[u, c] = tt
+                cr_e[u, c] = -1 - lab
+                ncr[u] = c + 1
+    return True
+
+
+@njit(**_JIT)
+def _vector_hits(u, dx, dy, ox, oy, cr_t, cr_e, ncr, edges, circles, hd, ho, hl, hnx, hny):
+    """The crossings of column u (:func:`vector_crossings`) as hits, nearest first: per shape,
+    its crossings in order pair up as (entry, exit); an odd count means the camera is inside
+    (the first crossing is its exit, the entry at NEAR). Returns how many (at most KMAX + 8)."""
+    m = ncr[u]
+    ts = cr_t[u]
+    es = cr_e[u]
+    # order by (label, distance): insertion sort of a few entries
+    for a in range(1, m):
+        b = a
+        while b > 0:
+            la = es[b] if es[b] < 0 else -1 - int(edges[es[b], 4])
+            lb = es[b - 1] if es[b - 1] < 0 else -1 - int(edges[es[b - 1], 4])
+            if lb < la or (lb == la and ts[b - 1] <= ts[b]):
+                break
+            ts[b], ts[b - 1] = ts[b - 1], ts[b]
+            es[b], es[b - 1] = es[b - 1], es[b]
+            b -= 1
+    n = 0
+    i = 0
+    while i < m:
+        e0 = es[i]
+        lab = -1 - e0 if e0 < 0 else int(edges[e0, 4])
+        j = i
+        while j < m and (-1 - es[j] if es[j] < 0 else int(edges[es[j], 4])) == lab:
+            j += 1
+        k = i
+        if (j - i) % 2 == 1:  # inside the shape
+            if n < KMAX + 8:
+                hd[n] = NEAR
+                ho[n] = ts[k]
+                hl[n] = lab
+                hnx[n] = -dx
+                hny[n] = -dy
+                n += 1
+            k += 1
+        while k + 1 < j:
+            if n >= KMAX + 8:
+                break
+            tin = ts[k]
+            e = es[k]
+            if e >= 0:
+                ex = edges[e, 2] - edges[e, 0]
+                ey = edges[e, 3] - edges[e, 1]
+                ln = math.sqrt(ex * ex + ey * ey)
+                nxv = ey / ln
+                nyv = -ex / ln
+            else:
+                r = circles[lab, 2]
+                nxv = (ox + tin * dx - circles[lab, 0]) / r
+                nyv = (oy + tin * dy - circles[lab, 1]) / r
+            if nxv * dx + nyv * dy > 0.0:
+                nxv = -nxv
+                nyv = -nyv
+            hd[n] = tin
+            ho[n] = ts[k + 1]
+            hl[n] = lab
+            hnx[n] = nxv
+            hny[n] = nyv
+            n += 1
+            k += 2
+        i = j
+    # nearest first; of two shapes entered at the same distance (faces that coincide) the one
+    # drawn later into the raster (the higher label) first, as the raster's cells tell
+    for a in range(1, n):
+        b = a
+        while b > 0 and (hd[b] < hd[b - 1] - TIE or (hd[b] <= hd[b - 1] + TIE and hl[b] > hl[b - 1])):
+            hd[b], hd[b - 1] = hd[b - 1], hd[b]
+            ho[b], ho[b - 1] = ho[b - 1], ho[b]
+            hl[b], hl[b - 1] = hl[b - 1], hl[b]
+            hnx[b], hnx[b - 1] = hnx[b - 1], hnx[b]
+            hny[b], hny[b - 1] = hny[b - 1], hny[b]
+            b -= 1
+    return n
+
+
 @njit(**_JIT)
 def column_layers(
     ltop, lbot, lcol, lza, lzb, lball, lbd, lbe, lbg, lrange, flo,
-    r0, H, ox, oy, cam_z, yaw, cos_c, sin_c, kcol, fy, cy, max_dist,
+    r0, H, ox, oy, cam_z, yaw, cos_c, sin_c, kcol, fx, cx, fy, cy, max_dist,
     x0, y0, res, cells, kinds, heights, colors, pstart, pcount, verts, circles,
-    gain, gx0, gy0, gres, balls, light_x, light_y,
+    gain, gx0, gy0, gres, balls, light_x, light_y, edges, cr_t, cr_e, ncr,
 ):
     """What each column of a level pinhole sees, as *layers* for :func:`compose_rows`; returns
     how many layers the busiest column has (L).
 
-    Column u looks along body azimuth (cos_c[u], sin_c[u]); a point at horizontal distance d and
-    height z along it is at row cy - (z - cam_z) * kcol[u] * fy / d, z-depth d / kcol[u]. The
-    column's ray is marched through the raster (:func:`march`, hits refined by :func:`exact`, as
-    :func:`render_columns`) and its walls, obstacles and balls are sorted far to near; each
-    becomes layer l = 0, 1, ... of the column, far to near (painter's order): arrays (LMAX, W)
-    ``ltop``/``lbot`` (the rows it covers, inclusive; an empty layer has ltop = NO_ROW), ``lcol``
-    (its packed colour, :func:`_word`), depth ``lza + lzb * fy / (v - cy)`` at row v (a front
-    face: lza = d / k, lzb = 0; a top face, a horizontal plane at height h: lza = 0,
-    lzb = cam_z - h), and for a ball ``lball`` = its index (else -1) with its distance ``lbd``,
-    offset ``lbe`` from the column's plane and light gain ``lbg`` (shaded per pixel).
+    Column u looks along body azimuth (cos_c[u], sin_c[u]) (u = cx - fx tan(azimuth)); a point
+    at horizontal distance d and height z along it is at row cy - (z - cam_z) * kcol[u] * fy / d,
+    z-depth d / kcol[u]. Its walls and obstacles are found, nearest first, up to the first that
+    covers the column or KMAX of them: with ``edges`` (a vector world's polygon edges, see
+    :func:`edge_table`; empty for a ROS map's grid) analytically from :func:`vector_crossings`
+    (scratch ``cr_t``, ``cr_e``, ``ncr``), else by marching the raster (:func:`march`, hits
+    refined by :func:`exact`, as :func:`render_columns`); then the balls cut by the column's
+    plane. Each becomes layer l = 0, 1, ... of the column, far to near (painter's order): arrays
+    (LMAX, W) ``ltop``/``lbot`` (the rows it covers, inclusive; an empty layer has ltop =
+    NO_ROW), ``lcol`` (its packed colour, :func:`_word`), depth ``lza + lzb * fy / (v - cy)`` at
+    row v (a front face: lza = d / k, lzb = 0; a top face, a horizontal plane at height h:
+    lza = 0, lzb = cam_z - h), and for a ball ``lball`` = its index (else -1) with its distance
+    ``lbd``, offset ``lbe`` from the column's plane and light gain ``lbg`` (shaded per pixel).
     ``lrange`` (LMAX, 4): each layer's first and last row and first and past-last column over
     all columns. ``flo`` (W,): the first row at or below ``r0`` (the first row below the
     horizon) that no layer covers: the floor is seen only from there down.
@@ -702,62 +902,87 @@ def column_layers(
     hnx = np.empty(KMAX + 8)
     hny = np.empty(KMAX + 8)
     nlay = np.zeros(W, np.int64)
+    vector = not (kinds.shape[0] > 0 and kinds[0] == 0)  # no ROS grid among the shapes
+    if vector:
+        vector = vector_crossings(cr_t, cr_e, ncr, ox, oy, yaw, cos_c, sin_c, fx, cx, edges, kinds, circles)
+    # the raster march's first look, from the camera's own cell, is the same for every column
+    t0 = 0.0
+    ny_, nx_ = cells.shape
+    if not vector and 0.0 <= px < nx_ and 0.0 <= py < ny_:
+        c0 = int(cells[int(math.floor(py)), int(math.floor(px))])
+        if c0 < OCC and c0 > SKIP_FROM:
+            t0 = c0 * DT_UNIT - 1.4143
     for u in range(W):
         dx = cos_c[u] * cyaw - sin_c[u] * syaw
         dy = sin_c[u] * cyaw + cos_c[u] * syaw
         k = kcol[u]
         n = 0
-        t = 0.0
         vcover = float(H)
-        while n < KMAX:
-            t, lab, side, _ = march(px, py, dx, dy, t, tmax, cells)
-            if lab < 0:
-                break
-            din = t * res
-            nxv = -dx  # grid walls: shade as if facing the ray
-            nyv = -dy
-            ts = t
-            te = -1.0
-            to = 0.0
-            ex_ = 0.0
-            ey_ = 0.0
-            if kinds[lab] != 0:
-                te, to, ex_, ey_ = exact(lab, ox, oy, dx, dy, din, tol, kinds, pstart, pcount, verts, circles)
+        if vector:
+            nv = _vector_hits(u, dx, dy, ox, oy, cr_t, cr_e, ncr, edges, circles, hd, ho, hl, hnx, hny)
+            # keep them up to the first that covers the column (and at most KMAX)
+            while n < nv and n < KMAX:
+                din = hd[n]
+                if din > max_dist:
+                    break
+                h = heights[hl[n]]
+                vtop = _row_of(h, din, cam_z, k, fy, cy) if h >= cam_z else _row_of(h, max(ho[n], din), cam_z, k, fy, cy)
+                n += 1
+                if vtop < vcover:
+                    vcover = vtop
+                if vcover <= 0.0:
+                    break
+        else:
+            t = t0
+            while n < KMAX:
+                t, lab, side, _ = march(px, py, dx, dy, t, tmax, cells)
+                if lab < 0:
+                    break
+                din = t * res
+                nxv = -dx  # grid walls: shade as if facing the ray
+                nyv = -dy
+                ts = t
+                te = -1.0
+                to = 0.0
+                ex_ = 0.0
+                ey_ = 0.0
+                if kinds[lab] != 0:
+                    te, to, ex_, ey_ = exact(lab, ox, oy, dx, dy, din, tol, kinds, pstart, pcount, verts, circles)
+                    if te >= 0.0:
+                        ts = max(t, to * inv - 2.0)
+                t2, nextlab = skip(px, py, dx, dy, ts, tmax, cells, lab)
+                dout = t2 * res
                 if te >= 0.0:
-                    ts = max(t, to * inv - 2.0)
-            t2, nextlab = skip(px, py, dx, dy, ts, tmax, cells, lab)
-            dout = t2 * res
-            if te >= 0.0:
-                din = te
-                nxv = ex_
-                nyv = ey_
-                if abs(to - dout) < tol:
-                    dout = to
-            if din < 1e-3:
-                din = 1e-3
-            hd[n] = din
-            ho[n] = max(dout, din)
-            hl[n] = lab
-            hnx[n] = nxv
-            hny[n] = nyv
-            n += 1
-            h = heights[lab]
-            if h >= cam_z:
-                vtop = _row_of(h, din, cam_z, k, fy, cy)
-            else:
-                vtop = _row_of(h, max(dout, din), cam_z, k, fy, cy)
-            if vtop < vcover:
-                vcover = vtop
-            if vcover <= 0.0:
-                break
-            t = t2 + 1e-4
+                    din = te
+                    nxv = ex_
+                    nyv = ey_
+                    if abs(to - dout) < tol:
+                        dout = to
+                if din < 1e-3:
+                    din = 1e-3
+                hd[n] = din
+                ho[n] = max(dout, din)
+                hl[n] = lab
+                hnx[n] = nxv
+                hny[n] = nyv
+                n += 1
+                h = heights[lab]
+                if h >= cam_z:
+                    vtop = _row_of(h, din, cam_z, k, fy, cy)
+                else:
+                    vtop = _row_of(h, max(dout, din), cam_z, k, fy, cy)
+                if vtop < vcover:
+                    vcover = vtop
+                if vcover <= 0.0:
+                    break
+                t = t2 + 1e-4
         for j in range(nb):
             if n >= KMAX + 8:
                 break
-            fx = balls[j, 0] - ox
+            fx_ = balls[j, 0] - ox
             fy_ = balls[j, 1] - oy
-            dc = fx * dx + fy_ * dy
-            e = abs(fx * dy - fy_ * dx)
+            dc = fx_ * dx + fy_ * dy
+            e = abs(fx_ * dy - fy_ * dx)
             r = balls[j, 2]
             if dc <= 0.0 or e >= r:
                 continue
@@ -769,9 +994,9 @@ def column_layers(
             hnx[n] = e
             hny[n] = 0.0
             n += 1
-        for a in range(1, n):  # far to near
+        for a in range(1, n):  # far to near (of equally far shapes the higher label last, on top)
             b = a
-            while b > 0 and hd[b] > hd[b - 1]:
+            while b > 0 and (hd[b] > hd[b - 1] + TIE or (hd[b] >= hd[b - 1] - TIE and hl[b] < hl[b - 1])):
                 hd[b], hd[b - 1] = hd[b - 1], hd[b]
                 ho[b], ho[b - 1] = ho[b - 1], ho[b]
                 hl[b], hl[b - 1] = hl[b - 1], hl[b]

@@ -546,6 +546,11 @@ class RGBDCamera:
         self._lza, self._lzb, self._lbd, self._lbe, self._lbg = (np.empty((n, lw), np.float32) for _ in range(5))
         self._lrange = np.empty((n, 4), np.int64)
         self._flo = np.empty(lw, np.int32)
+        r = self._view.raster
+        self._edges = _kernels.edge_table(r.kinds, r.poly_start, r.poly_count, r.verts)
+        self._cr_t = np.empty((lw, _kernels.CMAX), np.float64)  # scratch of vector_crossings
+        self._cr_e = np.empty((lw, _kernels.CMAX), np.int64)
+        self._ncr = np.empty(lw, np.int64)
 
     @property
     def rate(self) -> float:
@@ -599,9 +604,10 @@ class RGBDCamera:
         r, g = v.raster, v.gain
         return _kernels.column_layers(
             self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lball, self._lbd, self._lbe, self._lbg,
-            self._lrange, self._flo, v.r0, v.H, cx_w, cy_w, v.cam_z, yaw, v.cos_c, v.sin_c, v.k, v.fy, v.cy,
-            MAX_VIEW_DIST, r.x0, r.y0, r.res, r.cells, r.kinds, r.heights, r.colors, r.poly_start, r.poly_count,
-            r.verts, r.circles, g.gain, g.x0, g.y0, g.res, balls, LIGHT_DIR[0], LIGHT_DIR[1],
+            self._lrange, self._flo, v.r0, v.H, cx_w, cy_w, v.cam_z, yaw, v.cos_c, v.sin_c, v.k,
+            self._level.fx, self._level.cx, v.fy, v.cy, MAX_VIEW_DIST, r.x0, r.y0, r.res, r.cells, r.kinds, r.heights,
+            r.colors, r.poly_start, r.poly_count, r.verts, r.circles, g.gain, g.x0, g.y0, g.res, balls,
+            LIGHT_DIR[0], LIGHT_DIR[1], self._edges, self._cr_t, self._cr_e, self._ncr,
         )
 
     def _compose(self, depth, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None, a: int, b: int) -> None:
