@@ -920,18 +920,28 @@ def column_layers(
         vcover = float(H)
         if vector:
             nv = _vector_hits(u, dx, dy, ox, oy, cr_t, cr_e, ncr, edges, circles, hd, ho, hl, hnx, hny)
-            # keep them up to the first that covers the column (and at most KMAX)
-            while n < nv and n < KMAX:
-                din = hd[n]
+            # keep them up to the first that covers the column (and at most KMAX), leaving out
+            # those hidden behind nearer ones: a shape standing on the floor covers its rows from
+            # its top (vtop) down to where it meets the floor, and a farther one meets the floor
+            # higher up, so one whose top is no higher than the nearer ones' is hidden
+            i = 0
+            while i < nv and n < KMAX:
+                din = hd[i]
                 if din > max_dist:
                     break
-                h = heights[hl[n]]
-                vtop = _row_of(h, din, cam_z, k, fy, cy) if h >= cam_z else _row_of(h, max(ho[n], din), cam_z, k, fy, cy)
-                n += 1
+                h = heights[hl[i]]
+                vtop = _row_of(h, din, cam_z, k, fy, cy) if h >= cam_z else _row_of(h, max(ho[i], din), cam_z, k, fy, cy)
                 if vtop < vcover:
+                    hd[n] = hd[i]
+                    ho[n] = ho[i]
+                    hl[n] = hl[i]
+                    hnx[n] = hnx[i]
+                    hny[n] = hny[i]
+                    n += 1
                     vcover = vtop
-                if vcover <= 0.0:
-                    break
+                    if vcover <= 0.0:
+                        break
+                i += 1
         else:
             t = t0
             while n < KMAX:
@@ -960,21 +970,21 @@ def column_layers(
                         dout = to
                 if din < 1e-3:
                     din = 1e-3
-                hd[n] = din
-                ho[n] = max(dout, din)
-                hl[n] = lab
-                hnx[n] = nxv
-                hny[n] = nyv
-                n += 1
                 h = heights[lab]
                 if h >= cam_z:
                     vtop = _row_of(h, din, cam_z, k, fy, cy)
                 else:
                     vtop = _row_of(h, max(dout, din), cam_z, k, fy, cy)
-                if vtop < vcover:
+                if vtop < vcover:  # (else hidden behind the nearer ones, see above)
+                    hd[n] = din
+                    ho[n] = max(dout, din)
+                    hl[n] = lab
+                    hnx[n] = nxv
+                    hny[n] = nyv
+                    n += 1
                     vcover = vtop
-                if vcover <= 0.0:
-                    break
+                    if vcover <= 0.0:
+                        break
                 t = t2 + 1e-4
         for j in range(nb):
             if n >= KMAX + 8:
