@@ -620,7 +620,7 @@ def _finish_depth_row(row, noise, nv, nb, noisy, c, lo, hi):
         for u in range(W):
             d = row[u]
             d = np.float32(0.0) if d > hi else d
-            d = d + c * (d * d * nrow[u])
+            d = d + c * (d * d * np.float32(nrow[u]))
             row[u] = np.float32(0.0) if (d > hi) | (d <= lo) else d
     else:
         for u in range(W):
@@ -632,7 +632,8 @@ def _finish_depth_row(row, noise, nv, nb, noisy, c, lo, hi):
 def finish_depth(depth, noise, na, nb, coef, dmin, dmax):
     """The depth image as the D435 reports it, in place: ``depth`` (H, W) float32 z-depth (inf =
     nothing) -> 0 beyond ``dmax``, plus noise ``coef * z^2 * noise[na + v, nb + u]`` (when
-    ``noise`` is not empty), then 0 beyond ``dmax`` and at or nearer than ``dmin``.
+    ``noise`` is not empty; int8 steps of a standard deviation times ``coef``, see
+    ``camera.DEPTH_TILE_STEP``), then 0 beyond ``dmax`` and at or nearer than ``dmin``.
 
     One pass, row by row over contiguous slices so that LLVM vectorises it (about 4x the three
     OpenCV passes it replaces).

@@ -72,13 +72,14 @@ __all__ = [
 RGBD_MIN_DEPTH = 0.1  # m: the D435 reads 0 nearer than this
 DEPTH_NOISE = 0.004  # depth noise sigma = DEPTH_NOISE * z^2 (m): 4 mm at 1 m, 16 mm at 2 m
 COLOR_NOISE_SD = 2.5  # colour noise, levels of 255 per channel
+DEPTH_TILE_STEP = 1.0 / 32.0  # the depth noise tile's unit (standard deviations): +-3.97 sigma in int8
 FLOOR_PX_PER_M = 200.0  # floor texture resolution (5 mm texels)
 MAX_VIEW_DIST = 30.0  # m, how far the cameras look for walls
 LIGHT_DIR = (0.6, 0.8)  # horizontal direction of the light that shades vertical faces
 CSI_OVERSAMPLE = 0.8  # cylinder pixels per fisheye pixel at the centre of a CSI view
 _NOISE_PAD = 48
 _SPRITE = 128
-_NO_NOISE = np.zeros((0, 0), np.float32)
+_NO_NOISE = np.zeros((0, 0), np.int8)
 _NO_SIGNS = (np.zeros((0, 5), np.int64), np.zeros(0, np.float64), np.zeros(0, np.uint32))
 
 
@@ -207,7 +208,10 @@ class _Noise:
         n = rng.normal(0.0, color_sd, shape + (3,))
         self.pos = np.clip(np.rint(n), 0, 255).astype(np.uint8)
         self.neg = np.clip(np.rint(-n), 0, 255).astype(np.uint8)
-        self.depth = rng.standard_normal(shape, dtype=np.float32) if depth else None
+        # depth: standard normal in int8 steps of DEPTH_TILE_STEP (a quarter of the float32
+        # tile's bytes: the tile stays in the cache beside the frame)
+        self.depth = (np.clip(np.rint(rng.standard_normal(shape, dtype=np.float32) / DEPTH_TILE_STEP), -127, 127)
+                      .astype(np.int8) if depth else None)
 
     def windows(self) -> list[int]:
         """This frame's window offsets: (row, col) for the colour's + and - tiles, then depth's.
@@ -625,7 +629,7 @@ class RGBDCamera:
             fl.texels, fl.levels, v.row_lev, v.row_dist, cx_w, cy_w, yaw, lv.fx, lv.cx, fl.x0, fl.y1, fl.ppm, self._flo,
             n_layers, self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lrange, self._lball, self._lbd,
             self._lbe, self._lbg, balls, v.k, v.cam_z, v.fy, v.cy, signs[0], signs[1], signs[2],
-            finish, dn, na, nb, DEPTH_NOISE, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth),
+            finish, dn, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth),
         )
 
     def _rows(self, color: np.ndarray, depth: np.ndarray, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None,
@@ -647,7 +651,8 @@ class RGBDCamera:
         """The depth image as the D435 reports it: inf -> 0 (no data), noise sigma
         DEPTH_NOISE z^2 (windows ``o``, None = no noise), 0 beyond the range and too near."""
         tile, na, nb = self._depth_noise(o)
-        _kernels.finish_depth(depth, tile, na, nb, DEPTH_NOISE, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth))
+        _kernels.finish_depth(depth, tile, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH,
+                              float(self.params.rgbd_max_depth))
 
 
 # --------------------------------------------------------------------------------------------
