@@ -132,10 +132,10 @@ def march(px, py, dx, dy, t, tmax, cells):
     while t < tmax:
         x = px + t * dx
         y = py + t * dy
-        ix = int(math.floor(x))
-        iy = int(math.floor(y))
-        if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+        if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
             return tmax, -1, 0, steps
+        ix = int(x)  # = floor: x >= 0 (truncation is off the loop's critical path, floor is not)
+        iy = int(y)
         c = int(cells[iy, ix])
         steps += 1
         if c >= OCC:
@@ -193,10 +193,10 @@ def march_tiles(px, py, dx, dy, t, tmax, tiles, nx, ny, ntx):
     while t < tmax:
         x = px + t * dx
         y = py + t * dy
-        ix = int(math.floor(x))
-        iy = int(math.floor(y))
-        if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+        if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
             return tmax, -1, steps
+        ix = int(x)  # = floor: x >= 0 (truncation is off the loop's critical path, floor is not)
+        iy = int(y)
         c = _tile_at(tiles, ix, iy, ntx)
         steps += 1
         if c == TILE_OCC:
@@ -225,6 +225,125 @@ def march_tiles(px, py, dx, dy, t, tmax, tiles, nx, ny, ntx):
                 t += c * TILE_UNIT - 1.4143
                 break
     return tmax, -1, steps
+
+
+@njit(**_JIT)
+def _tiles_start(px, py, dx, dy, t, tmax, nx, ny):
+    """Where :func:`march_tiles` starts: t, moved to where the ray enters the grid when it starts
+    outside (tmax when it never does before tmax)."""
+    x = px + t * dx
+    y = py + t * dy
+    if x < 0.0 or y < 0.0 or x >= nx or y >= ny:
+        te = _enter_box(px, py, dx, dy, nx, ny)
+        if te < 0.0 or te > tmax:
+            return tmax
+        if te > t:
+            return te + 1e-7
+    return t
+
+
+@njit(**_JIT)
+def march_tiles_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, tiles, nx, ny, ntx):
+    """:func:`march_tiles` of two rays from the same point at once, a step of each in turn: a
+    ray's steps form one dependency chain (position, cell, lookup, jump) that leaves the core
+    mostly waiting, and two independent chains interleave. The same numbers as two calls
+    (t, label and cells looked at of each): returns (ta, laba, tb, labb, steps)."""
+    steps = 0
+    ta = _tiles_start(px, py, dxa, dya, t0, tmax, nx, ny)
+    tb = _tiles_start(px, py, dxb, dyb, t0, tmax, nx, ny)
+    # mode 0: jumping, 1: walking cell by cell, 2: done
+    ma = 0
+    mb = 0
+    la = -1
+    lb = -1
+    ixa = iya = sxa = sya = 0
+    ixb = iyb = sxb = syb = 0
+    tdxa = tdya = tmxa = tmya = 0.0
+    tdxb = tdyb = tmxb = tmyb = 0.0
+    while ma != 2 or mb != 2:
+        if ma == 0:
+            x = px + ta * dxa
+            y = py + ta * dya
+            if not (ta < tmax and x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+                ma = 2
+                ta = tmax
+            else:
+                ixa = int(x)
+                iya = int(y)
+                c = _tile_at(tiles, ixa, iya, ntx)
+                steps += 1
+                if c == TILE_OCC:
+                    ma = 2
+                    la = 0
+                elif c > TILE_SKIP_FROM:
+                    ta += c * TILE_UNIT - 1.4143
+                else:
+                    sxa, tdxa, tmxa = dda_axis(dxa, ixa, x, ta)
+                    sya, tdya, tmya = dda_axis(dya, iya, y, ta)
+                    ma = 1
+        elif ma == 1:
+            steps += 1
+            if tmxa < tmya:
+                ta = tmxa
+                tmxa += tdxa
+                ixa += sxa
+            else:
+                ta = tmya
+                tmya += tdya
+                iya += sya
+            if ta >= tmax or ixa < 0 or iya < 0 or ixa >= nx or iya >= ny:
+                ma = 2
+                ta = tmax
+            else:
+                c = _tile_at(tiles, ixa, iya, ntx)
+                if c == TILE_OCC:
+                    ma = 2
+                    la = 0
+                elif c > TILE_WALK_UNTIL:
+                    ta += c * TILE_UNIT - 1.4143
+                    ma = 0
+        if mb == 0:
+            x = px + tb * dxb
+            y = py + tb * dyb
+            if not (tb < tmax and x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+                mb = 2
+                tb = tmax
+            else:
+                ixb = int(x)
+                iyb = int(y)
+                c = _tile_at(tiles, ixb, iyb, ntx)
+                steps += 1
+                if c == TILE_OCC:
+                    mb = 2
+                    lb = 0
+                elif c > TILE_SKIP_FROM:
+                    tb += c * TILE_UNIT - 1.4143
+                else:
+                    sxb, tdxb, tmxb = dda_axis(dxb, ixb, x, tb)
+                    syb, tdyb, tmyb = dda_axis(dyb, iyb, y, tb)
+                    mb = 1
+        elif mb == 1:
+            steps += 1
+            if tmxb < tmyb:
+                tb = tmxb
+                tmxb += tdxb
+                ixb += sxb
+            else:
+                tb = tmyb
+                tmyb += tdyb
+                iyb += syb
+            if tb >= tmax or ixb < 0 or iyb < 0 or ixb >= nx or iyb >= ny:
+                mb = 2
+                tb = tmax
+            else:
+                c = _tile_at(tiles, ixb, iyb, ntx)
+                if c == TILE_OCC:
+                    mb = 2
+                    lb = 0
+                elif c > TILE_WALK_UNTIL:
+                    tb += c * TILE_UNIT - 1.4143
+                    mb = 0
+    return ta, la, tb, lb, steps
 
 
 @njit(**_JIT)
@@ -373,14 +492,39 @@ def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, cells, tiles, ntx, 
             if c0 < OCC and c0 > SKIP_FROM:
                 t0 = 0.0 + (c0 * DT_UNIT - 1.4143)
                 total += 1
-    for i in range(cos_b.shape[0]):
+    nbeams = cos_b.shape[0]
+    hit_t = np.empty(nbeams)
+    hit_l = np.empty(nbeams, np.int64)
+    i = 0
+    if tiled:  # two beams at a time (march_tiles_pair: the same numbers, the latencies overlap)
+        while i + 1 < nbeams:
+            dxa = cos_b[i] * cyaw - sin_b[i] * syaw
+            dya = sin_b[i] * cyaw + cos_b[i] * syaw
+            dxb = cos_b[i + 1] * cyaw - sin_b[i + 1] * syaw
+            dyb = sin_b[i + 1] * cyaw + cos_b[i + 1] * syaw
+            ta, la, tb, lb, steps = march_tiles_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, tiles, nx, ny, ntx)
+            hit_t[i] = ta
+            hit_l[i] = la
+            hit_t[i + 1] = tb
+            hit_l[i + 1] = lb
+            total += steps
+            i += 2
+    while i < nbeams:
         dx = cos_b[i] * cyaw - sin_b[i] * syaw
         dy = sin_b[i] * cyaw + cos_b[i] * syaw
         if tiled:
             t, lab, steps = march_tiles(px, py, dx, dy, t0, tmax, tiles, nx, ny, ntx)
         else:
             t, lab, side, steps = march(px, py, dx, dy, t0, tmax, cells)
+        hit_t[i] = t
+        hit_l[i] = lab
         total += steps
+        i += 1
+    for i in range(nbeams):
+        dx = cos_b[i] * cyaw - sin_b[i] * syaw
+        dy = sin_b[i] * cyaw + cos_b[i] * syaw
+        t = hit_t[i]
+        lab = hit_l[i]
         r = BIG
         if lab >= 0:
             r = t * res
