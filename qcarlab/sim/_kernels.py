@@ -228,9 +228,9 @@ def march_tiles(px, py, dx, dy, t, tmax, tiles, nx, ny, ntx):
 
 
 @njit(**_JIT)
-def _tiles_start(px, py, dx, dy, t, tmax, nx, ny):
-    """Where :func:`march_tiles` starts: t, moved to where the ray enters the grid when it starts
-    outside (tmax when it never does before tmax)."""
+def _start_in_grid(px, py, dx, dy, t, tmax, nx, ny):
+    """Where :func:`march` and :func:`march_tiles` start: t, moved to where the ray enters the
+    grid when it starts outside (tmax when it never does before tmax)."""
     x = px + t * dx
     y = py + t * dy
     if x < 0.0 or y < 0.0 or x >= nx or y >= ny:
@@ -249,8 +249,8 @@ def march_tiles_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, tiles, nx, ny, ntx):
     mostly waiting, and two independent chains interleave. The same numbers as two calls
     (t, label and cells looked at of each): returns (ta, laba, tb, labb, steps)."""
     steps = 0
-    ta = _tiles_start(px, py, dxa, dya, t0, tmax, nx, ny)
-    tb = _tiles_start(px, py, dxb, dyb, t0, tmax, nx, ny)
+    ta = _start_in_grid(px, py, dxa, dya, t0, tmax, nx, ny)
+    tb = _start_in_grid(px, py, dxb, dyb, t0, tmax, nx, ny)
     # mode 0: jumping, 1: walking cell by cell, 2: done
     ma = 0
     mb = 0
@@ -342,6 +342,109 @@ def march_tiles_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, tiles, nx, ny, ntx):
                     lb = 0
                 elif c > TILE_WALK_UNTIL:
                     tb += c * TILE_UNIT - 1.4143
+                    mb = 0
+    return ta, la, tb, lb, steps
+
+
+@njit(**_JIT)
+def march_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, cells):
+    """:func:`march` of two rays from the same point at once (see :func:`march_tiles_pair`): the
+    same t, label and cells looked at as two calls; returns (ta, laba, tb, labb, steps)."""
+    ny, nx = cells.shape
+    steps = 0
+    ta = _start_in_grid(px, py, dxa, dya, t0, tmax, nx, ny)
+    tb = _start_in_grid(px, py, dxb, dyb, t0, tmax, nx, ny)
+    # mode 0: jumping, 1: walking cell by cell, 2: done
+    ma = 0
+    mb = 0
+    la = -1
+    lb = -1
+    ixa = iya = sxa = sya = 0
+    ixb = iyb = sxb = syb = 0
+    tdxa = tdya = tmxa = tmya = 0.0
+    tdxb = tdyb = tmxb = tmyb = 0.0
+    while ma != 2 or mb != 2:
+        if ma == 0:
+            x = px + ta * dxa
+            y = py + ta * dya
+            if not (ta < tmax and x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+                ma = 2
+                ta = tmax
+            else:
+                ixa = int(x)
+                iya = int(y)
+                c = int(cells[iya, ixa])
+                steps += 1
+                if c >= OCC:
+                    ma = 2
+                    la = c - OCC
+                elif c > SKIP_FROM:
+                    ta += c * DT_UNIT - 1.4143
+                else:
+                    sxa, tdxa, tmxa = dda_axis(dxa, ixa, x, ta)
+                    sya, tdya, tmya = dda_axis(dya, iya, y, ta)
+                    ma = 1
+        elif ma == 1:
+            steps += 1
+            if tmxa < tmya:
+                ta = tmxa
+                tmxa += tdxa
+                ixa += sxa
+            else:
+                ta = tmya
+                tmya += tdya
+                iya += sya
+            if ta >= tmax or ixa < 0 or iya < 0 or ixa >= nx or iya >= ny:
+                ma = 2
+                ta = tmax
+            else:
+                c = int(cells[iya, ixa])
+                if c >= OCC:
+                    ma = 2
+                    la = c - OCC
+                elif c > WALK_UNTIL:
+                    ta += c * DT_UNIT - 1.4143
+                    ma = 0
+        if mb == 0:
+            x = px + tb * dxb
+            y = py + tb * dyb
+            if not (tb < tmax and x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+                mb = 2
+                tb = tmax
+            else:
+                ixb = int(x)
+                iyb = int(y)
+                c = int(cells[iyb, ixb])
+                steps += 1
+                if c >= OCC:
+                    mb = 2
+                    lb = c - OCC
+                elif c > SKIP_FROM:
+                    tb += c * DT_UNIT - 1.4143
+                else:
+                    sxb, tdxb, tmxb = dda_axis(dxb, ixb, x, tb)
+                    syb, tdyb, tmyb = dda_axis(dyb, iyb, y, tb)
+                    mb = 1
+        elif mb == 1:
+            steps += 1
+            if tmxb < tmyb:
+                tb = tmxb
+                tmxb += tdxb
+                ixb += sxb
+            else:
+                tb = tmyb
+                tmyb += tdyb
+                iyb += syb
+            if tb >= tmax or ixb < 0 or iyb < 0 or ixb >= nx or iyb >= ny:
+                mb = 2
+                tb = tmax
+            else:
+                c = int(cells[iyb, ixb])
+                if c >= OCC:
+                    mb = 2
+                    lb = c - OCC
+                elif c > WALK_UNTIL:
+                    tb += c * DT_UNIT - 1.4143
                     mb = 0
     return ta, la, tb, lb, steps
 
@@ -496,19 +599,22 @@ def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, cells, tiles, ntx, 
     hit_t = np.empty(nbeams)
     hit_l = np.empty(nbeams, np.int64)
     i = 0
-    if tiled:  # two beams at a time (march_tiles_pair: the same numbers, the latencies overlap)
-        while i + 1 < nbeams:
-            dxa = cos_b[i] * cyaw - sin_b[i] * syaw
-            dya = sin_b[i] * cyaw + cos_b[i] * syaw
-            dxb = cos_b[i + 1] * cyaw - sin_b[i + 1] * syaw
-            dyb = sin_b[i + 1] * cyaw + cos_b[i + 1] * syaw
+    # two beams at a time (march_tiles_pair, march_pair: the same numbers, the latencies overlap)
+    while i + 1 < nbeams:
+        dxa = cos_b[i] * cyaw - sin_b[i] * syaw
+        dya = sin_b[i] * cyaw + cos_b[i] * syaw
+        dxb = cos_b[i + 1] * cyaw - sin_b[i + 1] * syaw
+        dyb = sin_b[i + 1] * cyaw + cos_b[i + 1] * syaw
+        if tiled:
             ta, la, tb, lb, steps = march_tiles_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, tiles, nx, ny, ntx)
-            hit_t[i] = ta
-            hit_l[i] = la
-            hit_t[i + 1] = tb
-            hit_l[i + 1] = lb
-            total += steps
-            i += 2
+        else:
+            ta, la, tb, lb, steps = march_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, cells)
+        hit_t[i] = ta
+        hit_l[i] = la
+        hit_t[i + 1] = tb
+        hit_l[i + 1] = lb
+        total += steps
+        i += 2
     while i < nbeams:
         dx = cos_b[i] * cyaw - sin_b[i] * syaw
         dy = sin_b[i] * cyaw + cos_b[i] * syaw
