@@ -152,7 +152,8 @@ def accuracy(world, lidar: Lidar, sim, poses) -> tuple[float, float | None]:
     ours, theirs = [], []
     for x, y, yaw in poses:
         r = lidar.true_ranges((x, y, yaw))
-        ref = reference_ranges(world.grid, x, y, lidar.angles + yaw)
+        sx, sy, _ = lidar.sensor_pose((x, y, yaw))  # the LIDAR sits lidar_x ahead of the car's centre
+        ref = reference_ranges(world.grid, sx, sy, lidar.angles + yaw)
         ok = np.isfinite(ref) & (ref < RMAX - 0.1)
         ours.append(np.abs(r[ok] - ref[ok]))
         if sim is not None:
