@@ -1115,7 +1115,7 @@ def column_layers(
     ltop, lbot, lcol, lza, lzb, lball, lbd, lbe, lbg, lrange, flo,
     r0, H, ox, oy, cam_z, yaw, cos_c, sin_c, kcol, fx, cx, fy, cy, max_dist,
     x0, y0, res, cells, kinds, heights, colors, pstart, pcount, verts, circles,
-    gain, gx0, gy0, gres, balls, light_x, light_y, edges, cr_t, cr_e, ncr,
+    gain, gx0, gy0, gres, balls, light_x, light_y, vector, edges, cr_t, cr_e, ncr,
 ):
     """What each column of a level pinhole sees, as *layers* for :func:`compose_rows`; returns
     how many layers the busiest column has (L).
@@ -1123,9 +1123,10 @@ def column_layers(
     Column u looks along body azimuth (cos_c[u], sin_c[u]) (u = cx - fx tan(azimuth)); a point
     at horizontal distance d and height z along it is at row cy - (z - cam_z) * kcol[u] * fy / d,
     z-depth d / kcol[u]. Its walls and obstacles are found, nearest first, up to the first that
-    covers the column or KMAX of them: with ``edges`` (a vector world's polygon edges, see
-    :func:`edge_table`; empty for a ROS map's grid) analytically from :func:`vector_crossings`
-    (scratch ``cr_t``, ``cr_e``, ``ncr``), else by marching the raster (:func:`march`, hits
+    covers the column or KMAX of them: with ``vector`` (a world of polygons and circles alone)
+    analytically from its polygon edges (``edges``, see :func:`edge_table`) by
+    :func:`vector_crossings` (scratch ``cr_t``, ``cr_e``, ``ncr``), else (a ROS map's grid; or
+    when a column has more than CMAX crossings) by marching the raster (:func:`march`, hits
     refined by :func:`exact`, as :func:`render_columns`); then the balls cut by the column's
     plane. Each becomes layer l = 0, 1, ... of the column, far to near (painter's order): arrays
     (LMAX, W) ``ltop``/``lbot`` (the rows it covers, inclusive; an empty layer has ltop =
@@ -1153,7 +1154,6 @@ def column_layers(
     hnx = np.empty(KMAX + 8)
     hny = np.empty(KMAX + 8)
     nlay = np.zeros(W, np.int64)
-    vector = not (kinds.shape[0] > 0 and kinds[0] == 0)  # no ROS grid among the shapes
     if vector:
         vector = vector_crossings(cr_t, cr_e, ncr, ox, oy, yaw, cos_c, sin_c, fx, cx, edges, kinds, circles)
     # the raster march's first look, from the camera's own cell, is the same for every column
