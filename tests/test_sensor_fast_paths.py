@@ -3,7 +3,8 @@
 - the RGBD floor: runs of one colour (the run-radius texture) read what blending every pixel reads;
 - the RGBD walls found per polygon edge agree with the raster march;
 - the frame's noise has the documented spread and follows the seed;
-- the LIDAR's two-beams-at-a-time march gives the ranges and cell counts of one beam at a time.
+- the LIDAR's two-beams-at-a-time march gives the ranges and cell counts of one beam at a time;
+- the LIDAR scanned per edge reads every beam's nearest crossing of every edge.
 """
 
 from __future__ import annotations
@@ -145,6 +146,7 @@ def test_frame_noise_spread_and_seed():
 def test_lidar_pairs_give_the_single_beam_ranges(world, beams):
     w = load_world(world)
     lidar = Lidar(w, beams=beams)
+    lidar.vector_walls = False  # the marched path (a vector world is scanned per edge by default)
     r = lidar._raster
     rng = np.random.default_rng(5)
     for _ in range(5):
@@ -163,3 +165,50 @@ def test_lidar_pairs_give_the_single_beam_ranges(world, beams):
         assert np.array_equal(got, want)
         # the same cells looked at, less the shared first look from the LIDAR's own cell
         assert cells <= total
+
+
+def _every_edge(lidar: Lidar, pose) -> np.ndarray:
+    """Each beam against every polygon edge and circle of the LIDAR's raster (numpy): the nearest."""
+    ox, oy, yaw = lidar.sensor_pose(pose)
+    e, r = lidar._edges, lidar._raster
+    ang = yaw + lidar.angles
+    dx, dy = np.cos(ang)[:, None], np.sin(ang)[:, None]
+    ax, ay, ex, ey = e[:, 0] - ox, e[:, 1] - oy, e[:, 2] - e[:, 0], e[:, 3] - e[:, 1]
+    den = dx * ey - dy * ex
+    with np.errstate(all="ignore"):
+        s, t = (ax * dy - ay * dx) / den, (ax * ey - ay * ex) / den
+    t = np.where((s >= 0) & (s < 1) & (t >= 0) & (den != 0), t, np.inf).min(axis=1)
+    for lab in np.nonzero(r.kinds == 2)[0]:
+        qx, qy, rad = r.circles[lab, 0] - ox, r.circles[lab, 1] - oy, r.circles[lab, 2]
+        b = -(qx * dx[:, 0] + qy * dy[:, 0])
+        disc = b * b - (qx * qx + qy * qy - rad * rad)
+        with np.errstate(invalid="ignore"):
+            tc = -b - np.sqrt(disc)
+        t = np.minimum(t, np.where((disc >= 0) & (tc >= 0), tc, np.inf))
+    t[t > P.lidar_max_range] = np.inf
+    return t
+
+
+@pytest.mark.parametrize("world", ["track", "obstacles", "hallway", "stop-sign"])
+@pytest.mark.parametrize("beams,fov", [(800, None), (1080, 4.7), (7, None)])
+def test_lidar_per_edge_is_every_beam_against_every_edge(world, beams, fov):
+    w = load_world(world)
+    lidar = Lidar(w, beams=beams, fov=fov)
+    assert lidar.vector_walls
+    rng = np.random.default_rng(8)
+    checked = 0
+    for _ in range(25):
+        pose = (rng.uniform(-2.5, 2.5), rng.uniform(-2.0, 2.0), rng.uniform(-3.2, 3.2))
+        got = lidar.true_ranges(pose)
+        if not got.any():  # inside a shape: every beam hits at 0; marched, nearer than the minimum range
+            marched = Lidar(w, beams=beams, fov=fov)
+            marched.vector_walls = False
+            assert (marched.true_ranges(pose) < P.lidar_min_range).all()
+            assert not lidar.scan(pose).ranges.any() and not marched.scan(pose).ranges.any()  # the device reads 0
+            continue
+        want = _every_edge(lidar, pose)
+        assert np.array_equal(np.isfinite(got), np.isfinite(want))
+        fin = np.isfinite(got)
+        assert np.allclose(got[fin], want[fin], rtol=0, atol=1e-9)
+        checked += 1
+    assert checked >= 10

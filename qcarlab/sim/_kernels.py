@@ -638,30 +638,158 @@ def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, cells, tiles, ntx, 
                 te, to, nx_, ny_ = exact(lab, ox, oy, dx, dy, r, tol, kinds, pstart, pcount, verts, circles)
                 if te >= 0.0:
                     r = te
-        for j in range(nb):
-            fx = ox - balls[j, 0]
-            fy = oy - balls[j, 1]
-            b = fx * dx + fy * dy
-            c = fx * fx + fy * fy - balls[j, 2] * balls[j, 2]
-            disc = b * b - c
-            if disc >= 0.0:
-                tb = -b - math.sqrt(disc)
-                if 0.0 <= tb < r:
-                    r = tb
-        if near_mode < 0:
-            out[i] = r if r <= rmax else np.inf
-            continue
-        if r > rmax:
-            out[i] = 0.0
-            continue
-        if noisy:
-            r += noise[i]
-        if r > rmax:
-            r = 0.0
-        elif r < rmin:
-            r = rmin if near_mode == 1 else 0.0
-        out[i] = r
+        out[i] = _reading(r, ox, oy, dx, dy, balls, noise[i] if noisy else 0.0, rmax, rmin, near_mode)
     return total
+
+
+@njit(**_JIT)
+def _reading(r, ox, oy, dx, dy, balls, noise, rmax, rmin, near_mode):
+    """A beam's reading from the distance ``r`` (m) of its first static hit (BIG: none): the
+    nearer of it and the balls (circles (x, y, radius) cut by the scan plane), then as
+    :func:`lidar_scan` tells (``near_mode``: -1 exact, inf for none; else noise and limits)."""
+    for j in range(balls.shape[0]):
+        fx = ox - balls[j, 0]
+        fy = oy - balls[j, 1]
+        b = fx * dx + fy * dy
+        c = fx * fx + fy * fy - balls[j, 2] * balls[j, 2]
+        disc = b * b - c
+        if disc >= 0.0:
+            tb = -b - math.sqrt(disc)
+            if 0.0 <= tb < r:
+                r = tb
+    if near_mode < 0:
+        return r if r <= rmax else np.inf
+    if r > rmax:
+        return 0.0
+    r += noise
+    if r > rmax:
+        return 0.0
+    if r < rmin:
+        return rmin if near_mode == 1 else 0.0
+    return r
+
+
+@njit(**_JIT)
+def lidar_scan_edges(ox, oy, yaw, cos_b, sin_b, a0, da, full, rmax, edges, kinds, circles, balls, noise, rmin,
+                     near_mode, out):
+    """:func:`lidar_scan` for a world of polygons and circles alone, found per *edge*: beam i looks
+    along body angle a0 + i da (``full``: a whole turn, da = 2 pi / beams; else a sector), with
+    direction (cos_b[i], sin_b[i]); each polygon edge (``edges``, see :func:`edge_table`) is
+    intersected with just the beams whose angles it spans (an edge's points a + s (b - a), s in
+    [0, 1)), each circle likewise, and a beam keeps its nearest crossing. From inside a shape
+    every beam's first hit is at 0 (as the raster's march finds it). Returns the number of
+    beam-edge intersections computed (the work it took)."""
+    n = cos_b.shape[0]
+    cyaw = math.cos(yaw)
+    syaw = math.sin(yaw)
+    noisy = noise.shape[0] == n
+    dist = np.full(n, BIG)
+    work = 0
+    twopi = 2.0 * math.pi
+    # inside a polygon (even-odd rule along +x) or a circle: every beam hits at 0
+    inside = False
+    crossings = 0
+    last = -1.0
+    for e in range(edges.shape[0]):
+        lab = edges[e, 4]
+        if lab != last:
+            if crossings % 2 == 1:
+                inside = True
+            crossings = 0
+            last = lab
+        ay = edges[e, 1] - oy
+        by = edges[e, 3] - oy
+        if (ay > 0.0) != (by > 0.0):
+            ax = edges[e, 0] - ox
+            bx = edges[e, 2] - ox
+            if ax + (0.0 - ay) * (bx - ax) / (by - ay) > 0.0:
+                crossings += 1
+    if crossings % 2 == 1:
+        inside = True
+    for lab in range(kinds.shape[0]):
+        if kinds[lab] == 2:
+            qx = circles[lab, 0] - ox
+            qy = circles[lab, 1] - oy
+            if qx * qx + qy * qy < circles[lab, 2] * circles[lab, 2]:
+                inside = True
+    if inside:
+        for i in range(n):
+            dist[i] = 0.0
+    else:
+        for e in range(edges.shape[0]):
+            ax = edges[e, 0] - ox
+            ay = edges[e, 1] - oy
+            bx = edges[e, 2] - ox
+            by = edges[e, 3] - oy
+            # the beams between the ends' angles (the short way round: the edge misses the sensor)
+            pa = math.atan2(ay, ax) - yaw
+            pb = math.atan2(by, bx) - yaw
+            w = (pb - pa) % twopi
+            if w > math.pi:
+                lo = pb
+                w = twopi - w
+            else:
+                lo = pa
+            lo = (lo - a0) % twopi  # from beam 0's angle, in [0, 2 pi)
+            ex = bx - ax
+            ey = by - ay
+            for shift in range(2 if not full else 1):
+                base = lo - shift * twopi
+                k0 = int(math.floor(base / da)) - 1
+                k1 = int(math.floor((base + w) / da)) + 1
+                if not full:
+                    k0 = max(k0, 0)
+                    k1 = min(k1, n - 1)
+                for kk in range(k0, k1 + 1):
+                    i = kk % n if full else kk
+                    dx = cos_b[i] * cyaw - sin_b[i] * syaw
+                    dy = sin_b[i] * cyaw + cos_b[i] * syaw
+                    work += 1
+                    den = dx * ey - dy * ex
+                    if den == 0.0:
+                        continue
+                    sn = ax * dy - ay * dx
+                    if den > 0.0:
+                        if sn < 0.0 or sn >= den:
+                            continue
+                    elif sn > 0.0 or sn <= den:
+                        continue
+                    tt = (ax * ey - ay * ex) / den
+                    if 0.0 <= tt < dist[i]:
+                        dist[i] = tt
+        for lab in range(kinds.shape[0]):
+            if kinds[lab] != 2:
+                continue
+            qx = circles[lab, 0] - ox
+            qy = circles[lab, 1] - oy
+            r = circles[lab, 2]
+            d = math.sqrt(qx * qx + qy * qy)
+            th = (math.atan2(qy, qx) - yaw - a0) % twopi
+            al = math.asin(min(r / d, 1.0))
+            for shift in range(2 if not full else 1):
+                base = th - al - shift * twopi
+                k0 = int(math.floor(base / da)) - 1
+                k1 = int(math.floor((base + 2.0 * al) / da)) + 1
+                if not full:
+                    k0 = max(k0, 0)
+                    k1 = min(k1, n - 1)
+                for kk in range(k0, k1 + 1):
+                    i = kk % n if full else kk
+                    dx = cos_b[i] * cyaw - sin_b[i] * syaw
+                    dy = sin_b[i] * cyaw + cos_b[i] * syaw
+                    work += 1
+                    b = -(qx * dx + qy * dy)
+                    disc = b * b - (qx * qx + qy * qy - r * r)
+                    if disc < 0.0:
+                        continue
+                    tt = -b - math.sqrt(disc)
+                    if 0.0 <= tt < dist[i]:
+                        dist[i] = tt
+    for i in range(n):
+        dx = cos_b[i] * cyaw - sin_b[i] * syaw
+        dy = sin_b[i] * cyaw + cos_b[i] * syaw
+        out[i] = _reading(dist[i], ox, oy, dx, dy, balls, noise[i] if noisy else 0.0, rmax, rmin, near_mode)
+    return work
 
 
 @njit(**_JIT)
