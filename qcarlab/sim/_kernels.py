@@ -1579,7 +1579,7 @@ def compose_rows(
     ftex, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
     L, ltop, lbot, lcol, lza, lzb, lrange, lball, lbd, lbe, lbg, balls, kcol, cam_z, fy, cy,
     sg_tab, sg_d, sg_pix,
-    finish, dnoise, na, nb, coef, dmin, dmax,
+    finish, dnoise, na, nb, coef, dmin, dmax, bgr,
 ):
     """Rows va..vb-1 of a level pinhole's frame, upright, in place: ``color`` (H, W) packed pixels
     (:func:`_word`), ``depth`` (H, W) float32 z-depth (inf = nothing). Each row, in cache:
@@ -1597,6 +1597,9 @@ def compose_rows(
        far (``sg_d``);
     4. with ``finish``: the depth as the D435 reports it (see :func:`finish_depth`, noise window
        from row na, column nb).
+
+    With ``bgr`` ((H, 3 W) uint8, not empty) each row's colour goes there as B, G, R bytes
+    instead (``color`` is then not written: a row at a time in cache, no second pass).
     """
     W = color.shape[1]
     nballs = balls.shape[0]
@@ -1614,8 +1617,10 @@ def compose_rows(
     b11 = np.empty(W, np.int64)
     bwx = np.empty(W, np.int64)
     bwy = np.empty(W, np.int64)
+    to_bgr = bgr.shape[0] > 0
+    scratch = np.empty(W, np.uint32)
     for v in range(va, vb):
-        crow = color[v]
+        crow = scratch if to_bgr else color[v]
         drow = depth[v]
         if v < r0:
             for u in range(W):
@@ -1691,3 +1696,16 @@ def compose_rows(
                     drow[u] = zs
         if finish:
             _finish_depth_row(drow, dnoise, na + v, nb, noisy, c, lo, hi)
+        if to_bgr:
+            src = crow.view(np.uint8)  # (B, G, R, A bytes on a little-endian machine)
+            dst = bgr[v]
+            if LITTLE_ENDIAN:
+                for u in range(W):
+                    dst[3 * u] = src[4 * u]
+                    dst[3 * u + 1] = src[4 * u + 1]
+                    dst[3 * u + 2] = src[4 * u + 2]
+            else:  # pragma: no cover - big-endian machines
+                for u in range(W):
+                    dst[3 * u] = src[4 * u + 3]
+                    dst[3 * u + 1] = src[4 * u + 2]
+                    dst[3 * u + 2] = src[4 * u + 1]

@@ -81,6 +81,7 @@ CSI_OVERSAMPLE = 0.8  # cylinder pixels per fisheye pixel at the centre of a CSI
 _NOISE_PAD = 48
 _SPRITE = 128
 _NO_NOISE = np.zeros((0, 0), np.int8)
+_NO_BGR = np.zeros((0, 0), np.uint8)
 _NO_SIGNS = (np.zeros((0, 5), np.int64), np.zeros(0, np.float64), np.zeros(0, np.uint32))
 
 
@@ -618,11 +619,13 @@ class RGBDCamera:
             LIGHT_DIR[0], LIGHT_DIR[1], self.vector_walls, self._edges, self._cr_t, self._cr_e, self._ncr,
         )
 
-    def _compose(self, depth, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None, a: int, b: int) -> None:
+    def _compose(self, depth, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None, a: int, b: int,
+                 bgr: np.ndarray = _NO_BGR) -> None:
         """Rows a..b of the level view into ``_color4`` and ``depth``
         (:func:`~qcarlab.sim._kernels.compose_rows`); unpitched, the depth finished too (range
         limits, and noise in the windows ``o`` unless None). A pitched view's depth is finished
-        after the rotation."""
+        after the rotation. With ``bgr`` (the frame's colour as (H, 3 W) bytes) the colour goes
+        there instead of ``_color4``."""
         v, fl, lv = self._view, self._floor, self._level
         finish = self._rot is None
         dn, na, nb = self._depth_noise(o if finish else None)
@@ -633,14 +636,14 @@ class RGBDCamera:
             fl.texels, fl.levels, v.row_lev, v.row_dist, cx_w, cy_w, yaw, lv.fx, lv.cx, fl.x0, fl.y1, fl.ppm, self._flo,
             n_layers, self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lrange, self._lball, self._lbd,
             self._lbe, self._lbg, balls, v.k, v.cam_z, v.fy, v.cy, signs[0], signs[1], signs[2],
-            finish, dn, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth),
+            finish, dn, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth), bgr,
         )
 
     def _rows(self, color: np.ndarray, depth: np.ndarray, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None,
               a: int, b: int) -> None:
-        """Rows a..b of an unpitched frame, done: composed and finished, then BGR and its noise."""
-        self._compose(depth, cam, layers, signs, o, a, b)
-        cv2.cvtColor(self._color4[a:b], cv2.COLOR_BGRA2BGR, dst=color[a:b])
+        """Rows a..b of an unpitched frame, done: composed and finished into ``color`` (BGR) and
+        ``depth``, then the colour noise."""
+        self._compose(depth, cam, layers, signs, o, a, b, color.reshape(color.shape[0], -1))
         if o is not None:
             assert self._noise is not None
             self._noise.color(color[a:b], o, a)
