@@ -575,7 +575,6 @@ def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, cells, tiles, ntx, 
     syaw = math.sin(yaw)
     tmax = rmax * inv + 2.0
     tol = 2.5 * res
-    nb = balls.shape[0]
     total = 0
     tiled = tiles.shape[0] > 0
     ny, nx = cells.shape
@@ -817,10 +816,10 @@ def render_columns(
     """Draw the walls, obstacles and balls of every column of a level camera over the floor.
 
     ``color`` (W, H) uint32 (packed BGRA pixels, see :func:`pack_bgr`) and ``depth`` (W, H)
-    float32 are *transposed* images (one row per image column). With ``markers`` each column's
-    colour is first cleared to 0, "nothing drawn here" (every drawn pixel has alpha 255, and a
-    depth), and its depth left as it was: :func:`finish_frame` puts the background and the floor
-    there later.
+    float32 are *transposed* images (one row per image column) of a cylindrical view (the CSI
+    cameras; the RGBD camera is drawn by :func:`column_layers` and :func:`compose_rows`). With
+    ``markers`` each column's colour is first cleared to 0, "nothing drawn here" (every drawn
+    pixel has alpha 255, and a depth), and its depth left as it was, for a caller to fill.
     Otherwise ``color`` already holds the floor below row ``sky_rows``, and each column first
     gets the background ``sky`` (a packed pixel) above that row and the depth of the floor
     (``floor_depth``, same shape, inf above the horizon). Then this paints, far to near, each
@@ -1275,6 +1274,7 @@ def column_layers(
     tmax = max_dist * inv
     tol = 2.5 * res
     gny, gnx = gain.shape
+    ginv = 1.0 / gres
     nb = balls.shape[0]
     hd = np.empty(KMAX + 8)  # entry distance (m)
     ho = np.empty(KMAX + 8)  # exit distance (m)
@@ -1295,6 +1295,7 @@ def column_layers(
         dx = cos_c[u] * cyaw - sin_c[u] * syaw
         dy = sin_c[u] * cyaw + cos_c[u] * syaw
         k = kcol[u]
+        kf = k * fy  # a point at distance d, height z is at row cy - (z - cam_z) kf / d
         n = 0
         vcover = float(H)
         if vector:
@@ -1309,7 +1310,7 @@ def column_layers(
                 if din > max_dist:
                     break
                 h = heights[hl[i]]
-                vtop = _row_of(h, din, cam_z, k, fy, cy) if h >= cam_z else _row_of(h, max(ho[i], din), cam_z, k, fy, cy)
+                vtop = cy - (h - cam_z) * kf / (din if h >= cam_z else max(ho[i], din))
                 if vtop < vcover:
                     hd[n] = hd[i]
                     ho[n] = ho[i]
@@ -1350,10 +1351,7 @@ def column_layers(
                 if din < 1e-3:
                     din = 1e-3
                 h = heights[lab]
-                if h >= cam_z:
-                    vtop = _row_of(h, din, cam_z, k, fy, cy)
-                else:
-                    vtop = _row_of(h, max(dout, din), cam_z, k, fy, cy)
+                vtop = cy - (h - cam_z) * kf / (din if h >= cam_z else max(dout, din))
                 if vtop < vcover:  # (else hidden behind the nearer ones, see above)
                     hd[n] = din
                     ho[n] = max(dout, din)
@@ -1398,16 +1396,17 @@ def column_layers(
             din = hd[a]
             hx = ox + dx * din
             hy = oy + dy * din
-            gi = int((hy - gy0) / gres)
-            gj = int((hx - gx0) / gres)
+            gi = int((hy - gy0) * ginv)
+            gj = int((hx - gx0) * ginv)
             g = gain[gi, gj] if 0 <= gi < gny and 0 <= gj < gnx else 1.0
             if lab <= -2:  # a ball
                 j = -2 - lab
                 r = balls[j, 2]
                 e = hnx[a]
                 rs = math.sqrt(r * r - e * e)
-                top = max(int(math.ceil(_row_of(r + rs, din, cam_z, k, fy, cy))), 0)
-                bot = min(int(math.floor(_row_of(r - rs, din, cam_z, k, fy, cy))), H - 1)
+                q = kf / din
+                top = max(int(math.ceil(cy - (r + rs - cam_z) * q)), 0)
+                bot = min(int(math.floor(cy - (r - rs - cam_z) * q)), H - 1)
                 if top <= bot:
                     ltop[m, u] = top
                     lbot[m, u] = bot
@@ -1424,9 +1423,10 @@ def column_layers(
             dout = ho[a]
             lam = abs(hnx[a] * light_x + hny[a] * light_y)
             sh = (0.72 + 0.28 * lam) * g
-            vt = _row_of(h, din, cam_z, k, fy, cy)
+            q = kf / din
+            vt = cy - (h - cam_z) * q
             top = max(int(math.ceil(vt)), 0)
-            bot = min(int(math.floor(_row_of(0.0, din, cam_z, k, fy, cy))), H - 1)
+            bot = min(int(math.floor(cy + cam_z * q)), H - 1)
             if top <= bot:
                 ltop[m, u] = top
                 lbot[m, u] = bot
@@ -1436,7 +1436,7 @@ def column_layers(
                 lball[m, u] = -1
                 m += 1
             if h < cam_z and dout > din:  # the top face, seen from above
-                top = max(int(math.ceil(_row_of(h, dout, cam_z, k, fy, cy))), 0)
+                top = max(int(math.ceil(cy - (h - cam_z) * kf / dout)), 0)
                 bot = min(int(math.ceil(vt)) - 1, H - 1)
                 if top <= bot:
                     ltop[m, u] = top

@@ -26,21 +26,31 @@ ahead of the car's centre reads ``2 - rgbd_x`` = 1.92 m in the middle of the ima
 ``csi_front_x``/``csi_rear_x`` on the axis and ``csi_side_y`` to the sides, facing front, rear, left
 and right, ``csi_z`` above the floor.
 
-How it is drawn: the floor is a top-down texture (markings, brightness regions) warped into the
-image (a homography per texture level for the pinhole; a precomputed per-pixel ray map for the
-wide-angle views), then every image column casts a ray through the world's raster and paints the
-walls, obstacles and balls it meets far to near (their front faces, and the tops of those lower
-than the camera), then stop-sign plates are drawn as projected sprites with a depth test.
-Vertical shapes are exact for a level camera; with a pitch the level image is rendered and
-rotated (a homography).
+How it is drawn. The RGBD camera (a level pinhole, rendered upright, row-major):
 
-Speed (an RGBD pair in under a millisecond on two cores): images are drawn as packed BGRA words
-(OpenCV's 4-channel warps are some 2.5x its 3-channel ones; the numba kernel writes a pixel at
-once), transposed while the columns are painted, with colour and depth 0 where nothing stands.
-The pinhole's floor is warped upright on its own, its nearest rows in a helper thread
-(:data:`SPLIT_FRAMES`) while this thread paints the columns; then one numba pass per row puts
-the floor and the background under the rest and finishes the depth (noise, range limits), the
-two halves of the rows in the two threads. Noise comes from precomputed tiles at random offsets.
+1. each image column is a vertical plane; what it meets is found per *edge* in a world of
+   polygons and circles (each edge in front of the camera projected to the columns it spans and
+   intersected exactly with just those rays; ``vector_walls``), or by marching the world's raster
+   for a ROS map's grid; the walls, obstacles and balls it sees, up to the first that covers the
+   column, become *layers* of the column (rows, colour, depth = a + b / (v - cy)), far to near
+   (:func:`~qcarlab.sim._kernels.column_layers`);
+2. one pass per image row (:func:`~qcarlab.sim._kernels.compose_rows`), each row in cache: the
+   floor, a top-down texture (markings, brightness regions) at the level of its mipmap whose
+   texels match the row's footprint: a row of a level camera is a straight line through the
+   texture, so where a texel's *run radius* (``raster.floor_runs``) says the next pixels all
+   read one colour they are filled at once (the same numbers as blending each), the rest are
+   blended bilinearly in one vectorised batch; the floor's depth is one number per row; then
+   the layers, the stop-sign sprites (depth-tested), the depth's noise and range limits, the
+   row's BGR bytes;
+3. the colour noise (two saturating OpenCV passes over the frame).
+
+A camera pitched down renders the level view so, then rotates it (a homography). The CSI views
+are drawn per column in a transposed buffer (:func:`~qcarlab.sim._kernels.render_columns`,
+the floor by a precomputed per-pixel ray map) and remapped to the fisheye.
+
+Speed (one core, ``benchmarks/bench_sensors.py``): no transposes, no per-frame warps of the
+floor, each output byte written once. With two free cores the rows are split with a helper
+thread (:data:`SPLIT_FRAMES`). Noise comes from precomputed tiles at random offsets.
 """
 
 from __future__ import annotations
@@ -85,13 +95,12 @@ _NO_BGR = np.zeros((0, 0), np.uint8)
 _NO_SIGNS = (np.zeros((0, 5), np.int64), np.zeros(0, np.float64), np.zeros(0, np.uint32))
 
 
-#: Share an RGBD frame with a helper thread (one per process): the near floor while the calling
-#: thread paints the walls and objects, then half the rows of the finishing passes. OpenCV and
-#: the numba kernels release the GIL, so on two free cores a frame takes about 0.7 of the time
-#: (no gain when the other core is busy); the result is the same pixel for pixel. Off without
-#: numba (the pure-Python kernels hold the GIL) or when the process may run on one core only
-#: (``os.sched_getaffinity``, checked at each frame: a benchmark or a grader pinned to a core);
-#: set to False to draw every frame in the calling thread.
+#: Share an RGBD frame with a helper thread (one per process): after the column pass, the
+#: second half of the rows (their composition and colour noise) while the calling thread does
+#: the first. OpenCV and the numba kernels release the GIL; the result is the same pixel for
+#: pixel. Off without numba (the pure-Python kernels hold the GIL) or when the process may run
+#: on one core only (``os.sched_getaffinity``, checked at each frame: a benchmark or a grader
+#: pinned to a core); set to False to draw every frame in the calling thread.
 SPLIT_FRAMES = _kernels.HAVE_NUMBA
 
 
