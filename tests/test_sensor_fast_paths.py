@@ -212,3 +212,25 @@ def test_lidar_per_edge_is_every_beam_against_every_edge(world, beams, fov):
         assert np.allclose(got[fin], want[fin], rtol=0, atol=1e-9)
         checked += 1
     assert checked >= 10
+
+
+def test_many_edges_in_a_column_fall_back_to_the_march():
+    # 20 low slabs in a row ahead (40 crossings a column, more than CMAX): the frame is marched
+    # (which keeps the KMAX nearest shapes of a column, as the per-edge path does)
+    slabs = [{"shape": "box", "center": [0.6 + 0.25 * i, 0.0], "size": [0.05, 3.0], "height": 0.02 + 0.004 * i}
+             for i in range(20)]
+    w = world_from_dict({"floor": {"size": [12, 12]},
+                         "walls": [{"points": [[6.5, -6], [6.5, 6]], "height": 1.0}], "obstacles": slabs})
+    cam = RGBDCamera(w)
+    x, y, yaw = cam.camera_pose(EAST)
+    v, r = cam._view, cam._view.raster
+    ok = _kernels.vector_crossings(cam._cr_t, cam._cr_e, cam._ncr, x, y, yaw, v.cos_c, v.sin_c, cam._level.fx,
+                                   cam._level.cx, cam._edges, r.kinds, r.circles)
+    assert not ok  # overflowed
+    f = cam.render(EAST)
+    marched = RGBDCamera(w)
+    marched.vector_walls = False
+    g = marched.render(EAST)
+    assert np.array_equal(f.color, g.color) and np.array_equal(f.depth, g.depth)
+    # the first slab's front face, 0.575 m ahead of the car's centre (rows 412-437)
+    assert f.depth[425, 300:340] == pytest.approx(0.575 - P.rgbd_x, abs=1e-3)
