@@ -234,3 +234,18 @@ def test_many_edges_in_a_column_fall_back_to_the_march():
     assert np.array_equal(f.color, g.color) and np.array_equal(f.depth, g.depth)
     # the first slab's front face, 0.575 m ahead of the car's centre (rows 412-437)
     assert f.depth[425, 300:340] == pytest.approx(0.575 - P.rgbd_x, abs=1e-3)
+
+
+@pytest.mark.skipif(not _kernels.HAVE_NUMBA, reason="numba not installed: there is only the Python path")
+@pytest.mark.parametrize("fov", [None, 4.7])
+def test_lidar_per_edge_compiled_and_python_agree(fov):
+    w = load_world("hallway")
+    lidar = Lidar(w, beams=200, fov=fov)
+    r = lidar._raster
+    sx, sy, syaw = lidar.sensor_pose((0.3, -1.2, 0.7))
+    args = (sx, sy, syaw, lidar._cos, lidar._sin, lidar._a0, lidar._da, lidar._full, P.lidar_max_range, lidar._edges,
+            r.kinds, r.circles, lidar._balls(0.0), lidar._no_noise, P.lidar_min_range, -1)
+    a, b = np.empty(200), np.empty(200)
+    _kernels.lidar_scan_edges(*args, a)
+    _kernels.lidar_scan_edges.py_func(*args, b)
+    assert np.array_equal(a, b)
