@@ -48,6 +48,11 @@ class Polyline:
         self._y = p[:, 1].tolist()
         self._cum = self.cum.tolist()
         self._len = self.seglen.tolist()
+        # each segment's (dx, dy, dx^2 + dy^2), the same float64 operations as computing them per
+        # call (elementwise IEEE arithmetic: the same bits), so the walks only index them
+        self._dx = seg[:, 0].tolist()
+        self._dy = seg[:, 1].tolist()
+        self._l2 = (seg[:, 0] * seg[:, 0] + seg[:, 1] * seg[:, 1]).tolist()
 
     # -- scalar helpers ------------------------------------------------------------------------
     def segment_projection(self, j: int, px: float, py: float) -> tuple[float, float]:
@@ -64,14 +69,30 @@ class Polyline:
         Walks from segment ``j`` to the next while the distance does not increase (the first
         local minimum ahead), at most ``max_segments`` segments. Returns ``(j, t, distance)``.
         Never moves backward and never jumps to a distant branch of a self-crossing path.
+        Each segment is :meth:`segment_projection`, written out here (this runs every tick).
         """
+        xs, ys, dxs, dys, l2s = self._x, self._y, self._dx, self._dy, self._l2
         last = min(self.n - 2, j + max_segments)
-        t, d = self.segment_projection(j, px, py)
+        ax, ay, dx, dy, l2 = xs[j], ys[j], dxs[j], dys[j], l2s[j]
+        if l2 == 0.0:
+            t = 0.0
+        else:  # t = min(1, max(0, u)), written out
+            u = ((px - ax) * dx + (py - ay) * dy) / l2
+            t = (u if u < 1.0 else 1.0) if u > 0.0 else 0.0
+        d = math.hypot(px - ax - t * dx, py - ay - t * dy)
+        hypot = math.hypot
         while j < last:
-            tn, dn = self.segment_projection(j + 1, px, py)
+            k = j + 1
+            ax, ay, dx, dy, l2 = xs[k], ys[k], dxs[k], dys[k], l2s[k]
+            if l2 == 0.0:
+                tn = 0.0
+            else:
+                u = ((px - ax) * dx + (py - ay) * dy) / l2
+                tn = (u if u < 1.0 else 1.0) if u > 0.0 else 0.0
+            dn = hypot(px - ax - tn * dx, py - ay - tn * dy)
             if dn > d + 1e-12:
                 break
-            j, t, d = j + 1, tn, dn
+            j, t, d = k, tn, dn
         return j, t, d
 
     def point_at(self, s: float) -> tuple[np.ndarray, int]:

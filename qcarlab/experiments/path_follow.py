@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from qcarlab.blocks import BlockSpec
+from qcarlab.blocks import BlockSpec, StudentBlock
 from qcarlab.car.base import Car, Command, Readout
 from qcarlab.car.lamps import ALL_OFF, parse_lamps
 from qcarlab.constants import QCarParams
@@ -149,6 +149,15 @@ class PathFollowingLab(LabModel):
         self.steer = 0.0
         self.arrived = False
         self.first = True
+        # the tick's constants, looked up once (the step runs 100 times a simulated second)
+        self._gyro, self._true_pose = cfg.pose == "gyro", cfg.pose == "truth"
+        self._length, self._max_steering, self._wheelbase = self.poly.length, params.max_steering, params.wheelbase
+        self._stop_margin = 0.5 * cfg.goal_tolerance
+        self._two_a_stop = 2.0 * A_STOP
+        # a student's steering block gets the target as an array (as the sheet's template says
+        # and as it always has); the reference functions take the two floats as they are
+        self._array_target = isinstance(self.pure_pursuit, StudentBlock) or isinstance(self.follow_the_carrot,
+                                                                                         StudentBlock)
 
     def reference_blocks(self) -> dict[str, Any]:
         c, p = self.cfg, self.p
@@ -163,21 +172,21 @@ class PathFollowingLab(LabModel):
         }
 
     def step(self, t: float, r: Readout, dt: float) -> Step | object:
-        c, p = self.cfg, self.p
+        c = self.cfg
         v = self.basic_speed_estimation(r.tach)
         if self.first:
             self.first = False
         else:
-            yaw_rate = float(r.gyro[2]) if c.pose == "gyro" else None
+            yaw_rate = float(r.gyro[2]) if self._gyro else None
             self.pose = self.pose_estimator(self.pose, v, self.steer, dt, yaw_rate)
         est = self.pose
-        if c.pose == "truth":
+        if self._true_pose:
             tr = self.truth()
             pose = (tr.x, tr.y, tr.yaw)
         else:
             pose = est
-        target, index, progress = self.search(pose)
-        remaining = self.poly.length - progress
+        tx, ty, index, progress = self.search.locate(float(pose[0]), float(pose[1]))
+        remaining = self._length - progress
         if not self.arrived and (
             remaining <= 0.0 or (progress >= self.end_zone and math.dist(pose[:2], self.goal) <= c.goal_tolerance)
         ):
@@ -187,20 +196,24 @@ class PathFollowingLab(LabModel):
             if abs(v) < 0.01:
                 return STOP
         else:
-            if c.controller == "pure-pursuit":
-                delta = self.pure_pursuit(rear_axle(pose, p.wheelbase), target, c.lookahead, p.wheelbase)
-            elif c.controller == "carrot":
+            controller = c.controller
+            target = np.array((tx, ty)) if self._array_target else (tx, ty)
+            if controller == "pure-pursuit":
+                L = self._wheelbase
+                delta = self.pure_pursuit(rear_axle(pose, L), target, c.lookahead, L)
+            elif controller == "carrot":
                 delta = self.follow_the_carrot(pose, target, c.k_carrot)
             else:
-                delta = self.stanley(pose, self.poly, index, v, c.k_stanley, p.wheelbase)
-            delta = min(max(delta, -p.max_steering), p.max_steering)
+                delta = self.stanley(pose, self.poly, index, v, c.k_stanley, self._wheelbase)
+            m = self._max_steering
+            delta = min(max(delta, -m), m)
             v_ref = self.turn_speed_handling(c.speed, delta) if c.turn_speed else c.speed
-            v_ref = min(v_ref, math.sqrt(2.0 * A_STOP * max(remaining - 0.5 * c.goal_tolerance, 0.0)))
+            v_ref = min(v_ref, math.sqrt(self._two_a_stop * max(remaining - self._stop_margin, 0.0)))
         throttle = self.speed_controller(v_ref, v, dt)
         self.steer = delta
         return Step(Command(throttle, delta, _BRAKE if self.arrived else ALL_OFF),
                     {"est_x": est[0], "est_y": est[1], "est_yaw": est[2], "v_ref": v_ref, "v_meas": v,
-                     "target_x": float(target[0]), "target_y": float(target[1])})
+                     "target_x": tx, "target_y": ty})
 
 
 def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
