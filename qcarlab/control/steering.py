@@ -234,7 +234,9 @@ class LookaheadTarget:
             u = 0.0 if seglen[i] == 0.0 else min(1.0, (q - cum[i]) / seglen[i])
             return xs[i] + u * (xs[i + 1] - xs[i]), ys[i] + u * (ys[i + 1] - ys[i]), j, s
         # first vertex ahead at distance >= l_d from the car
-        last = min(poly.n - 1, j + 1 + self.max_segments)
+        last = j + 1 + self.max_segments
+        if last > poly.n - 1:
+            last = poly.n - 1
         k = j + 1
         hypot = math.hypot
         while k <= last and hypot(xs[k] - px, ys[k] - py) < ld:
@@ -252,6 +254,13 @@ class LookaheadTarget:
         qa = dx * dx + dy * dy
         qb = 2.0 * (wx * dx + wy * dy)
         qc = wx * wx + wy * wy - ld * ld
-        u = 1.0 if qa == 0.0 else (-qb + math.sqrt(max(qb * qb - 4.0 * qa * qc, 0.0))) / (2.0 * qa)
-        u = min(max(u, 0.0), 1.0)
+        if qa == 0.0:
+            u = 1.0
+        else:
+            disc = qb * qb - 4.0 * qa * qc
+            u = (-qb + math.sqrt(0.0 if 0.0 > disc else disc)) / (2.0 * qa)  # max(disc, 0)
+            if 0.0 > u:  # u = min(max(u, 0), 1), as the builtins order it
+                u = 0.0
+            if 1.0 < u:
+                u = 1.0
         return ax + u * dx, ay + u * dy, j, s

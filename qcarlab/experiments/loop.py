@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 import time
-from array import array
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -46,14 +45,9 @@ class Step:
 
 @dataclass
 class LoopLog:
-    """What the loop saw and did, one row per tick (SI units).
+    """What the loop saw and did, one row per tick (SI units)."""
 
-    A column is a list, or an ``array('d')`` while it holds only numbers (the loop's own columns
-    and a step's values that start as floats): a packed column appends as fast and becomes a
-    numpy array some 60 times faster at the end. Either kind gives the same :meth:`arrays`.
-    """
-
-    columns: dict[str, list[Any] | array] = field(default_factory=dict)
+    columns: dict[str, list[Any]] = field(default_factory=dict)
     ticks: int = 0
     stopped_early: bool = False  # the step returned STOP
     interrupted: bool = False  # Ctrl-C (or SIGTERM through the CLI) ended the run
@@ -119,9 +113,8 @@ def run_loop(
     base = ("t", "throttle", "steering", "encoder_counts", "tach", "motor_current", "battery_voltage", "gyro_z")
     tcols = ("true_x", "true_y", "true_yaw", "true_speed", "true_steering") if has_truth else ()
     for key in (base + tcols) if keep_rows else ():
-        cols[key] = [] if key == "encoder_counts" else array("d")  # counts stay integers
-    fixed = frozenset(cols)
-    n_fixed = len(fixed)  # the loop's own columns; the rest are the step's (Step.log)
+        cols[key] = []
+    n_fixed = len(cols)  # the loop's own columns; the rest are the step's (Step.log)
     # each column's append, bound once (the tick runs thousands of times a second)
     a_t, a_th, a_st, a_enc, a_tach, a_cur, a_bat, a_gz, a_x, a_y, a_yaw, a_v, a_d = _appends(cols, base, tcols)
     lab_append: dict[str, Callable[[Any], None]] = {}  # the step's columns' appends
@@ -148,53 +141,36 @@ def run_loop(
                 values = None
             cmd = write(out.throttle, out.steering, out.leds)
             if keep_rows:
-                tr = truth() if has_truth else None
-                while True:
-                    try:
-                        a_t(t)
-                        a_th(cmd.throttle)
-                        a_st(cmd.steering)
-                        a_enc(readout.encoder_counts)
-                        a_tach(readout.tach)
-                        a_cur(readout.motor_current)
-                        a_bat(readout.battery_voltage)
-                        a_gz(float(readout.gyro[2]))
-                        if tr is not None:
-                            a_x(tr.x)
-                            a_y(tr.y)
-                            a_yaw(tr.yaw)
-                            a_v(tr.speed)
-                            a_d(tr.steering)
-                        break
-                    except (TypeError, OverflowError):  # a car's value that is not a float: lists from now on
-                        if not _unpack(cols, base + tcols, log.ticks):
-                            raise
-                        a_t, a_th, a_st, a_enc, a_tach, a_cur, a_bat, a_gz, a_x, a_y, a_yaw, a_v, a_d = \
-                            _appends(cols, base, tcols)
+                a_t(t)
+                a_th(cmd.throttle)
+                a_st(cmd.steering)
+                a_enc(readout.encoder_counts)
+                a_tach(readout.tach)
+                a_cur(readout.motor_current)
+                a_bat(readout.battery_voltage)
+                gyro = readout.gyro
+                a_gz(float(gyro.item(2) if type(gyro) is np.ndarray else gyro[2]))
+                if has_truth:
+                    tr = truth()
+                    a_x(tr.x)
+                    a_y(tr.y)
+                    a_yaw(tr.yaw)
+                    a_v(tr.speed)
+                    a_d(tr.steering)
                 if values:
                     for key, value in values.items():
                         append = lab_append.get(key)
-                        if append is None:
+                        if append is None:  # a value first logged late: None for the ticks before
                             column = cols.get(key)
-                            if column is None:  # a float column packed; a value first logged late: None before
-                                column = cols[key] = array("d") if type(value) is float and not log.ticks \
-                                    else [None] * log.ticks
+                            if column is None:
+                                column = cols[key] = [None] * log.ticks
                             append = lab_append[key] = column.append
-                        try:
-                            append(value)
-                        except (TypeError, OverflowError):  # not a number after all: a list from now on
-                            _unpack(cols, (key,), len(cols[key]))
-                            append = lab_append[key] = cols[key].append
-                            append(value)
-                            if key in fixed:  # a step logging one of the loop's columns (why not)
-                                a_t, a_th, a_st, a_enc, a_tach, a_cur, a_bat, a_gz, a_x, a_y, a_yaw, a_v, a_d = \
-                                    _appends(cols, base, tcols)
+                        append(value)
             if recorder is not None and values:  # the lab's own values (a step's ``log``)
                 recorder.log_values(readout.t, {"t": t, **values})
             log.ticks += 1
             if keep_rows and (len(values) if values else 0) != len(cols) - n_fixed:
                 _pad(cols, log.ticks)  # a step's column not logged this tick
-                lab_append.clear()  # (padding turns a packed column into a list)
             if on_tick is not None:
                 on_tick(t, readout, cmd)
             if stepped:
@@ -234,32 +210,15 @@ def _stop_quietly(car: Car) -> None:
         pass
 
 
-def _appends(cols: dict[str, Any], base: tuple[str, ...], tcols: tuple[str, ...]) -> tuple:
-    """The loop's columns' append methods, in the order of ``base`` then ``tcols`` (None for
-    columns not kept): bound once, called every tick."""
-    out = [cols[k].append if k in cols else None for k in base]
-    out += [cols[k].append if k in cols else None for k in tcols]
+def _appends(cols: dict[str, list[Any]], base: tuple[str, ...], tcols: tuple[str, ...]) -> tuple:
+    """The loop's columns' append methods, ``base`` then ``tcols`` (None for a column not kept):
+    bound once, called every tick."""
+    out = [cols[k].append if k in cols else None for k in base + tcols]
     return tuple(out) + (None,) * (13 - len(out))
 
 
-def _unpack(cols: dict[str, Any], keys: tuple[str, ...], n: int) -> bool:
-    """Packed columns of ``keys`` become lists of their first ``n`` values (a value that is not a
-    float arrived: a tick half-appended is dropped, to be appended again). False if none was packed."""
-    changed = False
-    for k in keys:
-        column = cols.get(k)
-        if type(column) is array:
-            cols[k] = column[:n].tolist()
-            changed = True
-        elif column is not None and len(column) > n:
-            del column[n:]
-    return changed
-
-
-def _pad(cols: dict[str, Any], n: int) -> None:
+def _pad(cols: dict[str, list[Any]], n: int) -> None:
     """Columns the step did not fill this tick (a value logged only sometimes) get None."""
-    for key, column in cols.items():
+    for column in cols.values():
         if len(column) < n:
-            if type(column) is array:  # None is no float: the column becomes a list
-                column = cols[key] = column.tolist()
             column.extend([None] * (n - len(column)))

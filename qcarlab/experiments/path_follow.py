@@ -23,7 +23,6 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
-from functools import partial
 from typing import Any
 
 import numpy as np
@@ -33,7 +32,7 @@ from qcarlab.car.base import Car, Command, Readout
 from qcarlab.car.lamps import ALL_OFF, parse_lamps
 from qcarlab.constants import QCarParams
 from qcarlab.control.pose import BicyclePoseEstimator
-from qcarlab.control.speed import KFF, KI, KP, SpeedController, basic_speed_estimation, turn_speed_handling
+from qcarlab.control.speed import KFF, KI, KP, SpeedController, speed_estimation, turn_speed_handling
 from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pursuit, rear_axle, stanley
 from qcarlab.control.tracking import Polyline, cross_track_errors, progress_along
 from qcarlab.errors import InputError
@@ -161,12 +160,15 @@ class PathFollowingLab(LabModel):
 
     def reference_blocks(self) -> dict[str, Any]:
         c, p = self.cfg, self.p
+        # the steering blocks as they are: step() clips whatever a steering block returns (the
+        # student's too) to +-max_steering, which is what binding max_steering would do first
+        # (a keyword bound with functools.partial costs more than the controller's arithmetic)
         return {
-            "basic_speed_estimation": partial(basic_speed_estimation, params=p),
+            "basic_speed_estimation": speed_estimation(p),
             "pose_estimator": BicyclePoseEstimator(p),
-            "pure_pursuit": partial(pure_pursuit, max_steering=p.max_steering),
-            "follow_the_carrot": partial(follow_the_carrot, max_steering=p.max_steering),
-            "stanley": partial(stanley, max_steering=p.max_steering),
+            "pure_pursuit": pure_pursuit,
+            "follow_the_carrot": follow_the_carrot,
+            "stanley": stanley,
             "turn_speed_handling": turn_speed_handling,
             "speed_controller": SpeedController(c.kp, c.ki, c.kff, throttle_limit=self.throttle_limit),
         }
@@ -177,7 +179,7 @@ class PathFollowingLab(LabModel):
         if self.first:
             self.first = False
         else:
-            yaw_rate = float(r.gyro[2]) if self._gyro else None
+            yaw_rate = float(r.gyro[2]) if self._gyro else None  # (a student's may use it)
             self.pose = self.pose_estimator(self.pose, v, self.steer, dt, yaw_rate)
         est = self.pose
         if self._true_pose:
@@ -206,9 +208,15 @@ class PathFollowingLab(LabModel):
             else:
                 delta = self.stanley(pose, self.poly, index, v, c.k_stanley, self._wheelbase)
             m = self._max_steering
-            delta = min(max(delta, -m), m)
+            if -m > delta:  # delta = min(max(delta, -m), m), written out (the builtins cost more)
+                delta = -m
+            if m < delta:
+                delta = m
             v_ref = self.turn_speed_handling(c.speed, delta) if c.turn_speed else c.speed
-            v_ref = min(v_ref, math.sqrt(self._two_a_stop * max(remaining - self._stop_margin, 0.0)))
+            room = remaining - self._stop_margin
+            v_stop = math.sqrt(self._two_a_stop * (0.0 if 0.0 > room else room))
+            if v_stop < v_ref:  # v_ref = min(v_ref, v_stop)
+                v_ref = v_stop
         throttle = self.speed_controller(v_ref, v, dt)
         self.steer = delta
         return Step(Command(throttle, delta, _BRAKE if self.arrived else ALL_OFF),
