@@ -58,9 +58,14 @@ class LoopLog:
         for key, value in values.items():
             self.columns.setdefault(key, []).append(value)
 
-    def arrays(self) -> dict[str, np.ndarray]:
+    def arrays(self, keys: Any = None) -> dict[str, np.ndarray]:
+        """The columns as numpy arrays (only those of ``keys`` that exist, when given: turning a
+        column of thousands of Python floats into an array costs about as much as logging it)."""
         n = self.ticks
-        return {k: np.asarray(v[:n]) for k, v in self.columns.items()}
+        cols = self.columns
+        if keys is None:
+            return {k: np.asarray(v[:n]) for k, v in cols.items()}
+        return {k: np.asarray(cols[k][:n]) for k in keys if k in cols}
 
 
 def check_rate(rate: float) -> float:
@@ -121,7 +126,7 @@ def run_loop(
     t0 = car.time
     dt = period
     next_wall = last_wall = time.monotonic()
-    k = 0
+    k = ticks = 0  # (log.ticks is set from ticks when the loop ends)
     recorder = getattr(car, "recorder", None)  # --record/--live (qcarlab.recording): the lab's values too
     ends = hasattr(car, "ended")  # --car replay: the recording runs out
     try:
@@ -163,14 +168,14 @@ def run_loop(
                         if append is None:  # a value first logged late: None for the ticks before
                             column = cols.get(key)
                             if column is None:
-                                column = cols[key] = [None] * log.ticks
+                                column = cols[key] = [None] * ticks
                             append = lab_append[key] = column.append
                         append(value)
             if recorder is not None and values:  # the lab's own values (a step's ``log``)
                 recorder.log_values(readout.t, {"t": t, **values})
-            log.ticks += 1
+            ticks += 1
             if keep_rows and (len(values) if values else 0) != len(cols) - n_fixed:
-                _pad(cols, log.ticks)  # a step's column not logged this tick
+                _pad(cols, ticks)  # a step's column not logged this tick
             if on_tick is not None:
                 on_tick(t, readout, cmd)
             if stepped:
@@ -195,6 +200,8 @@ def run_loop(
     except BaseException:
         _stop_quietly(car)  # the error in flight is the one to report, not a failing stop
         raise
+    finally:
+        log.ticks = ticks
     car.stop()
     if keep_rows:
         _pad(cols, log.ticks)

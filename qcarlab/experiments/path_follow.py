@@ -45,6 +45,7 @@ CONTROLLERS = ("pure-pursuit", "carrot", "stanley")
 POSE_SOURCES = ("bicycle", "gyro", "truth")
 A_STOP = 0.8  # m/s^2, the deceleration the stop profile plans with
 _BRAKE = parse_lamps(["brake"])
+_new_tuple = tuple.__new__  # Command is a named tuple: made without its Python-level __new__ every tick
 
 
 @dataclass
@@ -219,7 +220,7 @@ class PathFollowingLab(LabModel):
                 v_ref = v_stop
         throttle = self.speed_controller(v_ref, v, dt)
         self.steer = delta
-        return Step(Command(throttle, delta, _BRAKE if self.arrived else ALL_OFF),
+        return Step(_new_tuple(Command, (throttle, delta, _BRAKE if self.arrived else ALL_OFF)),  # Command(...)
                     {"est_x": est[0], "est_y": est[1], "est_yaw": est[2], "v_ref": v_ref, "v_meas": v,
                      "target_x": tx, "target_y": ty})
 
@@ -243,7 +244,7 @@ def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
     model = watch.wrap(lab) if watch is not None else lab
     max_time = cfg.max_time or (1.5 * lab.poly.length / cfg.speed + 10.0)
     log = run_loop(car, model, max_time, cfg.rate, on_tick=on_tick)
-    cols = log.arrays()
+    cols = log.arrays(LOG_COLUMNS)
     metrics = score_run(cols, route, cfg, truth=truth0 is not None, stopped=log.stopped_early and not
                         (watch and watch.event))
     metrics["config"] = asdict(cfg)
@@ -336,7 +337,10 @@ def score_run(cols: dict[str, np.ndarray], route: np.ndarray, cfg: FollowConfig,
     return metrics
 
 
+#: The columns of the run's log.csv (and all that score_run reads), in order.
+LOG_COLUMNS = ("t", "target_x", "target_y", "est_x", "est_y", "est_yaw", "true_x", "true_y", "true_yaw",
+               "throttle", "steering", "v_ref", "v_meas", "true_speed")
+
+
 def _log_columns(cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    keep = ["t", "target_x", "target_y", "est_x", "est_y", "est_yaw", "true_x", "true_y", "true_yaw",
-            "throttle", "steering", "v_ref", "v_meas", "true_speed"]
-    return {k: cols[k] for k in keep if k in cols}
+    return {k: cols[k] for k in LOG_COLUMNS if k in cols}
