@@ -218,7 +218,32 @@ class LookaheadTarget:
         ``(target_x, target_y, index, progress)`` (the lab's tick: no array is made)."""
         poly = self.poly
         ld = self.lookahead
-        j, t, d0 = poly.walk_forward(self.index, px, py, self.max_segments)
+        xs, ys, dxs, dys, l2s = poly._x, poly._y, poly._dx, poly._dy, poly._l2
+        # j, t, d0 = poly.walk_forward(self.index, px, py, self.max_segments), written out (every tick)
+        j = self.index
+        last = j + self.max_segments
+        if last > poly.n - 2:
+            last = poly.n - 2
+        ax, ay, dx, dy, l2 = xs[j], ys[j], dxs[j], dys[j], l2s[j]
+        if l2 == 0.0:
+            t = 0.0
+        else:
+            u = ((px - ax) * dx + (py - ay) * dy) / l2
+            t = (u if u < 1.0 else 1.0) if u > 0.0 else 0.0
+        hypot = math.hypot
+        d0 = hypot(px - ax - t * dx, py - ay - t * dy)
+        while j < last:
+            k = j + 1
+            ax, ay, dx, dy, l2 = xs[k], ys[k], dxs[k], dys[k], l2s[k]
+            if l2 == 0.0:
+                tn = 0.0
+            else:
+                u = ((px - ax) * dx + (py - ay) * dy) / l2
+                tn = (u if u < 1.0 else 1.0) if u > 0.0 else 0.0
+            dn = hypot(px - ax - tn * dx, py - ay - tn * dy)
+            if dn > d0 + 1e-12:
+                break
+            j, t, d0 = k, tn, dn
         cum, seglen = poly._cum, poly._len
         s = cum[j] + t * seglen[j]
         if s < self.progress:  # never move back along the path
@@ -227,7 +252,6 @@ class LookaheadTarget:
             d0 = math.hypot(px - poly._x[j] - t * (poly._x[j + 1] - poly._x[j]),
                             py - poly._y[j] - t * (poly._y[j + 1] - poly._y[j]))
         self.index, self.progress = j, s
-        xs, ys = poly._x, poly._y
         if d0 >= ld:  # the point l_d ahead of the projection along the path (Polyline.point_at)
             q = min(max(s + ld, 0.0), poly.length)
             i = min(max(bisect_right(cum, q) - 1, 0), poly.n - 2)
@@ -238,7 +262,6 @@ class LookaheadTarget:
         if last > poly.n - 1:
             last = poly.n - 1
         k = j + 1
-        hypot = math.hypot
         while k <= last and hypot(xs[k] - px, ys[k] - py) < ld:
             k += 1
         if k > last:
