@@ -7,8 +7,6 @@ straightforward computations they replaced (every segment; one ``walk_forward`` 
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
