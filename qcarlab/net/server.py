@@ -350,8 +350,8 @@ class CarServer:
                 f"refusing to serve on {shown} without a token: that address is not loopback, anyone on its "
                 "network could drive the car; set QCARLAB_TOKEN (qcarlab serve --new-token makes one), or bind to 127.0.0.1"
             )
-        if self.render_process and not self.lockstep and callable(getattr(type(self.car), "sensor_recipe", None)):
-            # (the car's own class: a wrapper that records frames must see them pass)
+        if self.render_process and not self.lockstep and callable(getattr(self.car, "sensor_recipe", None)):
+            # (a wrapper that records frames sees them pass: its sensor job's ``drawn`` hook)
             self._start_worker()
         if self.prepare and self.worker is None:
             try:
@@ -553,6 +553,7 @@ class CarServer:
     # --- housekeeping: log lines, the real-time simulator's clock ---------------------------------
     def _housekeeping_loop(self) -> None:
         next_sync = 0.0
+        heartbeat = getattr(self.car, "heartbeat", None)
         while not self._stop_evt.wait(HOUSEKEEPING_S):
             now = time.monotonic()
             if not self.lockstep and now >= next_sync:
@@ -564,6 +565,13 @@ class CarServer:
                         self.car.time
                 except Exception:
                     pass
+            if heartbeat is not None:  # a recorded car (serve --live): its pose, whoever drives it
+                try:
+                    with self.drive_lock:
+                        heartbeat()
+                except Exception as exc:
+                    _log(logging.WARNING, "live view: %s", _one_line(str(exc)))
+                    heartbeat = None
             self._flush_notes()
             self.refusals.flush(now)
 
