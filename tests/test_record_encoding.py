@@ -1,6 +1,6 @@
-"""The recording's hand-made encodings are the messages the general ones make: the per-tick JSON
-(readout, command, truth, the lab's values) and the protobuf bytes of the poses, transforms and
-scans, decoded with the very Foxglove schemas the file carries."""
+"""The recording's hand-made encodings: qcarlab's protobuf readouts, commands and truth decode bit
+for bit with the descriptors the file carries; the lab's values' JSON is the general encoder's;
+the poses, transforms and scans decode as the SDK's own messages, with Foxglove's schemas."""
 
 from __future__ import annotations
 
@@ -38,26 +38,48 @@ def decoder(message_type):
     return message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString
 
 
+def qcarlab_decoder(topic):
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    pool = descriptor_pool.DescriptorPool()
+    for f in descriptor_pb2.FileDescriptorSet.FromString(C.pb_descriptor()).file:
+        pool.Add(f)
+    cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(C.PB_SCHEMAS[topic]))
+    return lambda data: C.pb_dict(cls.FromString(data))
+
+
+def same(a, b) -> bool:
+    """Equal as the same 8 bytes (NaN included, -0.0 told from 0.0)."""
+    return np.array(a, dtype="<f8").tobytes() == np.array(b, dtype="<f8").tobytes()
+
+
 @settings(max_examples=200, deadline=None)
-@given(st.tuples(*[anyfloat] * 12), st.integers(-2**40, 2**40), st.sampled_from([(), ("brake",), ("hazard", "headlamps")]))
-def test_readout_json_is_the_general_encoding(vals, counts, lamps):
+@given(st.tuples(*[anyfloat] * 12), st.integers(-2**62, 2**62), st.sampled_from([(), ("brake",), ("hazard", "headlamps")]))
+def test_readout_bytes_decode_bit_for_bit(vals, counts, lamps):
     t, tach, cur, vbat, g0, g1, g2, a0, a1, a2, ste, thr = vals
-    r = Readout(t, counts, tach, cur, vbat, np.array([g0, g1, g2]), np.array([a0, a1, a2]), ste, thr, parse_lamps(list(lamps)))
-    assert json.loads(C.readout_bytes(r)) == json.loads(C.json_bytes(C.readout_json(r)))
+    leds = parse_lamps(list(lamps))
+    r = Readout(t, counts, tach, cur, vbat, np.array([g0, g1, g2]), np.array([a0, a1, a2]), ste, thr, leds)
+    back = qcarlab_decoder(C.READOUT)(C.readout_pb(r))
+    assert set(back) == set(C.READOUT_FIELDS) and back["encoder_counts"] == counts
+    assert same([back[k] for k in ("t", "tach", "motor_current", "battery_voltage", "steering", "throttle")],
+                [t, tach, cur, vbat, ste, thr])
+    assert same(back["gyro"], [g0, g1, g2]) and same(back["accel"], [a0, a1, a2]) and same(back["leds"], leds)
 
 
 @settings(max_examples=200, deadline=None)
 @given(anyfloat, anyfloat, anyfloat, st.booleans())
-def test_command_json_is_the_general_encoding(t, thr, ste, stop):
+def test_command_bytes_decode_bit_for_bit(t, thr, ste, stop):
     cmd = Command(thr, ste, parse_lamps(["brake", "left-indicators"]))
-    assert json.loads(C.command_bytes(t, cmd, stop)) == json.loads(C.json_bytes(C.command_json(t, cmd, stop)))
+    back = qcarlab_decoder(C.COMMAND)(C.command_pb(t, cmd, stop))
+    assert same([back["t"], back["throttle"], back["steering"]], [t, thr, ste])
+    assert same(back["leds"], cmd.leds) and back["stop"] is stop
 
 
 @settings(max_examples=200, deadline=None)
 @given(st.tuples(*[anyfloat] * 9))
-def test_truth_json_is_the_general_encoding(vals):
-    tr = Truth(*vals)
-    assert json.loads(C.truth_bytes(tr)) == json.loads(C.json_bytes(C.truth_json(tr)))
+def test_truth_bytes_decode_bit_for_bit(vals):
+    back = qcarlab_decoder(C.TRUTH)(C.truth_pb(Truth(*vals)))
+    assert same([back[k] for k in C.TRUTH_FIELDS], vals)
 
 
 @settings(max_examples=300, deadline=None)
@@ -67,13 +89,6 @@ def test_truth_json_is_the_general_encoding(vals):
     st.tuples(finite, finite)), max_size=8))
 def test_lab_values_json_is_the_general_encoding(values):
     assert json.loads(C.values_bytes(values)) == json.loads(C.json_bytes(values))
-
-
-def test_json_floats_read_back_bit_for_bit():
-    r = Readout(0.1 + 0.2, 7, 1 / 3, math.pi, 12.6, np.array([1e-300, -0.0, 5e-324]), np.array([0.0, 0.0, 9.81]))
-    back = json.loads(C.readout_bytes(r))
-    assert back["t"] == 0.1 + 0.2 and back["tach"] == 1 / 3 and back["gyro"] == [1e-300, -0.0, 5e-324]
-    assert math.copysign(1.0, back["gyro"][1]) == -1.0
 
 
 def test_pose_and_transform_bytes_decode_as_the_sdks_messages():
@@ -108,3 +123,41 @@ def test_scan_bytes_decode_as_the_sdks_message():
         assert mine.start_angle == sdk.start_angle and mine.end_angle == sdk.end_angle
         assert np.array_equal(np.array(mine.ranges), np.array(sdk.ranges), equal_nan=True)
         assert len(mine.ranges) == len(scan.ranges) and not mine.HasField("pose")
+
+
+def test_a_version_1_recording_with_json_readouts_still_replays(tmp_path):
+    """Recordings made before the protobuf messages (version 1) carry readouts, commands and the
+    truth as JSON: the reader reads them as before."""
+    pytest.importorskip("mcap")
+    from mcap.writer import Writer
+
+    from qcarlab.recording.reader import Recording
+
+    f = tmp_path / "v1.mcap"
+    t0 = 1_700_000_000_000_000_000
+    with f.open("wb") as out:
+        w = Writer(out)
+        w.start(profile="", library="qcarlab 0.1 (version 1)")
+        w.add_metadata("qcarlab", {"version": "1", "profile": "compact", "t0_ns": str(t0)})
+        ids = {}
+        for topic, name in ((C.READOUT, "qcarlab.Readout"), (C.COMMAND, "qcarlab.Command"), (C.TRUTH, "qcarlab.Truth")):
+            schema = w.register_schema(name=name, encoding="jsonschema", data=b'{"type": "object"}')
+            ids[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=schema)
+        for k in range(3):
+            t = 0.01 * k
+            ns = t0 + round(t * 1e9)
+            msgs = {
+                C.READOUT: {"t": t, "encoder_counts": 10 * k, "tach": 1.5 * k, "motor_current": 0.25, "battery_voltage": 12.1,
+                            "gyro": [0.0, 0.0, 0.125], "accel": [0.0, 0.0, 9.81], "steering": 0.1, "throttle": 0.2,
+                            "leds": [1.0] + [0.0] * 11},
+                C.COMMAND: {"t": t, "throttle": 0.2, "steering": 0.1, "leds": [0.0] * 12},
+                C.TRUTH: {"t": t, "x": 0.5 * k, "y": 0.0, "yaw": 0.0, "speed": 0.3, "wheel_speed": 0.3, "steering": 0.1,
+                          "distance": 0.003 * k, "wheel_distance": 0.003 * k},
+            }
+            for topic, msg in msgs.items():
+                w.add_message(channel_id=ids[topic], log_time=ns, publish_time=ns, data=json.dumps(msg).encode())
+        w.finish()
+    tape = Recording(f).tape()
+    assert [r.encoder_counts for r in tape.readouts] == [0, 10, 20] and tape.readouts[2].tach == 3.0
+    assert tape.readouts[0].leds[0] == 1.0 and list(tape.readouts[1].gyro) == [0.0, 0.0, 0.125]
+    assert [c.throttle for _, c, _ in tape.commands] == [0.2] * 3 and tape.truths[2].x == 1.0

@@ -1,11 +1,12 @@
 """What a recording holds: topics, coordinate frames, and the conversions from qcarlab's types.
 
-Topics (Foxglove's well-known schemas where one fits, JSON with a JSON Schema otherwise)::
+Topics (Foxglove's well-known schemas where one fits; else qcarlab's own, protobuf for the
+per-tick readouts, commands and truth, JSON with a JSON Schema for the rest)::
 
-    /qcar/readout          qcarlab.Readout       every read(): encoder, tach, current, battery, IMU
-    /qcar/command          qcarlab.Command       every write() and stop(): what was applied
-    /qcar/truth            qcarlab.Truth         the simulator's ground truth (simulated cars)
-    /qcar/lab              qcarlab.LabValues     the lab's own logged values (v_ref, state, ...)
+    /qcar/readout          qcarlab.Readout       every read(): encoder, tach, current, battery, IMU (protobuf)
+    /qcar/command          qcarlab.Command       every write() and stop(): what was applied (protobuf)
+    /qcar/truth            qcarlab.Truth         the simulator's ground truth (simulated cars; protobuf)
+    /qcar/lab              qcarlab.LabValues     the lab's own logged values (v_ref, state, ...; JSON)
     /qcar/lidar            foxglove.LaserScan    each new scan, frame "lidar"
     /qcar/rgbd/color       foxglove.CompressedImage (JPEG) | foxglove.RawImage bgr8 (exact)
     /qcar/rgbd/depth       foxglove.RawImage     16UC1 mm (compact) | 32FC1 m (exact)
@@ -22,7 +23,8 @@ Topics (Foxglove's well-known schemas where one fits, JSON with a JSON Schema ot
 
 Times: a message's log time is ``t0_ns + round(t * 1e9)`` with ``t`` the car's time (s since it
 was opened) and ``t0_ns`` the wall clock when recording started (in the file's ``qcarlab``
-metadata). The JSON messages carry ``t`` as the exact float.
+metadata). The messages carry ``t`` as the exact float (recordings of version 1 wrote readouts,
+commands and truth as JSON; the reader reads both).
 
 LIDAR no-returns (range 0 in qcarlab) are written as NaN, which Foxglove leaves out of the scan;
 a replay turns them back into 0.
@@ -33,6 +35,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import struct
 from collections.abc import Mapping
 from typing import Any
 
@@ -74,27 +77,6 @@ DEPTH_EVERY = 15  # compact: every 15th depth frame (2 Hz at 30 fps)
 _NUM = {"type": "number"}
 _VEC3 = {"type": "array", "items": _NUM, "minItems": 3, "maxItems": 3}
 JSON_SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
-    READOUT: ("qcarlab.Readout", {
-        "type": "object",
-        "title": "One read of the car's basic sensors (SI units)",
-        "properties": {
-            "t": _NUM, "encoder_counts": {"type": "integer"}, "tach": _NUM, "motor_current": _NUM,
-            "battery_voltage": _NUM, "gyro": _VEC3, "accel": _VEC3, "steering": _NUM, "throttle": _NUM,
-            "leds": {"type": "array", "items": _NUM},
-        },
-    }),
-    COMMAND: ("qcarlab.Command", {
-        "type": "object",
-        "title": "A command as applied (throttle duty fraction, steering rad, + = left)",
-        "properties": {"t": _NUM, "throttle": _NUM, "steering": _NUM, "leds": {"type": "array", "items": _NUM},
-                       "stop": {"type": "boolean"}},
-    }),
-    TRUTH: ("qcarlab.Truth", {
-        "type": "object",
-        "title": "The simulator's ground truth",
-        "properties": {k: _NUM for k in ("t", "x", "y", "yaw", "speed", "wheel_speed", "steering", "distance",
-                                         "wheel_distance")},
-    }),
     LAB: ("qcarlab.LabValues", {
         "type": "object",
         "title": "The lab's own values at one tick (v_ref, errors, state of the state machine, ...)",
@@ -123,46 +105,57 @@ def json_bytes(values: Mapping[str, Any]) -> bytes:
         return json.dumps(to_jsonable(values), allow_nan=False, separators=(",", ":")).encode()
 
 
-# --- the per-tick messages, encoded straight to JSON text ----------------------------------------
-# A recorded run writes a readout, a command, the truth and the lab's values every tick: building a
-# dict and handing it to json.dumps costs more than the run's own step (float formatting aside).
-# These write the same JSON (floats with repr, so they read back bit for bit) from a template, and
-# fall back to the general path for anything unusual (a non-finite value, an unexpected type).
-_FREPR = float.__repr__
-_READOUT_FMT = ('{"t":%s,"encoder_counts":%d,"tach":%s,"motor_current":%s,"battery_voltage":%s,'
-                '"gyro":[%s,%s,%s],"accel":[%s,%s,%s],"steering":%s,"throttle":%s,"leds":[%s]}')
-_COMMAND_FMT = '{"t":%s,"throttle":%s,"steering":%s,"leds":[%s]%s}'
-_TRUTH_FMT = ('{"t":%s,"x":%s,"y":%s,"yaw":%s,"speed":%s,"wheel_speed":%s,"steering":%s,"distance":%s,'
-              '"wheel_distance":%s}')
-_LEDS: dict[tuple, str | None] = {}  # a lamp tuple -> its JSON numbers (the same few tuples every tick)
+# --- the per-tick messages ------------------------------------------------------------------------
+# A recorded run writes a readout, a command and the truth every tick. As JSON, writing each float
+# as its shortest exact decimal (the only JSON that reads back bit for bit) cost more than the run's
+# own step; these three are protobuf instead (schemas ``qcarlab.Readout``, ``qcarlab.Command``,
+# ``qcarlab.Truth``, whose descriptors the file carries, so Foxglove and any protobuf reader decode
+# them): doubles as their 8 bytes, exact, NaN and infinities included, packed by one struct call.
+# The lab's values (free-form names) stay JSON, written from a template (values_bytes).
+PB_PACKAGE = "qcarlab"
+READOUT_FIELDS = ("t", "encoder_counts", "tach", "motor_current", "battery_voltage", "gyro", "accel",
+                  "steering", "throttle", "leds")
+COMMAND_FIELDS = ("t", "throttle", "steering", "leds", "stop")
+TRUTH_FIELDS = ("t", "x", "y", "yaw", "speed", "wheel_speed", "steering", "distance", "wheel_distance")
+PB_SCHEMAS = {READOUT: "qcarlab.Readout", COMMAND: "qcarlab.Command", TRUTH: "qcarlab.Truth"}
+
+# Readout {double t = 1; sfixed64 encoder_counts = 2; double tach = 3, motor_current = 4,
+# battery_voltage = 5; repeated double gyro = 6, accel = 7 (packed, 3 each); double steering = 8,
+# throttle = 9; repeated double leds = 10}: a tag byte ((field << 3) | wire type) before each value
+_READOUT_PB = struct.Struct("<BdBqBdBdBdBB3dBB3dBdBd")
+_COMMAND_PB = struct.Struct("<BdBdBd")  # Command {double t = 1, throttle = 2, steering = 3; leds = 4; bool stop = 5}
+_TRUTH_PB = struct.Struct("<" + "Bd" * 9)  # Truth {double t = 1 ... wheel_distance = 9}
+_LEDS_PB: dict[tuple[int, Any], bytes] = {}  # (field tag, lamp tuple) -> the packed field (the same few tuples every tick)
 _KEYS: dict[str, str] = {}  # a lab value's name -> its JSON key text
 _STRS: dict[str, str] = {}  # a short string value (a state's name) -> its JSON text
 _CACHE_MAX = 512
+_FREPR = float.__repr__
 
 
-def _finite(values: tuple[float, ...]) -> bool:
-    """All finite (a NaN or an infinity makes the sum non-finite; a sum that overflows takes the
-    general path too, which is only slower)."""
-    return math.isfinite(sum(values))
-
-
-def _leds_text(leds: Any) -> str | None:
-    """"v,v,...,v" of a lamp tuple, or None when a value is not a finite number."""
+def _packed(tag: int, values: Any) -> bytes:
+    """A packed repeated double field (cached for hashable lamp tuples)."""
     try:
-        text = _LEDS[leds]
+        return _LEDS_PB[(tag, values)]
     except (KeyError, TypeError):
-        try:
-            vals = tuple(float(v) for v in leds)
-        except (TypeError, ValueError):
-            return None
-        text = ",".join(map(_FREPR, vals)) if all(math.isfinite(v) for v in vals) else None
-        try:
-            if len(_LEDS) >= _CACHE_MAX:
-                _LEDS.clear()
-            _LEDS[leds] = text
-        except TypeError:  # not hashable (a list): not cached
-            pass
-    return text
+        pass
+    vals = [float(v) for v in values]
+    out = bytes((tag,)) + _varint(8 * len(vals)) + struct.pack(f"<{len(vals)}d", *vals)
+    try:
+        if len(_LEDS_PB) >= _CACHE_MAX:
+            _LEDS_PB.clear()
+        _LEDS_PB[(tag, values)] = out
+    except TypeError:  # a list: not cached
+        pass
+    return out
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while n > 0x7F:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
 
 
 def _three(v: Any) -> tuple[float, float, float]:
@@ -170,44 +163,62 @@ def _three(v: Any) -> tuple[float, float, float]:
     return float(a), float(b), float(c)
 
 
-def readout_bytes(r: Any) -> bytes:
-    """The readout's JSON message (as :func:`readout_json`, faster)."""
-    try:
-        g, a = _three(r.gyro), _three(r.accel)
-        vals = (float(r.t), float(r.tach), float(r.motor_current), float(r.battery_voltage), *g, *a,
-                float(r.steering), float(r.throttle))
-        counts = int(r.encoder_counts)
-    except (TypeError, ValueError):
-        return json_bytes(readout_json(r))
-    leds = _leds_text(r.leds)
-    if leds is None or not _finite(vals):
-        return json_bytes(readout_json(r))
-    t, tach, cur, vbat, g0, g1, g2, a0, a1, a2, ste, thr = map(_FREPR, vals)
-    return (_READOUT_FMT % (t, counts, tach, cur, vbat, g0, g1, g2, a0, a1, a2, ste, thr, leds)).encode()
+def readout_pb(r: Any) -> bytes:
+    """A readout as ``qcarlab.Readout`` protobuf bytes."""
+    g0, g1, g2 = _three(r.gyro)
+    a0, a1, a2 = _three(r.accel)
+    return _READOUT_PB.pack(0x09, float(r.t), 0x11, int(r.encoder_counts), 0x19, float(r.tach),
+                            0x21, float(r.motor_current), 0x29, float(r.battery_voltage), 0x32, 24, g0, g1, g2,
+                            0x3A, 24, a0, a1, a2, 0x41, float(r.steering), 0x49, float(r.throttle)
+                            ) + _packed(0x52, r.leds)
 
 
-def command_bytes(t: float, cmd: Any, stop: bool = False) -> bytes:
-    """The command's JSON message (as :func:`command_json`, faster)."""
-    try:
-        vals = (float(t), float(cmd.throttle), float(cmd.steering))
-    except (TypeError, ValueError):
-        return json_bytes(command_json(t, cmd, stop))
-    leds = _leds_text(cmd.leds)
-    if leds is None or not _finite(vals):
-        return json_bytes(command_json(t, cmd, stop))
-    return (_COMMAND_FMT % (*map(_FREPR, vals), leds, ',"stop":true' if stop else "")).encode()
+def command_pb(t: float, cmd: Any, stop: bool = False) -> bytes:
+    """A command as ``qcarlab.Command`` protobuf bytes (``stop``: the car's stop(), not a write)."""
+    out = _COMMAND_PB.pack(0x09, float(t), 0x11, float(cmd.throttle), 0x19, float(cmd.steering)) + _packed(0x22, cmd.leds)
+    return out + b"\x28\x01" if stop else out
 
 
-def truth_bytes(tr: Any) -> bytes:
-    """The truth's JSON message (as :func:`truth_json`, faster)."""
-    try:
-        vals = (float(tr.t), float(tr.x), float(tr.y), float(tr.yaw), float(tr.speed), float(tr.wheel_speed),
-                float(tr.steering), float(tr.distance), float(tr.wheel_distance))
-    except (TypeError, ValueError, AttributeError):
-        return json_bytes(truth_json(tr))
-    if not _finite(vals):
-        return json_bytes(truth_json(tr))
-    return (_TRUTH_FMT % tuple(map(_FREPR, vals))).encode()
+def truth_pb(tr: Any) -> bytes:
+    """The simulator's ground truth as ``qcarlab.Truth`` protobuf bytes."""
+    return _TRUTH_PB.pack(0x09, float(tr.t), 0x11, float(tr.x), 0x19, float(tr.y), 0x21, float(tr.yaw),
+                          0x29, float(tr.speed), 0x31, float(tr.wheel_speed), 0x39, float(tr.steering),
+                          0x41, float(tr.distance), 0x49, float(tr.wheel_distance))
+
+
+def pb_descriptor() -> bytes:
+    """The FileDescriptorSet of the three messages (the schema data every one of their channels
+    carries, as protobuf channels in MCAP and Foxglove do)."""
+    from google.protobuf import descriptor_pb2 as D
+
+    F = D.FieldDescriptorProto
+    double, sfixed64, boolean = F.TYPE_DOUBLE, F.TYPE_SFIXED64, F.TYPE_BOOL
+    one, many = F.LABEL_OPTIONAL, F.LABEL_REPEATED
+    messages = {
+        "Readout": [("t", double, one), ("encoder_counts", sfixed64, one), ("tach", double, one),
+                    ("motor_current", double, one), ("battery_voltage", double, one), ("gyro", double, many),
+                    ("accel", double, many), ("steering", double, one), ("throttle", double, one),
+                    ("leds", double, many)],
+        "Command": [("t", double, one), ("throttle", double, one), ("steering", double, one), ("leds", double, many),
+                    ("stop", boolean, one)],
+        "Truth": [(name, double, one) for name in TRUTH_FIELDS],
+    }
+    fds = D.FileDescriptorSet()
+    f = fds.file.add(name="qcarlab/recording.proto", package=PB_PACKAGE, syntax="proto3")
+    for name, fields in messages.items():
+        m = f.message_type.add(name=name)
+        for number, (field, kind, label) in enumerate(fields, start=1):
+            m.field.add(name=field, number=number, type=kind, label=label)
+    return fds.SerializeToString()
+
+
+def pb_dict(msg: Any) -> dict[str, Any]:
+    """A decoded protobuf message as a dict of every field (repeated ones as lists)."""
+    out = {}
+    for f in msg.DESCRIPTOR.fields:
+        v = getattr(msg, f.name)
+        out[f.name] = v if isinstance(v, (bool, int, float, str, bytes)) else list(v)  # a repeated field
+    return out
 
 
 def values_bytes(values: Mapping[str, Any]) -> bytes:
@@ -247,28 +258,6 @@ def values_bytes(values: Mapping[str, Any]) -> bytes:
             return json_bytes(values)
         parts.append(k + text)
     return ("{" + ",".join(parts) + "}").encode()
-
-
-def readout_json(r: Any) -> dict[str, Any]:
-    return {
-        "t": float(r.t), "encoder_counts": int(r.encoder_counts), "tach": float(r.tach),
-        "motor_current": float(r.motor_current), "battery_voltage": float(r.battery_voltage),
-        "gyro": [float(v) for v in r.gyro], "accel": [float(v) for v in r.accel],
-        "steering": float(r.steering), "throttle": float(r.throttle), "leds": [float(v) for v in r.leds],
-    }
-
-
-def command_json(t: float, cmd: Any, stop: bool = False) -> dict[str, Any]:
-    out = {"t": float(t), "throttle": float(cmd.throttle), "steering": float(cmd.steering),
-           "leds": [float(v) for v in cmd.leds]}
-    if stop:
-        out["stop"] = True
-    return out
-
-
-def truth_json(tr: Any) -> dict[str, Any]:
-    return {k: float(getattr(tr, k)) for k in ("t", "x", "y", "yaw", "speed", "wheel_speed", "steering",
-                                               "distance", "wheel_distance")}
 
 
 def encode_angles(angles: np.ndarray) -> str:

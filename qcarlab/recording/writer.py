@@ -45,7 +45,7 @@ from qcarlab.errors import InputError
 from qcarlab.recording import channels as C
 from qcarlab.recording import require
 
-VERSION = 1
+VERSION = 2  # 2: readouts, commands and truth as protobuf (1: JSON)
 COMPRESSION_THREADS = 1  # zstd compresses the chunks on a thread of its own, beside the run
 CALIBRATION_EVERY = 30  # RGBD frames between two camera calibration messages
 BALLS_PERIOD = 0.1  # s between two updates of the moving balls in the scene
@@ -102,6 +102,7 @@ class Recorder:
             except Exception as exc:  # the SDK's own error type: a path we cannot write
                 raise InputError(f"--record {self.path}: cannot write ({exc})") from None
         self._channels: dict[str, Any] = {}
+        self._pb_schema: bytes | None = None
         self._pending: deque[tuple[Any, tuple]] = deque()  # the per-tick messages not written yet
         self._flush_lock = threading.Lock()
         self._flushed_at = time.monotonic()
@@ -145,7 +146,15 @@ class Recorder:
     def _channel(self, topic: str, kind: str | None = None):
         ch = self._channels.get(topic)
         if ch is None:
-            if kind is None:  # JSON with a named JSON Schema
+            if kind is None and topic in C.PB_SCHEMAS:  # qcarlab's own protobuf messages
+                import foxglove
+
+                if self._pb_schema is None:
+                    self._pb_schema = C.pb_descriptor()
+                ch = foxglove.Channel(topic, context=self.ctx, message_encoding="protobuf",
+                                      schema=foxglove.Schema(name=C.PB_SCHEMAS[topic], encoding="protobuf",
+                                                             data=self._pb_schema))
+            elif kind is None:  # JSON with a named JSON Schema
                 import foxglove
 
                 name, schema = C.JSON_SCHEMAS[topic]
@@ -181,8 +190,8 @@ class Recorder:
             ch.log(msg, log_time=ns)
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
-    def _json(self, topic: str, encode, ns: int, *args: Any) -> None:
-        """A per-tick JSON message: ``encode(*args)`` (bytes) is only called when someone listens."""
+    def _bytes(self, topic: str, encode, ns: int, *args: Any) -> None:
+        """A per-tick message: ``encode(*args)`` (its bytes) is only called when someone listens."""
         ch = self._wanted(topic)
         if ch is not None:
             ch.base.log(encode(*args), ns)
@@ -244,20 +253,20 @@ class Recorder:
         ns = self.ns(r.t)
         if self._scene_due:
             self._resend_scene(ns)
-        self._json(C.READOUT, C.readout_bytes, ns, r)
+        self._bytes(C.READOUT, C.readout_pb, ns, r)
         est = self._estimate(r)
         if not self._has_truth:
             self._poses(ns, None, est)
 
     def _command(self, t: float, cmd: Any, stop: bool) -> None:
-        self._json(C.COMMAND, C.command_bytes, self.ns(t), t, cmd, stop)
+        self._bytes(C.COMMAND, C.command_pb, self.ns(t), t, cmd, stop)
 
     def _truth(self, tr: Any) -> None:
         ns = self.ns(tr.t)
         if self._scene_due:
             self._resend_scene(ns)
         self._has_truth = True
-        self._json(C.TRUTH, C.truth_bytes, ns, tr)
+        self._bytes(C.TRUTH, C.truth_pb, ns, tr)
         self._truth_pose = (tr.x, tr.y, tr.yaw)
         est = self._est_pose if self._estimator is not None else None
         self._poses(ns, self._truth_pose, est)
@@ -370,7 +379,7 @@ class Recorder:
         self._defer(self._values, (t, values))
 
     def _values(self, t: float, values: dict[str, Any]) -> None:
-        self._json(C.LAB, C.values_bytes, self.ns(t), {"t": float(t), **values})
+        self._bytes(C.LAB, C.values_bytes, self.ns(t), {"t": float(t), **values})
 
     def scene(self, world: Any = None, path: Any = None, t: float = 0.0) -> None:
         """The world's static shapes and/or the reference path (x, y points), once."""
