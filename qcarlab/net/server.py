@@ -212,6 +212,7 @@ class CarServer:
         prepare: bool = False,
         render_process: bool = False,
         priority: bool = True,
+        tls: Any = None,
     ):
         if not (isinstance(port, int) and 0 <= port < 65536):
             raise InputError(f"--port must be in 0-65535, got {port!r}")
@@ -251,6 +252,7 @@ class CarServer:
         self.prepare = prepare
         self.render_process = render_process
         self.priority = priority  # ask for real-time priority for the watchdog's and the controller's threads
+        self.tls = tls  # an ssl.SSLContext (qcarlab.wire.tls.server_context): every connection speaks TLS
         self.tuned = False  # tune_process() ran: every thread is real-time, monitors stay so after their hello
         self.worker: Any = None  # the RenderWorker drawing a real-time simulator's frames, once started
 
@@ -330,7 +332,8 @@ class CarServer:
     @property
     def uri(self) -> str:
         host, port = self.address
-        return f"tcp://{'[' + host + ']' if ':' in host else host}:{port}"
+        scheme = "tcps" if self.tls is not None else "tcp"
+        return f"{scheme}://{'[' + host + ']' if ':' in host else host}:{port}"
 
     @property
     def loopback(self) -> bool:
@@ -597,6 +600,17 @@ class CarServer:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
             except OSError:
                 pass
+            if self.tls is not None:  # wrapped here (no I/O); the handshake runs on the connection's thread
+                try:
+                    from qcarlab.wire.tls import TLSSocket
+
+                    sock = TLSSocket(self.tls.wrap_socket(sock, server_side=True, do_handshake_on_connect=False))
+                except (OSError, ValueError):
+                    try:
+                        sock.close()
+                    except OSError:
+                        pass
+                    continue
             session = _Session(self, sock, addr)
             victim = None
             with self.state_lock:
@@ -810,6 +824,8 @@ class _Session:
     def run(self) -> None:
         reason = "closed"
         try:
+            if self.server.tls is not None:
+                self._handshake()
             reason = self._loop()
         except _End as end:
             reason = end.reason
@@ -860,6 +876,20 @@ class _Session:
         self.close_socket()
         if not was_controller:
             server.release(self)
+
+    def _handshake(self) -> None:
+        """TLS: the handshake, within the hello's deadline (a client that stalls in it is cut off
+        as one that never says hello)."""
+        import ssl
+
+        try:
+            self.sock.handshake(self.reader.deadline, self.waiter)
+        except TimeoutError:
+            raise _End(f"no TLS handshake within {self.server.hello_timeout:g} s of connecting", "tls") from None
+        except ssl.SSLError as exc:
+            raise _End(f"TLS handshake failed: {exc.reason or exc} (a client without TLS? it needs tcps://)", "tls") from None
+        except OSError as exc:
+            raise _End(f"TLS handshake failed: {exc.strerror or exc}", "tls") from None
 
     def _wait_for_request(self) -> None:
         """The controller's next request usually comes within microseconds of its reply: look for it
