@@ -68,6 +68,11 @@ class RecordingCar(Car):
         return self.inner.params
 
     @property
+    def ended(self) -> bool:
+        """A replayed car's recording has run out (the control loop asks every tick)."""
+        return getattr(self.inner, "ended", False)
+
+    @property
     def throttle_limit(self) -> float:  # type: ignore[override]
         return self.inner.throttle_limit
 
@@ -111,7 +116,7 @@ class RecordingCar(Car):
     # --- sensors --------------------------------------------------------------------------------
     def read(self) -> Readout:
         r = self.inner.read()
-        self._t = r.t
+        object.__setattr__(self, "_t", r.t)  # (not through __setattr__: every tick)
         self.recorder.readout(r)
         if self.follow_truth:
             self._follow(r.t)

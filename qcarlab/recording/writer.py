@@ -143,7 +143,7 @@ class Recorder:
 
     # --- plumbing -------------------------------------------------------------------------------
     def ns(self, t: float) -> int:
-        return C.stamp_ns(self.t0_ns, t)
+        return self.t0_ns + round(float(t) * 1e9)  # C.stamp_ns, inlined: it runs several times a tick
 
     def _channel(self, topic: str, kind: str | None = None):
         ch = self._channels.get(topic)
@@ -194,11 +194,12 @@ class Recorder:
 
     def _bytes(self, topic: str, encode, ns: int, *args: Any) -> None:
         """A per-tick message: ``encode(*args)`` (its bytes) is only called when someone listens."""
-        ch = self._wanted(topic)
-        if ch is not None:
-            ch.base.log(encode(*args), ns)
-            counts = self.counts
-            counts[topic] = counts.get(topic, 0) + 1
+        ch = self._channels.get(topic) or self._channel(topic)
+        if self.writer is None and not ch.has_sinks():
+            return
+        ch.base.log(encode(*args), ns)
+        counts = self.counts
+        counts[topic] = counts.get(topic, 0) + 1
 
     def metadata(self, name: str, values: dict[str, Any]) -> None:
         """An MCAP metadata record (string values; others as JSON)."""
