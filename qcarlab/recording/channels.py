@@ -158,32 +158,29 @@ def _varint(n: int) -> bytes:
     return bytes(out)
 
 
-def _three(v: Any) -> tuple[float, float, float]:
-    a, b, c = v.tolist() if hasattr(v, "tolist") else v
-    return float(a), float(b), float(c)
-
-
+# (struct's "d" takes any number, NumPy's included, as float() would: no float() calls per value)
 def readout_pb(r: Any) -> bytes:
     """A readout as ``qcarlab.Readout`` protobuf bytes."""
-    g0, g1, g2 = _three(r.gyro)
-    a0, a1, a2 = _three(r.accel)
-    return _READOUT_PB.pack(0x09, float(r.t), 0x11, int(r.encoder_counts), 0x19, float(r.tach),
-                            0x21, float(r.motor_current), 0x29, float(r.battery_voltage), 0x32, 24, g0, g1, g2,
-                            0x3A, 24, a0, a1, a2, 0x41, float(r.steering), 0x49, float(r.throttle)
+    g, a = r.gyro, r.accel
+    if hasattr(g, "tolist"):
+        g = g.tolist()
+    if hasattr(a, "tolist"):
+        a = a.tolist()
+    return _READOUT_PB.pack(0x09, r.t, 0x11, int(r.encoder_counts), 0x19, r.tach, 0x21, r.motor_current,
+                            0x29, r.battery_voltage, 0x32, 24, *g, 0x3A, 24, *a, 0x41, r.steering, 0x49, r.throttle
                             ) + _packed(0x52, r.leds)
 
 
 def command_pb(t: float, cmd: Any, stop: bool = False) -> bytes:
     """A command as ``qcarlab.Command`` protobuf bytes (``stop``: the car's stop(), not a write)."""
-    out = _COMMAND_PB.pack(0x09, float(t), 0x11, float(cmd.throttle), 0x19, float(cmd.steering)) + _packed(0x22, cmd.leds)
+    out = _COMMAND_PB.pack(0x09, t, 0x11, cmd.throttle, 0x19, cmd.steering) + _packed(0x22, cmd.leds)
     return out + b"\x28\x01" if stop else out
 
 
 def truth_pb(tr: Any) -> bytes:
     """The simulator's ground truth as ``qcarlab.Truth`` protobuf bytes."""
-    return _TRUTH_PB.pack(0x09, float(tr.t), 0x11, float(tr.x), 0x19, float(tr.y), 0x21, float(tr.yaw),
-                          0x29, float(tr.speed), 0x31, float(tr.wheel_speed), 0x39, float(tr.steering),
-                          0x41, float(tr.distance), 0x49, float(tr.wheel_distance))
+    return _TRUTH_PB.pack(0x09, tr.t, 0x11, tr.x, 0x19, tr.y, 0x21, tr.yaw, 0x29, tr.speed, 0x31, tr.wheel_speed,
+                          0x39, tr.steering, 0x41, tr.distance, 0x49, tr.wheel_distance)
 
 
 def pb_descriptor() -> bytes:
