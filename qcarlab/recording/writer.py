@@ -14,8 +14,10 @@ The per-tick messages (readouts, commands, the truth, the lab's values, LIDAR sc
 and transforms they give) are queued as they come and written in batches, at the latest
 FLUSH_PERIOD_S (20 ms) after they came and before any camera frame: a run pays the encoding in one
 tight loop rather than a little of it at every tick, where the simulator's own work has pushed the
-recorder's code and data out of the caches (the order of the messages, and so the file, is the
-same). What a recording holds is unchanged: every readout, command, truth and value, in full.
+recorder's code and data out of the caches (their order is kept). Camera frames are encoded (JPEG,
+millimetre depth) and written on a thread of their own (:class:`_FrameEncoder`), which OpenCV and
+NumPy let run beside the lab. What a recording holds is unchanged: every readout, command, truth
+and value, in full, each with its exact time (readers order the messages by it).
 
 Two profiles for the cameras (the rest is always lossless):
 
@@ -381,10 +383,10 @@ class Recorder:
     # --- what the lab says ----------------------------------------------------------------------
     def log_values(self, t: float, values: dict[str, Any]) -> None:
         """The lab's own values at time ``t`` (s): v_ref, cross-track error, state, ..."""
-        self._defer(self._values, (t, values))
+        self._defer(self._values, (t, {"t": float(t), **values}))  # (a copy: the caller may reuse its dict)
 
     def _values(self, t: float, values: dict[str, Any]) -> None:
-        self._bytes(C.LAB, C.values_bytes, self.ns(t), {"t": float(t), **values})
+        self._bytes(C.LAB, C.values_bytes, self.ns(t), values)
 
     def scene(self, world: Any = None, path: Any = None, t: float = 0.0) -> None:
         """The world's static shapes and/or the reference path (x, y points), once."""
