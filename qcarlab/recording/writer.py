@@ -14,10 +14,11 @@ The per-tick messages (readouts, commands, the truth, the lab's values, LIDAR sc
 and transforms they give) are queued as they come and written in batches, at the latest
 FLUSH_PERIOD_S (20 ms) after they came and before any camera frame: a run pays the encoding in one
 tight loop rather than a little of it at every tick, where the simulator's own work has pushed the
-recorder's code and data out of the caches (their order is kept). Camera frames are encoded (JPEG,
-millimetre depth) and written on a thread of their own (:class:`_FrameEncoder`), which OpenCV and
-NumPy let run beside the lab. What a recording holds is unchanged: every readout, command, truth
-and value, in full, each with its exact time (readers order the messages by it).
+recorder's code and data out of the caches (their order is kept). Camera frames are encoded in the
+caller's thread: on a thread of their own (OpenCV's encoder lets go of the interpreter lock) they
+cost as much CPU and, on a machine whose cores are busy, more time (measured, bench_record.py).
+What a recording holds is unchanged: every readout, command, truth and value, in full, each with
+its exact time.
 
 Two profiles for the cameras (the rest is always lossless):
 
@@ -34,7 +35,6 @@ from __future__ import annotations
 import json
 import math
 import sys
-import queue
 import threading
 import time
 from collections import deque
@@ -108,7 +108,6 @@ class Recorder:
         self._pb_schema: bytes | None = None
         self.counts: dict[str, int] = {}  # messages written per topic
         self._pending: deque[tuple[Any, tuple]] = deque()  # the per-tick messages not written yet
-        self._encoder = _FrameEncoder(self.counts)
         self._flush_lock = threading.Lock()
         self._flushed_at = time.monotonic()
         self.live = live
@@ -355,15 +354,15 @@ class Recorder:
         if k % CALIBRATION_EVERY == 0:
             self._log(C.CALIBRATION, "CameraCalibration", M.calibration(self.params, ns), ns)
         kind = "RawImage" if self.exact else "CompressedImage"
-        color = self._wanted(C.COLOR, kind)
-        depth = self._wanted(C.DEPTH, "RawImage") if with_depth else None
-        if color is not None or depth is not None:
-            jobs = []
-            if color is not None:
-                jobs.append((color, C.COLOR, M.color_image, (_own_bgr(frame.color), ns, C.CAMERA_FRAME, self.exact)))
-            if depth is not None:
-                jobs.append((depth, C.DEPTH, M.depth_image, (np.array(frame.depth, copy=True), ns, self.exact)))
-            self._encoder.submit(jobs, ns)
+        ch = self._wanted(C.COLOR, kind)
+        if ch is not None:
+            ch.log(M.color_image(frame.color, ns, C.CAMERA_FRAME, self.exact), log_time=ns)
+            self.counts[C.COLOR] = self.counts.get(C.COLOR, 0) + 1
+        if with_depth:
+            ch = self._wanted(C.DEPTH, "RawImage")
+            if ch is not None:
+                ch.log(M.depth_image(frame.depth, ns, self.exact), log_time=ns)
+                self.counts[C.DEPTH] = self.counts.get(C.DEPTH, 0) + 1
 
     def csi(self, frames: Any) -> None:
         self.flush()
@@ -372,13 +371,11 @@ class Recorder:
         if self.writer is not None:
             self._log(C.FRAMES, None, {"sensor": "csi", "t": float(frames.t), "stamp": ns}, ns)
         kind = "RawImage" if self.exact else "CompressedImage"
-        jobs = []
         for view, image in zip(C.CSI_VIEWS, frames.as_list()):
             ch = self._wanted(C.CSI[view], kind)
             if ch is not None:
-                jobs.append((ch, C.CSI[view], M.color_image, (_own_bgr(image), ns, C.CSI_FRAMES[view], self.exact)))
-        if jobs:
-            self._encoder.submit(jobs, ns)
+                ch.log(M.color_image(image, ns, C.CSI_FRAMES[view], self.exact), log_time=ns)
+                self.counts[C.CSI[view]] = self.counts.get(C.CSI[view], 0) + 1
 
     # --- what the lab says ----------------------------------------------------------------------
     def log_values(self, t: float, values: dict[str, Any]) -> None:
@@ -412,7 +409,6 @@ class Recorder:
         try:
             try:
                 self.flush()
-                self._encoder.close()  # the frames still being encoded, then the summary
             finally:
                 if self.writer is not None:
                     self.writer.close()
@@ -425,70 +421,6 @@ class Recorder:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _own_bgr(image: Any) -> np.ndarray:
-    """A copy of a BGR uint8 image for the encoder thread (the lab may draw on its own), checked
-    here, where a bad frame can still be refused in the caller's thread."""
-    img = np.asarray(image)
-    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-        raise InputError(f"recording: expected a BGR uint8 image, got {img.dtype} {img.shape}")
-    return np.array(img, copy=True)
-
-
-class _FrameEncoder:
-    """Camera frames encoded (JPEG, depth in millimetres, raw bytes) and written on a thread of its
-    own: OpenCV's encoder and NumPy's conversions let go of the interpreter lock, so a recorded
-    camera lab goes on with its next ticks meanwhile. Frames are written in the order they came;
-    at most QUEUE frames wait (then the caller waits: a recording never drops a frame); an error
-    in the thread is raised in the caller's at the next frame or on close."""
-
-    QUEUE = 4
-
-    def __init__(self, counts: dict[str, int]):
-        self.counts = counts
-        self._queue: queue.Queue | None = None
-        self._thread: threading.Thread | None = None
-        self._error: BaseException | None = None
-
-    def submit(self, jobs: list[tuple[Any, str, Any, tuple]], ns: int) -> None:
-        """``jobs``: (channel, topic, encode, args): ``channel.log(encode(*args))`` at log time ``ns``."""
-        self._raise()
-        if self._thread is None:
-            self._queue = queue.Queue(self.QUEUE)
-            self._thread = threading.Thread(target=self._run, name="qcarlab-record-frames", daemon=True)
-            self._thread.start()
-        self._queue.put((jobs, ns))
-
-    def _run(self) -> None:
-        q = self._queue
-        while True:
-            item = q.get()
-            if item is None:
-                return
-            jobs, ns = item
-            try:
-                for ch, topic, encode, args in jobs:
-                    ch.log(encode(*args), log_time=ns)
-                    self.counts[topic] = self.counts.get(topic, 0) + 1
-            except BaseException as exc:  # raised in the caller's thread
-                if self._error is None:
-                    self._error = exc
-
-    def _raise(self) -> None:
-        if self._error is not None:
-            exc, self._error = self._error, None
-            if isinstance(exc, InputError):
-                raise exc
-            raise InputError(f"recording a camera frame failed: {type(exc).__name__}: {exc}")
-
-    def close(self) -> None:
-        """Write every frame still waiting; then the thread ends."""
-        if self._thread is not None:
-            self._queue.put(None)
-            self._thread.join()
-            self._thread = None
-        self._raise()
 
 
 def _params_dict(params: QCarParams) -> dict[str, str]:
