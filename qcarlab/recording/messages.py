@@ -233,10 +233,23 @@ def _field(tag: int, payload: bytes) -> bytes:
     return bytes((tag,)) + _varint(len(payload)) + payload
 
 
+_SECONDS: dict[int, bytes] = {}  # the seconds' varint: the same for a whole second of messages
+
+
 def pb_timestamp(ns: int) -> bytes:
     """Field 1 ``timestamp`` (google.protobuf.Timestamp {seconds = 1, nanos = 2}) of every message here."""
     sec, nanos = divmod(int(ns), 1_000_000_000)
-    return _field(0x0A, b"\x08" + _varint(sec) + b"\x10" + _varint(nanos))
+    head = _SECONDS.get(sec)
+    if head is None:
+        if len(_SECONDS) > 64:
+            _SECONDS.clear()
+        head = _SECONDS[sec] = b"\x08" + _varint(sec) + b"\x10"
+    if nanos >= 1 << 28:  # (most of a second's nanoseconds: five bytes, written out)
+        body = head + bytes(((nanos & 0x7F) | 0x80, ((nanos >> 7) & 0x7F) | 0x80, ((nanos >> 14) & 0x7F) | 0x80,
+                             ((nanos >> 21) & 0x7F) | 0x80, nanos >> 28))
+    else:
+        body = head + _varint(nanos)
+    return bytes((0x0A, len(body))) + body  # (a timestamp is under 128 bytes)
 
 
 def _pb_pose(x: float, y: float, z: float, q: tuple[float, float, float, float]) -> bytes:
