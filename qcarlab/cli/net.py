@@ -8,6 +8,7 @@ import struct
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -74,6 +75,16 @@ def serve_cmd(
     params: ParamsOpt = None,
     live: LiveOpt = False,
     live_port: LivePortOpt = None,
+    tls_cert: Annotated[
+        Path | None,
+        typer.Option("--tls-cert", help="Serve over TLS with this PEM certificate (clients then use tcps://HOST:PORT).",
+                     show_default=False),
+    ] = None,
+    tls_key: Annotated[
+        Path | None,
+        typer.Option("--tls-key", help="The certificate's private key, PEM (default: in the --tls-cert file).",
+                     show_default=False),
+    ] = None,
     debug: DebugOpt = False,
 ) -> None:
     """Serve a car over TCP: the simulator (real time, or --lockstep) or the physical QCar.
@@ -100,6 +111,13 @@ def serve_cmd(
             f"refusing to serve on {host or 'all interfaces'} without a token: it is not a loopback address, anyone "
             "on that network could drive the car; set QCARLAB_TOKEN (qcarlab serve --new-token makes one), or bind to 127.0.0.1"
         )
+    if tls_key is not None and tls_cert is None:
+        raise InputError("--tls-key needs --tls-cert (the certificate it belongs to)")
+    tls = None
+    if tls_cert is not None:
+        from qcarlab.wire.tls import server_context
+
+        tls = server_context(tls_cert, tls_key)
     caught: list[str] = []
     servers: list[CarServer] = []
     previous = _catch_stop_signals(caught, servers)
@@ -111,7 +129,7 @@ def serve_cmd(
         with car:
             server = CarServer(car, host, port, token=token, watchdog=watchdog, controller_timeout=controller_timeout,
                                lockstep=lockstep, max_clients=max_clients, monitor_rate=monitor_rate, prepare=True,
-                               render_process=True)
+                               render_process=True, tls=tls)
             saved = process_settings()
             tune_process()  # before the server's threads start: they inherit its priority
             try:
@@ -127,7 +145,7 @@ def serve_cmd(
                 _say(
                     f"serving {what} on {server.uri} ({mode}, protocol v{VERSION}, watchdog {watchdog:g} s, "
                     f"controller timeout {server.controller_timeout:g} s, throttle limit {car.throttle_limit:g}"
-                    f"{', token required' if token else ''}); Ctrl-C to stop"
+                    f"{', token required' if token else ''}{', TLS' if tls else ''}); Ctrl-C to stop"
                 )
                 server.serve_forever()
             finally:
@@ -240,7 +258,7 @@ def _check_authority(authority: str, uri: str) -> None:
 
 @app.command("ping")
 def ping_cmd(
-    uri: Annotated[str, typer.Argument(help="The car: tcp://HOST:PORT (or HOST[:PORT], port 18960 by default).")],
+    uri: Annotated[str, typer.Argument(help="The car: tcp://HOST:PORT (or HOST[:PORT], port 18960 by default; tcps:// for TLS).")],
     count: Annotated[int, typer.Option("--count", "-c", min=1, max=1_000_000, help="Round trips to make.")] = 5,
     interval: Annotated[float, typer.Option("--interval", "-i", min=0.0, max=3600.0, help="Seconds between round trips.")] = 0.2,
     timeout: Annotated[float, typer.Option(help="Seconds to wait for the connection and for each reply.")] = 2.0,
@@ -256,11 +274,12 @@ def ping_cmd(
 
     if not (math.isfinite(timeout) and timeout > 0):
         raise InputError(f"--timeout must be a positive number of seconds, got {timeout}")
-    host, port = normalise_uri(uri)
-    shown = f"tcp://{'[' + host + ']' if ':' in host else host}:{port}"
+    tls = uri.strip().startswith("tcps://")  # TLS (serve --tls-cert); QCARLAB_TLS_CA names a self-signed certificate
+    host, port = normalise_uri("tcp://" + uri.strip()[len("tcps://"):] if tls else uri)
+    shown = f"{'tcps' if tls else 'tcp'}://{'[' + host + ']' if ':' in host else host}:{port}"
     try:
         car = TcpCar(host, port, role="monitor", token=token or None, timeout=timeout, connect_timeout=timeout,
-                     client="qcarlab ping")
+                     client="qcarlab ping", tls=tls or None)
     except TcpConnectError as exc:
         if json_out:
             from qcarlab.record import dumps
