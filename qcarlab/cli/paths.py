@@ -178,7 +178,11 @@ def _sweep_summary(result: Result) -> None:
 
 def _step_summary(result: Result) -> None:
     m = result.metrics
-    table = summary_table(f"speed step 0 -> {m['speed_step_mps']} m/s (Kp {m['kp']}, Ki {m['ki']}, Kff {m['kff']})")
+    yours = m["controller"].startswith("your")
+    gains = "your speed_controller" if yours else f"Kp {m['kp']}, Ki {m['ki']}, Kff {m['kff']}"
+    table = summary_table(f"speed step 0 -> {m['speed_step_mps']} m/s ({gains})")
+    if yours:
+        table.add_row("controller", m["controller"].removeprefix("your speed_controller ").strip("()"))
 
     def fmt(v, unit):
         return "n/a" if v is None else f"{v:.3f} {unit}"
@@ -263,11 +267,12 @@ def path_follow_cmd(
     def open_car():
         return open_from_options(car, world_obj, seed, realtime, params, path=ref, token=token)
 
-    if step_response_:
+    if step_response_:  # the speed loop alone, with the student's speed blocks and the params' gains
         cfg = FollowConfig(speed=speed, kp=kp, ki=ki, kff=kff, rate=rate)
-        cfg.check()
+        apply_tunables(cfg, params, ctx)  # --kp/--ki/--kff/--speed typed here win over the file
         with open_car() as qcar:
-            result = step_response(qcar, speed, kp, ki, kff, duration=max_time or 6.0, rate=rate)
+            result = step_response(qcar, cfg, duration=max_time or 6.0, blocks=mine, world=world_obj)
+        result.metrics.update({"car": car, "seed": seed})
         result.figures["step.png"] = lambda f: plots.plot_step_response(result.logs["log.csv"], result.metrics, f)
         emit(result, json_out, out, _step_summary)
         return
