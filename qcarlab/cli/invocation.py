@@ -42,6 +42,8 @@ def record_invocation(metrics: dict[str, Any]) -> None:
     from qcarlab import __version__
 
     params = dict(ctx.params)
+    if params.get("token"):  # a served car's secret never goes into a results file
+        params["token"] = "(given)"
     metrics["invocation"] = {"command": ctx.info_name, "params": jsonable(params), "files": files_of(params),
                              "qcarlab": __version__}
 

@@ -20,11 +20,12 @@ from qcarlab.cli.common import (
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
     emit, open_from_options, sim_world, stdout, summary_table,
 )
-from qcarlab.constants import DEFAULT_PARAMS
+from qcarlab.car import parse_car_uri
+from qcarlab.constants import DEFAULT_PARAMS, load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.path_follow import CONTROLLERS, POSE_SOURCES, FollowConfig, PathFollowingLab, follow_path, lookahead_sweep
 from qcarlab.experiments.result import Result
-from qcarlab.experiments.step_response import step_response
+from qcarlab.experiments.step_response import step_response, step_start
 from qcarlab.record import dumps
 
 SHAPES = ", ".join(paths.BUILTIN)
@@ -270,7 +271,8 @@ def path_follow_cmd(
     if step_response_:  # the speed loop alone, with the student's speed blocks and the params' gains
         cfg = FollowConfig(speed=speed, kp=kp, ki=ki, kff=kff, rate=rate)
         apply_tunables(cfg, params, ctx)  # --kp/--ki/--kff/--speed typed here win over the file
-        with open_car() as qcar:
+        start = step_start(world_obj, load_params(params)) if parse_car_uri(car)[0] == "sim" else None
+        with open_from_options(car, world_obj, seed, realtime, params, path=ref, token=token, start=start) as qcar:
             result = step_response(qcar, cfg, duration=max_time or 6.0, blocks=mine, world=world_obj)
         result.metrics.update({"car": car, "seed": seed})
         result.figures["step.png"] = lambda f: plots.plot_step_response(result.logs["log.csv"], result.metrics, f)

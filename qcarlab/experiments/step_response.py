@@ -18,12 +18,14 @@ its own controller):
 - settling time: the last time the speed is outside +-``band`` (2 %) of the step,
 - steady-state error: step - mean speed over the last second.
 
-The run's goal: the speed reached 90 % of the step. On a simulator the run also ends (a goal
-missed) when the car drives into a wall or out of the world.
+The run's goal: the speed reached 90 % of the step. On a simulator the step starts at the back of
+the room (:func:`step_start`: the world's start backed up to 0.3 m from the wall behind it) and
+ends, a goal missed, when the car drives into a wall or out of the world.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from functools import partial
 from typing import Any
@@ -37,7 +39,7 @@ from qcarlab.experiments.model import LabModel, finish
 from qcarlab.experiments.path_follow import BLOCKS as PATH_BLOCKS
 from qcarlab.experiments.path_follow import FollowConfig
 from qcarlab.experiments.result import Result
-from qcarlab.experiments.safety import WorldWatch
+from qcarlab.experiments.safety import Clearance, WorldWatch
 
 #: The blocks of the speed loop: the path-following sheet's own (same names, signatures, texts).
 STEP_BLOCKS = tuple(b for b in PATH_BLOCKS if b.name in ("basic_speed_estimation", "speed_controller"))
@@ -88,6 +90,28 @@ class StepResponseLab(LabModel):
         v = self.basic_speed_estimation(r.tach)
         throttle = self.speed_controller(self.speed, v, dt)
         return Step(Command(throttle, 0.0), {"v_ref": self.speed, "v_est": v})
+
+
+def step_start(world: Any, params: Any, margin: float = 0.3, reach: float = 20.0) -> tuple[float, float, float]:
+    """Where a simulated step starts: the world's start pose, backed up along its heading until the
+    car's footprint is ``margin`` m from what is behind it, so the step has the longest straight run
+    the room allows (the studio: from its centre 4.7 m to the wall, from the back wall 9.1 m).
+
+    Backs up in 5 cm steps while the footprint's clearance stays above ``margin``
+    (:class:`~qcarlab.experiments.safety.Clearance`); at most ``reach`` m.
+    """
+    x, y, yaw = (float(v) for v in world.start)
+    clearance = Clearance(world, params)
+    bx, by = -math.cos(yaw), -math.sin(yaw)
+    x0, y0, x1, y1 = world.bounds
+    back = 0.0
+    while back + 0.05 <= reach:
+        px, py = x + (back + 0.05) * bx, y + (back + 0.05) * by
+        inside = x0 + margin <= px <= x1 - margin and y0 + margin <= py <= y1 - margin
+        if not inside or clearance(px, py, yaw)[0] <= margin:
+            break
+        back += 0.05
+    return (round(x + back * bx, 6), round(y + back * by, 6), yaw)
 
 
 def step_response(car: Car, cfg: FollowConfig, duration: float = 6.0,
