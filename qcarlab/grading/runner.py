@@ -5,7 +5,8 @@ carries everything its process needs (the command's words, the submission's file
 limits), so the same :func:`execute` runs it in a local thread pool or on a Ray worker on another
 machine. It makes a fresh folder, writes the submission's files into ``submission/``, and starts
 ``python -m qcarlab.grading.child spec.json`` there in a new process group, stdout and stderr to
-files. It waits at most the wall-time limit, then kills the group. The outcome says what came
+files (or, given a :class:`~qcarlab.grading.warm.WarmStart`, forks the same task from a zygote that
+has loaded qcarlab already). It waits at most the wall-time limit, then kills the group. The outcome says what came
 back (the results, or each case's value) or, in one line, why nothing did:
 
     did not finish within 5 s (stopped)          a hang (the whole process group is killed)

@@ -320,6 +320,8 @@ def _task(request: dict[str, Any], inherited: list[int]) -> None:
         os.chdir(request["cwd"])
         os.environ.update(request["env"])
         sys.argv = [str(Path(__file__).with_name("child.py")), request["spec"]]
+        if sys.path:
+            sys.path[0] = request["cwd"]  # as ``python -m`` in the task's folder has it
         from qcarlab.grading.child import main
 
         try:
