@@ -85,6 +85,20 @@ def test_a_step_into_the_wall_is_a_goal_missed(cli):
     assert code == 1 and "collision at" in err and m["collision"]["t"] < 6.0
 
 
+def test_the_step_starts_at_the_back_of_the_room():
+    from qcarlab.constants import DEFAULT_PARAMS
+    from qcarlab.experiments.step_response import step_start
+    from qcarlab.experiments.worlds import load_world
+
+    x, y, yaw = step_start(load_world("studio", DEFAULT_PARAMS), DEFAULT_PARAMS)  # centre, heading -Y
+    assert (x, yaw) == (0.0, -1.5707963267948966) and 4.3 <= y <= 4.5  # 0.3 m from the wall at +5 m
+
+
+def test_the_readmes_step_has_room(cli):
+    code, _, err = cli(*STEP[:3], "--speed", "0.8", "--kp", "0.5", "--ki", "2", "--json")
+    assert code == 0, err  # from the room's centre it would reach the wall before the 6 s are up
+
+
 def test_the_pi_task_grades_the_students_speed_controller(cli, tmp_path):
     sub = correct_submission(tmp_path / "me", ("path-following",))
     grade = ("grade", "path-following", "--submission", sub, "--task", "pi-tuning", "--json")
