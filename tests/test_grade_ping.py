@@ -30,7 +30,8 @@ def test_a_saved_ping_run_grades_and_keeps_no_token(cli, served, tmp_path):
     res = json.loads(saved)
     assert res["invocation"]["command"] == "ping" and res["invocation"]["params"]["token"] == "(given)"
     assert res["received"] == 20
-    rows = list(csv.DictReader(open(runs / "3.1-ping" / "rtt.csv")))
+    with open(runs / "3.1-ping" / "rtt.csv") as f:
+        rows = list(csv.DictReader(f))
     assert [int(r["reply"]) for r in rows] == list(range(1, 21)) and all(float(r["rtt_ms"]) > 0 for r in rows)
     code, out, err = cli("grade", "connectivity", "--results", runs, "--json")
     report = json.loads(out)

@@ -76,7 +76,7 @@ def test_a_raising_controller_stops_the_car_with_one_line(cli, tmp_path):
         def speed_controller(v_ref, v_measured, dt):
             return v_ref / (v_measured * 0)
     """)
-    code, out, err = cli(*STEP, "--use", mine)
+    code, _, err = cli(*STEP, "--use", mine)
     assert code == 1 and "block speed_controller" in err and "ZeroDivisionError" in err
 
 
@@ -102,12 +102,12 @@ def test_the_readmes_step_has_room(cli):
 def test_the_pi_task_grades_the_students_speed_controller(cli, tmp_path):
     sub = correct_submission(tmp_path / "me", ("path-following",))
     grade = ("grade", "path-following", "--submission", sub, "--task", "pi-tuning", "--json")
-    code, out, err = cli(*grade)
+    code, out, _ = cli(*grade)
     task = json.loads(out)["tasks"][0]
     assert code == 0 and task["passed"], task
     assert "--block speed_controller=speed_controller.py:speed_controller" in task["command"]
     write_block(sub / "path-following", "speed_controller.py", P_ONLY)
-    code, out, err = cli(*grade)
+    code, out, _ = cli(*grade)
     task = json.loads(out)["tasks"][0]
     assert code == 1 and not task["passed"]
     reasons = [c["reason"] for c in task["criteria"] if not c["passed"]]

@@ -11,6 +11,7 @@ import typer
 from rich.table import Table
 
 from qcarlab import paths, plots
+from qcarlab.car import parse_car_uri
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
@@ -20,7 +21,6 @@ from qcarlab.cli.common import (
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
     emit, open_from_options, sim_world, stdout, summary_table,
 )
-from qcarlab.car import parse_car_uri
 from qcarlab.constants import DEFAULT_PARAMS, load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.path_follow import CONTROLLERS, POSE_SOURCES, FollowConfig, PathFollowingLab, follow_path, lookahead_sweep

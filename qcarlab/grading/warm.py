@@ -255,13 +255,12 @@ def serve(address: str) -> None:
                 sel.register(pidfd, selectors.EVENT_READ, ("exit", pid))
                 sel.register(conn, selectors.EVENT_READ, ("control", pid))
             elif what == "control":  # "kill" (the task's time is up) or the grader gone
-                task = tasks.get(data)
                 try:
-                    said = key.fileobj.recv(64)
+                    key.fileobj.recv(64)
                 except OSError:
-                    said = b""
+                    pass
                 sel.unregister(key.fileobj)
-                if task is not None:
+                if data in tasks:
                     _kill_group(data)  # not reaped yet: the pid is still this task's
             elif what == "exit":
                 pid = data
@@ -280,13 +279,12 @@ def serve(address: str) -> None:
                 except OSError:
                     pass
                 conn.close()
-            elif what == "grader":
-                if not os.read(sys.stdin.fileno(), 4096):  # EOF: the grader is done (or gone)
-                    for pid in list(tasks):
-                        _kill_group(pid)
-                        os.waitpid(pid, 0)
-                    listener.close()
-                    return
+            elif what == "grader" and not os.read(sys.stdin.fileno(), 4096):  # EOF: the grader is done (or gone)
+                for pid in list(tasks):
+                    _kill_group(pid)
+                    os.waitpid(pid, 0)
+                listener.close()
+                return
 
 
 def _kill_group(pid: int) -> None:
