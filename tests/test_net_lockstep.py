@@ -46,8 +46,9 @@ def test_io_test_cli_with_car_tcp_matches_sim(cli):
     finally:
         server.stop()
     assert code == 0, err
-    code2, out2, err2 = cli(*args)
+    code2, out2, err2 = cli(*args, "--realism", "ideal")  # the served SimCar's (the Python API's default)
     tcp, local = json.loads(out), json.loads(out2)
+    assert local.pop("realism") == "ideal"
     assert tcp.pop("car") == server.uri and local.pop("car") == "sim"
     assert tcp.pop("invocation")["params"]["car"] == server.uri and local.pop("invocation")["params"]["car"] == "sim"
     assert tcp == local

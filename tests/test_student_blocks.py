@@ -218,7 +218,8 @@ def test_path_follow_with_the_students_pure_pursuit_and_speed_controller(cli, tm
     assert code == 0, err
     m = json.loads(out)
     assert set(m["student_blocks"]) == {"pure_pursuit", "speed_controller"}
-    assert m["rms_cross_track_m"] < 0.03 and m["stopped_at_goal"]
+    # the lab car's dead reckoning drifts: it stops where its own estimate puts the end
+    assert m["rms_cross_track_estimate_m"] < 0.03 and m["rms_cross_track_m"] < 0.04 and m["reached_by_estimate"]
     # a student's steering that never turns: the car leaves the circle and the run says so (exit 1)
     write(tmp_path, "pure_pursuit.py", """
         def pure_pursuit(pose, target, lookahead, wheelbase):
@@ -274,7 +275,7 @@ def test_student_blocks_over_tcp_give_the_same_run(cli, tmp_path):
         server.stop()
     assert code == 0, err
     remote = json.loads(out)
-    local = json.loads(cli("stop-sign", "--use", path, "--json")[1])
+    local = json.loads(cli("stop-sign", "--use", path, "--realism", "ideal", "--json")[1])  # the server's
     assert remote["stop_distance_m"] is None  # no truth over TCP; the camera's reading is the measure
     assert remote["measured_distance_m"] == pytest.approx(local["measured_distance_m"], abs=1e-9)
     assert 0.5 < remote["measured_distance_m"] < 1.0

@@ -47,6 +47,7 @@ def open_car(
     params: QCarParams | str | Path | None = None,
     throttle_limit: float | None = None,
     start: tuple[float, float, float] | None = None,
+    realism: Any = None,
     **options: Any,
 ) -> Car:
     """Open a car. Use it in a ``with`` block so it is stopped and released however the block ends.
@@ -55,8 +56,13 @@ def open_car(
     ``params`` a :class:`QCarParams` or a YAML file overriding the simulator's car parameters.
     ``on_stand``: a simulated car starts on its stand if True, on the floor otherwise; for a TCP
     car an explicit value is checked against the served car's and a mismatch is reported.
+    ``realism``: the simulator's realism profile (``"lab"``, ``"ideal"``, a YAML file or a
+    :class:`~qcarlab.sim.realism.Realism`; None = ideal); a served or recorded car has its own.
     """
     scheme, host, port = parse_car_uri(uri)
+    if realism is not None and scheme != "sim":
+        raise InputError("--realism sets the built-in simulator's imperfections; a served car's are set by "
+                         "qcarlab serve --realism, a recording's were recorded")
     if scheme == "replay":  # the recording's own parameters unless others are given
         from qcarlab.car.replay import ReplayCar
 
@@ -79,6 +85,7 @@ def open_car(
             start=start,
             realtime=realtime,
             throttle_limit=throttle_limit,
+            realism=realism,
         )
     try:
         from qcarlab.car.tcp import TcpCar

@@ -8,7 +8,10 @@ Two clocks:
   read or write first brings the physics up to the present.
 
 Sensor noise comes from generators spawned from the seed, one per sensor, so adding a reading of
-one sensor never changes the numbers of another. The IMU and analog noise of :meth:`SimCar.read`
+one sensor never changes the numbers of another. A realism profile (``realism="lab"``, see
+:mod:`qcarlab.sim.realism`; None = ``ideal``, today's simulator number for number) adds the real
+car's imperfections: the servo's and tyres' in the body, a drifting gyro bias in :meth:`read`,
+LIDAR dropouts and camera exposure and blur on each finished frame, from generators of their own. The IMU and analog noise of :meth:`SimCar.read`
 is drawn for NOISE_BLOCK reads at a time (the same numbers as one draw per read).
 """
 
@@ -25,10 +28,12 @@ from qcarlab.car.base import Car, Command, Identity, Readout, Truth
 from qcarlab.car.lamps import ALL_OFF
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import InputError
+from qcarlab.sim.realism import CameraEffects, KnotProcess, LidarEffects, Realism, load_realism
 from qcarlab.sim.vehicle import Vehicle
 
 START_POSE = (0.0, 0.0, -math.pi / 2.0)  # the lab sheet's start: origin, heading -Y
 NOISE_BLOCK = 256  # reads whose IMU and analog noise are drawn in one go
+GYRO_KNOT = 0.5  # s of simulated time between the knots of the gyro bias's random walk (realism)
 
 
 class SimCar(Car):
@@ -45,8 +50,10 @@ class SimCar(Car):
         start: tuple[float, float, float] | None = None,
         realtime: bool = False,
         throttle_limit: float | None = None,
+        realism: Realism | str | None = None,
     ):
         super().__init__(params, throttle_limit)
+        self.realism = realism = load_realism(realism)
         if not isinstance(seed, int) or seed < 0:
             raise InputError(f"seed must be a non-negative integer, got {seed!r}")
         self.seed = seed
@@ -54,7 +61,7 @@ class SimCar(Car):
         if start is None:
             start = getattr(world, "start", None) or START_POSE
         self.start = tuple(float(v) for v in start)
-        self.vehicle = Vehicle(params, on_stand=on_stand, pose=self.start)
+        self.vehicle = Vehicle(params, on_stand=on_stand, pose=self.start, realism=realism)
         seq = np.random.SeedSequence(seed)
         imu_seq, analog_seq, lidar_seq, rgbd_seq, csi_seq = seq.spawn(5)
         # one noise stream per sensor, fixed by the seed whatever order the sensors are first read in
@@ -62,6 +69,20 @@ class SimCar(Car):
         self._imu_rng = np.random.default_rng(imu_seq)
         self._analog_rng = np.random.default_rng(analog_seq)
         self._gyro_bias = self._imu_rng.normal(0.0, params.gyro_bias_sd, 3)
+        # the realism profile's generators: spawned after the five above, so they never move them
+        gyro_seq, lidar_fx_seq, camera_fx_seq = seq.spawn(3)
+        self._gyro_walk = None
+        self._effects: dict[str, Any] = {}
+        if not realism.ideal:
+            gyro_rng = np.random.default_rng(gyro_seq)
+            self._gyro_bias = self._gyro_bias + gyro_rng.normal(0.0, realism.gyro_bias_sd, 3)
+            if realism.gyro_bias_walk > 0.0:
+                self._gyro_walk = KnotProcess(gyro_rng, realism.gyro_bias_walk, GYRO_KNOT, "walk", dims=3)
+            if realism.lidar:
+                self._effects["lidar"] = LidarEffects(realism, np.random.default_rng(lidar_fx_seq),
+                                                      params.lidar_min_range, params.lidar_max_range)
+            if realism.camera:
+                self._effects["camera"] = CameraEffects(realism, np.random.default_rng(camera_fx_seq))
         self._noise_i = NOISE_BLOCK  # the first read draws the first block
         self._counts_per_rad = params.encoder_cpr / (2.0 * math.pi)
         self._cmd = Command()
@@ -71,6 +92,8 @@ class SimCar(Car):
         self._frames: dict[str, tuple[int, Any]] = {}  # sensor -> (frame index, frame)
         self._history: deque[tuple[float, float, float, float]] = deque(maxlen=256)
         self._remember_pose()
+        if self._realtime:  # a real-time car must not stall on the compiled physics' first step later
+            self.warm_physics()
 
     # --- time -----------------------------------------------------------------------------------
     @property
@@ -150,6 +173,8 @@ class SimCar(Car):
         cpr = self._counts_per_rad
         gyro = self._gyro_rows[i]  # a row of the block: used by this read only
         gyro[2] += yaw_rate
+        if self._gyro_walk is not None:  # the bias wanders (realism profile)
+            gyro += self._gyro_walk.at(t)
         accel = self._accel_rows[i]
         accel[0] += accel_x
         accel[1] += v * yaw_rate  # centripetal (accel[2] holds g already)
@@ -212,7 +237,7 @@ class SimCar(Car):
         if cached is not None and cached[0] == k:
             return _FrameJob(self, kind, k, k / rate, None, render, cached[1])
         t_k = k / rate
-        return _FrameJob(self, kind, k, t_k, self.pose_at(t_k), render)
+        return _FrameJob(self, kind, k, t_k, self.pose_at(t_k), render, None, self.vehicle.state.yaw_rate)
 
     def sensor_job(self, kind: str) -> Any:
         return self._frame_job(kind, _RATES[kind](self.params), _DRAW[kind])
@@ -236,11 +261,36 @@ class SimCar(Car):
     def sensor_recipe(self) -> dict[str, Any]:
         """What another process needs to draw this car's sensor frames: ``SimCar(**recipe)`` there
         has the same world and sensors, and its noise streams start where this car's would."""
-        return {"params": self.params, "seed": self.seed, "world": self._world(), "lidar_beams": self.lidar_beams}
+        return {"params": self.params, "seed": self.seed, "world": self._world(), "lidar_beams": self.lidar_beams,
+                "realism": self.realism}
 
-    def draw_frame(self, kind: str, pose: tuple[float, float, float], t: float) -> Any:
-        """Draw sensor ``kind``'s frame at time ``t`` from ``pose`` (no clock, no vehicle)."""
-        return _DRAW[kind](self._sensor(kind), pose, t)
+    def draw_frame(self, kind: str, pose: tuple[float, float, float], t: float, yaw_rate: float = 0.0) -> Any:
+        """Draw sensor ``kind``'s frame at time ``t`` from ``pose`` (no clock, no vehicle), turning
+        at ``yaw_rate`` (rad/s: the realism profile's motion blur)."""
+        return self._finish_frame(kind, _DRAW[kind](self._sensor(kind), pose, t), t, yaw_rate)
+
+    def _finish_frame(self, kind: str, frame: Any, t: float, yaw_rate: float) -> Any:
+        """The realism profile's effects on a finished frame, in place: LIDAR noise and dropouts,
+        the cameras' exposure and motion blur (nothing with the ideal profile)."""
+        if not self._effects:
+            return frame
+        if kind == "lidar":
+            fx = self._effects.get("lidar")
+            if fx is not None:
+                fx(frame.ranges)
+            return frame
+        fx = self._effects.get("camera")
+        if fx is None:
+            return frame
+        gain = fx.gain(t)
+        p = self.params
+        if kind == "rgbd":  # pinhole: f = (H / 2) / tan(vfov / 2) px per rad at the centre
+            fx.apply(frame.color, gain, fx.blur_px(yaw_rate, 0.5 * p.rgbd_height / math.tan(0.5 * p.rgbd_vfov)))
+        else:  # the CSI views are cylindrical: width / fov px per rad of yaw
+            blur = fx.blur_px(yaw_rate, p.csi_width / p.csi_fov)
+            for img in frame.as_list():
+                fx.apply(img, gain, blur)
+        return frame
 
     def read_lidar(self) -> Any:
         return self._latest_frame("lidar", self.params.lidar_rate, _DRAW["lidar"])
@@ -259,7 +309,8 @@ class SimCar(Car):
             name="qcarlab-sim",
             backend="sim",
             capabilities=caps,
-            extra={"seed": self.seed, "on_stand": self.vehicle.on_stand, "world": getattr(self.world, "name", None)},
+            extra={"seed": self.seed, "on_stand": self.vehicle.on_stand, "world": getattr(self.world, "name", None),
+                   "realism": self.realism.name},
         )
 
     def stop(self) -> None:
@@ -269,7 +320,8 @@ class SimCar(Car):
         """Back to the state the car was opened in: its start pose at rest, time 0, no command, the
         noise streams re-seeded (a lock-step server's new controlling client starts here)."""
         self.__init__(self.params, seed=self.seed, on_stand=self.vehicle.on_stand, world=self.world,
-                      start=self.start, realtime=self._realtime, throttle_limit=self.throttle_limit)
+                      start=self.start, realtime=self._realtime, throttle_limit=self.throttle_limit,
+                      realism=self.realism)
 
 _RATES = {"lidar": lambda p: p.lidar_rate, "rgbd": lambda p: p.rgbd_rate, "csi": lambda p: p.csi_rate}
 _DRAW = {
@@ -283,10 +335,12 @@ class _FrameJob:
     """Sensor ``kind``'s frame ``k``, taken at ``t`` from ``pose``: calling it draws it (or returns
     it, when it was drawn already: ``pose`` is then None)."""
 
-    __slots__ = ("car", "kind", "k", "t", "pose", "render", "frame")
+    __slots__ = ("car", "kind", "k", "t", "pose", "render", "frame", "yaw_rate")
 
-    def __init__(self, car: SimCar, kind: str, k: int, t: float, pose: Any, render: Any, frame: Any = None):
+    def __init__(self, car: SimCar, kind: str, k: int, t: float, pose: Any, render: Any, frame: Any = None,
+                 yaw_rate: float = 0.0):
         self.car, self.kind, self.k, self.t, self.pose, self.render, self.frame = car, kind, k, t, pose, render, frame
+        self.yaw_rate = yaw_rate
 
     @property
     def key(self) -> tuple[str, int]:
@@ -298,7 +352,7 @@ class _FrameJob:
             sensor = self.car._sensor(self.kind)
             if first:  # building it may have loaded numba: load the compiled physics here too, off any lock
                 _warm_physics(self.car.params)
-            self.frame = self.render(sensor, self.pose, self.t)
+            self.frame = self.car._finish_frame(self.kind, self.render(sensor, self.pose, self.t), self.t, self.yaw_rate)
             self.car._frames[self.kind] = (self.k, self.frame)
         return self.frame
 

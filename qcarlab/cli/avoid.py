@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from qcarlab.cli.app import app
-from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
+from qcarlab.cli.common import recordable, sim_realism  # noqa: I001  (--record, --live, --realism)
 from qcarlab.cli.common import (
     CarTokenOpt,
     StartOpt, WorldOpt, sim_world, UseOpt, BlockOpt, student_blocks, apply_tunables,
@@ -112,7 +112,7 @@ def avoid_cmd(
             cfg.duration = BALL_TRIAL_TIME
         result = run_trials("avoid", world_obj, lambda c, w, wrap: avoid(c, cfg, world=w, blocks=mine, wrap=wrap),
                             trials, seed, AVOID, load_params(params), pose,
-                            on_trial=progress(json_out, trials), min_success=min_success)
+                            on_trial=progress(json_out, trials), min_success=min_success, realism=sim_realism())
         result.metrics.update({"car": car, "world": world_obj.name, "strategy": cfg.strategy, "speed_mps": cfg.speed,
                                "config": asdict(cfg)})
         emit(result, json_out, out, trials_summary)

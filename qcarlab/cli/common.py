@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextvars
 import math
 import sys
 from pathlib import Path
@@ -82,27 +83,50 @@ RecordExactOpt = Annotated[bool, typer.Option(
 LiveOpt = Annotated[bool, typer.Option("--live", help="Stream the run live to Foxglove (WebSocket, port 8765).")]
 LivePortOpt = Annotated[str | None, typer.Option(
     "--live-port", help="Live view port, or HOST:PORT (not loopback: needs QCARLAB_TOKEN).", show_default=False)]
+RealismOpt = Annotated[str | None, typer.Option(
+    "--realism", help="The simulator's imperfections: [b]lab[/b] (the default: steering trim, play and delay, tyre "
+    "slip, gyro drift, LIDAR dropouts, camera exposure and blur, as a real QCar has them; qcarlab/realism/lab.yaml "
+    "gives each value and its source), [b]ideal[/b] (none: the exact model), or a profile YAML.",
+    show_default=False)]
+_realism_choice: contextvars.ContextVar[str | None] = contextvars.ContextVar("realism", default=None)
+_opened_realism: contextvars.ContextVar[str | None] = contextvars.ContextVar("opened_realism", default=None)
+
+
+DEFAULT_REALISM = "lab"  # a lab command's simulator is the real car's (the Python API's default is ideal)
+
+
+def sim_realism() -> str:
+    """The realism profile a simulated car of this command gets: --realism, else ``lab``."""
+    return _realism_choice.get() or DEFAULT_REALISM
+
+
 TopicsOpt = Annotated[str | None, typer.Option(
     "--topics", help="--car replay:BAG: the rosbag2's topics for the car's sensors, e.g. "
     "scan=/scan,color=/camera/color/image_raw,depth=/camera/depth/image_rect_raw.", show_default=False)]
 
 
 def recordable(command):
-    """Give a driving command --record, --record-exact, --live, --live-port and --topics (one
-    decorator line under ``@app.command``); the car it opens is then recorded or replayed."""
+    """Give a driving command --record, --record-exact, --live, --live-port, --topics and
+    --realism (one decorator line under ``@app.command``); the car it opens is then recorded or
+    replayed, and a simulated one has the realism profile asked for (``lab`` by default)."""
     import functools
     import inspect
     from typing import get_type_hints
 
     added = {"record": (RecordOpt, None), "record_exact": (RecordExactOpt, False), "live": (LiveOpt, False),
-             "live_port": (LivePortOpt, None), "topics": (TopicsOpt, None)}
+             "live_port": (LivePortOpt, None), "topics": (TopicsOpt, None), "realism": (RealismOpt, None)}
 
     @functools.wraps(command)
-    def run(*args, record=None, record_exact=False, live=False, live_port=None, topics=None, **kwargs):
+    def run(*args, record=None, record_exact=False, live=False, live_port=None, topics=None, realism=None, **kwargs):
         from qcarlab.cli import recording
 
-        with recording.request(record, record_exact, live, live_port, topics):
-            return command(*args, **kwargs)
+        token, opened = _realism_choice.set(realism), _opened_realism.set(None)
+        try:
+            with recording.request(record, record_exact, live, live_port, topics):
+                return command(*args, **kwargs)
+        finally:
+            _realism_choice.reset(token)
+            _opened_realism.reset(opened)
 
     sig = inspect.signature(command, eval_str=True)
     extra = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
@@ -130,7 +154,13 @@ def open_from_options(
     path = extra.pop("path", None)
     if parse_car_uri(car)[0] == "replay":
         extra.setdefault("topics", recording.replay_topics())
+    if parse_car_uri(car)[0] == "sim":
+        extra.setdefault("realism", sim_realism())
+    elif _realism_choice.get() is not None:
+        extra["realism"] = _realism_choice.get()  # refused by open_car with the reason
     qcar = open_car(car, world=world, seed=seed, realtime=realtime, params=params, **extra)
+    if getattr(qcar, "realism", None) is not None:
+        _opened_realism.set(qcar.realism.name)
     return recording.wrap(qcar, car=car, world=world, seed=seed, path=path, start=extra.get("start"))
 
 
@@ -212,6 +242,8 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
     from qcarlab.cli import recording
     from qcarlab.cli.invocation import record_invocation, write_for_grader
 
+    if _opened_realism.get() is not None:  # the simulator's realism profile, beside the numbers it made
+        result.metrics.setdefault("realism", _opened_realism.get())
     record_invocation(result.metrics)  # the command and parameters, so qcarlab grade knows the run
     after = recording.after_run(result)
     written = result.save(out) if out is not None else []
@@ -229,6 +261,8 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
         if timing.get("over_budget"):
             stderr.print(f"{name}: warning: your {block} took longer than the {timing['budget_s'] * 1000:.1f} ms tick "
                          f"{timing['over_budget']} time(s) (worst {timing['worst_s'] * 1000:.1f} ms)", markup=False)
+    for note in m.get("notes") or ():
+        stderr.print(f"{name}: note: {note}", markup=False)
     loop = m.get("loop") or {}
     if loop.get("overruns"):
         stderr.print(f"{name}: warning: {loop['overruns']} tick(s) started late (worst gap "

@@ -14,7 +14,8 @@ import typer
 
 from qcarlab.car import open_car, parse_car_uri
 from qcarlab.cli.app import app
-from qcarlab.cli.common import DebugOpt, JsonOpt, LiveOpt, LivePortOpt, OutOpt, ParamsOpt, SeedOpt, WorldOpt
+from qcarlab.cli.common import (DEFAULT_REALISM, DebugOpt, JsonOpt, LiveOpt, LivePortOpt, OutOpt, ParamsOpt, RealismOpt,
+                                SeedOpt, WorldOpt)
 from qcarlab.errors import CarError, InputError, NotBuiltError
 from qcarlab.wire.protocol import DEFAULT_PORT, VERSION
 
@@ -69,6 +70,7 @@ def serve_cmd(
     ] = 16,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
+    realism: RealismOpt = None,
     params: ParamsOpt = None,
     live: LiveOpt = False,
     live_port: LivePortOpt = None,
@@ -102,7 +104,7 @@ def serve_cmd(
     servers: list[CarServer] = []
     previous = _catch_stop_signals(caught, servers)
     try:
-        car, what = _open_served_car(backend, lockstep, world, seed, on_stand, params, throttle_limit)
+        car, what = _open_served_car(backend, lockstep, world, seed, on_stand, params, throttle_limit, realism)
         from qcarlab.cli.recording import live_car
 
         car = live_car(car, live, live_port, token)  # --live: what the served car does, streamed to Foxglove
@@ -167,13 +169,15 @@ def _say(line: str) -> None:
         pass
 
 
-def _open_served_car(backend, lockstep, world, seed, on_stand, params, throttle_limit):
+def _open_served_car(backend, lockstep, world, seed, on_stand, params, throttle_limit, realism=None):
     """The car ``serve`` exposes, and a phrase naming it."""
     if backend == "quanser":
         if lockstep:
             raise InputError("--lockstep needs --backend sim (the physical car's time does not wait)")
         if world is not None:
             raise InputError("--world is for --backend sim; the physical car lives in the real world")
+        if realism is not None:
+            raise InputError("--realism is for --backend sim; the physical car has its own imperfections")
         from qcarlab.car.quanser import QuanserCar
         from qcarlab.constants import DEFAULT_PARAMS, load_params
 
@@ -182,12 +186,13 @@ def _open_served_car(backend, lockstep, world, seed, on_stand, params, throttle_
     try:
         car = open_car(
             "sim", world=world, seed=seed, on_stand=on_stand, realtime=not lockstep,
-            params=params, throttle_limit=throttle_limit,
+            params=params, throttle_limit=throttle_limit, realism=realism or DEFAULT_REALISM,
         )
     except ImportError as exc:
         raise NotBuiltError(f"--world {world!r}: simulator worlds are not built yet ({exc})") from None
     stand = "on its stand" if on_stand else "on the floor"
-    return car, f"the simulated QCar (seed {seed}, {stand}{', world ' + str(world) if world else ''})"
+    return car, (f"the simulated QCar (seed {seed}, {stand}{', world ' + str(world) if world else ''}, "
+                 f"realism {car.realism.name})")
 
 
 def normalise_uri(uri: str) -> tuple[str, int]:

@@ -158,9 +158,13 @@ def _follow_summary(result: Result) -> None:
     table.add_row("mean speed", f"{m['mean_speed_mps']:.3f} m/s")
     table.add_row("speed RMS error", f"{m['speed_rms_error_mps']:.3f} m/s")
     table.add_row("final distance to goal", f"{m['final_distance_to_goal_m'] * 100:.1f} cm"
-                  + ("" if m["stopped_at_goal"] else "  (did not stop: time limit)"))
+                  + ("" if m["stopped_at_goal"] else "  (where its estimate put the end)"
+                     if m.get("reached_by_estimate") else "  (did not stop: time limit)"))
     if "pose_drift_m" in m:
-        table.add_row(f"pose estimate drift ({m['config']['pose']})", f"{m['pose_drift_m'] * 100:.1f} cm")
+        table.add_row(f"pose estimate drift ({m['config']['pose']})", f"{m['pose_drift_m'] * 100:.1f} cm"
+                      + (f"  ({m['pose_drift_per_m'] * 100:.1f} cm per m driven)" if "pose_drift_per_m" in m else ""))
+    if m.get("realism"):
+        table.add_row("simulator realism", str(m["realism"]))
     stdout.print(table)
 
 

@@ -8,7 +8,7 @@ import typer
 
 from qcarlab import plots
 from qcarlab.cli.app import app, stderr
-from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
+from qcarlab.cli.common import recordable, sim_realism  # noqa: I001  (--record, --live, --realism)
 from qcarlab.cli.common import (
     CarTokenOpt,
     StartOpt, WorldOpt, sim_world, parse_hsv, KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
@@ -132,7 +132,7 @@ def stop_sign_cmd(
             return run_stop_sign(c, cfg, sign_ahead(w, (tr.x, tr.y, tr.yaw)), blocks=mine, world=w, wrap=wrap)
 
         result = run_trials("stop-sign", world_obj, one, trials, seed, STOP_SIGN, load_params(params), pose,
-                            on_trial=progress(json_out, trials), min_success=min_success)
+                            on_trial=progress(json_out, trials), min_success=min_success, realism=sim_realism())
         result.metrics.update({"car": car, "world": world_obj.name, "speed_mps": cfg.speed,
                                "behaviour": cfg.behaviour})
         emit(result, json_out, out, trials_summary)

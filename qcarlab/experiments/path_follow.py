@@ -226,7 +226,17 @@ def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
     metrics = score_run(cols, route, cfg, truth=truth0 is not None, stopped=log.stopped_early and not
                         (watch and watch.event))
     metrics["config"] = asdict(cfg)
-    finish(metrics, log, lab, watch, goal=metrics["completion"] >= 0.999 or metrics["stopped_at_goal"],
+    # The goal is the end of the path as the car itself knows it (its own pose estimate: all a real
+    # car can know); in a simulator the truth also counts, and where the two disagree the run says
+    # by how much dead reckoning drifted (collisions and leaving the world end a run either way).
+    reached_true = metrics["completion"] >= 0.999 or metrics["stopped_at_goal"]
+    metrics["reached_by_estimate"] = bool(lab.arrived)
+    if lab.arrived and not reached_true and "pose_drift_m" in metrics:
+        metrics.setdefault("notes", []).append(
+            f"the car's own estimate reached the end of the path, but it truly stopped "
+            f"{metrics['final_distance_to_goal_m']:.2f} m from it: dead reckoning drifted "
+            f"{metrics['pose_drift_m']:.2f} m ({100 * metrics['pose_drift_per_m']:.1f} cm per metre driven)")
+    finish(metrics, log, lab, watch, goal=reached_true or lab.arrived,
            goal_text="the car did not reach the end of the path")
     return Result("path-follow", metrics, logs={"log.csv": _log_columns(cols)}, figures={})
 
@@ -258,7 +268,9 @@ def score_run(cols: dict[str, np.ndarray], route: np.ndarray, cfg: FollowConfig,
     """The run's metrics: tracking against the reference, speed tracking, stop, drift.
 
     ``completion`` is the fraction of the path's length reached; a car that stopped within the
-    goal tolerance of the last point has reached all of it.
+    goal tolerance of the last point has reached all of it. With the truth, ``pose_drift_m`` is
+    the estimate's distance from the true pose at the end and ``pose_drift_per_m`` that over the
+    distance driven.
     """
     if truth:
         driven = np.c_[cols["true_x"], cols["true_y"]]
@@ -294,6 +306,12 @@ def score_run(cols: dict[str, np.ndarray], route: np.ndarray, cfg: FollowConfig,
         drift = np.hypot(cols["est_x"] - cols["true_x"], cols["est_y"] - cols["true_y"])
         metrics["pose_drift_m"] = float(drift[-1])
         metrics["pose_drift_max_m"] = float(drift.max())
+        # the tracking as the car itself sees it (its estimate against the path): the controller's
+        # own quality, apart from the drift of the pose it was given
+        est_errors = cross_track_errors(np.c_[cols["est_x"], cols["est_y"]], route)
+        metrics["rms_cross_track_estimate_m"] = float(np.sqrt(np.mean(est_errors**2)))
+        metrics["distance_driven_m"] = float(step_len.sum())
+        metrics["pose_drift_per_m"] = float(drift[-1] / step_len.sum()) if step_len.sum() > 0 else 0.0
     return metrics
 
 

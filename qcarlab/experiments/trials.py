@@ -304,10 +304,11 @@ class _Encounters:
 RunFn = Callable[[Car, Any, Callable[[Any], Any] | None], Result]
 
 
-def _open_sim(world: Any, start: tuple[float, float, float], seed: int, params: QCarParams) -> Car:
+def _open_sim(world: Any, start: tuple[float, float, float], seed: int, params: QCarParams,
+              realism: Any = None) -> Car:
     from qcarlab.car import open_car
 
-    return open_car("sim", world=world, seed=seed, start=start, params=params)
+    return open_car("sim", world=world, seed=seed, start=start, params=params, realism=realism)
 
 
 def _path(result: Result, every: int = 5) -> list[list[float]]:
@@ -341,20 +342,21 @@ def run_trials(lab: str, world: Any, run: RunFn, n: int, seed: int = 0, spec: Ra
                params: QCarParams = DEFAULT_PARAMS, start: tuple[float, float, float] | None = None,
                on_trial: Callable[[int, dict[str, Any]], None] | None = None,
                open_car: Callable[[Any, tuple[float, float, float], int, QCarParams], Car] | None = None,
-               min_success: float = 1.0) -> Result:
+               min_success: float = 1.0, realism: Any = None) -> Result:
     """Run ``run(car, trial_world, wrap)`` ``n`` times on a simulated car; return the trials' Result.
 
     ``run`` is the lab's single run (it must apply ``wrap`` to its model, when given, before the
     loop: that rolls the balls and ends the run after the encounter). ``on_trial(i, row)`` is called
     after each trial (progress). ``goal_reached`` is true when the success rate is at least
-    ``min_success`` (a fraction; 1 = every trial).
+    ``min_success`` (a fraction; 1 = every trial). ``realism`` is the simulated cars' profile
+    (None = ideal).
     """
     if not (isinstance(n, int) and 1 <= n <= MAX_TRIALS):
         raise InputError(f"--trials must be a whole number in 1..{MAX_TRIALS}, got {n!r}")
     if not (isinstance(min_success, (int, float)) and math.isfinite(min_success) and 0.0 <= min_success <= 1.0):
         raise InputError(f"--min-success must be a fraction in 0..1, got {min_success!r}")
     spec.check()
-    opener = open_car or _open_sim
+    opener = open_car or (lambda w, st, sd, p: _open_sim(w, st, sd, p, realism))
     start = tuple(start) if start is not None else tuple(world.start)
     rows: list[dict[str, Any]] = []
     interrupted = False

@@ -29,6 +29,11 @@ damping b w and a Coulomb load c = c_motor + C_rr m g G r (rolling resistance on
 integrated semi-implicitly (unconditionally stable, sticks at w = 0 while |drive| <= c).
 Wheel speed v = w G r with G the gear ratio; the encoder counts w * 2880 / (2 pi).
 
+**Realism** (:mod:`qcarlab.sim.realism`, ``--realism lab``): the servo's dead-band, backlash
+and trim act on the command before the lag; the tyres slip, v_ground = v_wheel (1 - s0 -
+k_scrub |v psi'| / g), and understeer, tan(delta_eff) = tan(delta) L / (L + K_us v^2). With the
+ideal profile (all 0) the step is the exact model above.
+
 **Battery.** 3S LiPo: open-circuit voltage from the state of charge (a LiPo cell's discharge
 curve), minus the internal resistance times the current (idle draw + d * i), drained by
 coulomb counting. Below the shutdown voltage the ESC cuts the motor.
@@ -38,11 +43,13 @@ from __future__ import annotations
 
 import math
 import sys
+from collections import deque
 from array import array
 
 import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
+from qcarlab.sim.realism import IDEAL, Realism, Servo
 
 # A LiPo cell's open-circuit voltage against its state of charge (typical discharge curve).
 _SOC_POINTS = (0.0, 0.05, 0.1, 0.2, 0.4, 0.6, 0.8, 0.9, 1.0)
@@ -125,7 +132,7 @@ for _i, (_name, _doc) in enumerate(zip(_FIELDS, (
 
 # the step's constants, one float64 array (indices below), so that the compiled step takes arrays
 (_P_DT, _P_TAU, _P_RBAT, _P_IDLE, _P_VCUT, _P_KTR, _P_J, _P_K, _P_C, _P_KB, _P_R, _P_G, _P_CAP, _P_L,
- _P_STAND, _P_CELLS) = range(16)
+ _P_STAND, _P_CELLS, _P_SLIP, _P_SCRUB, _P_KUS) = range(19)
 _SOC_TABLE = np.array(_SOC_POINTS)
 _VOLT_TABLE = np.array(_CELL_VOLTS)
 
@@ -186,6 +193,10 @@ def _advance(s, p, duty, delta_cmd, dt, socs, volts):
     cap = p[_P_CAP]
     wheelbase = p[_P_L]
     stand = p[_P_STAND] != 0.0
+    slip0 = p[_P_SLIP]
+    scrub = p[_P_SCRUB]  # per m/s^2 of lateral acceleration
+    kus = p[_P_KUS]
+    tyres = slip0 != 0.0 or scrub != 0.0 or kus != 0.0  # a realism profile's tyres (ideal: exact as before)
     for _ in range(n):
         # steering servo (exact first-order lag)
         delta += (delta_cmd - delta) * servo_a
@@ -216,8 +227,12 @@ def _advance(s, p, duty, delta_cmd, dt, socs, volts):
             yaw_rate = 0.0
             accel = 0.0
         else:
+            if tyres:  # slip (more in turns: scrub) takes ground speed off the wheels' speed
+                v_wheel *= 1.0 - slip0 - scrub * abs(v_old * yaw_rate)
             v = 0.5 * (v_old + v_wheel)  # mean speed over the step
             tan_d = math.tan(delta)
+            if tyres and kus != 0.0:  # understeer: the car turns wider than the bicycle model
+                tan_d *= wheelbase / (wheelbase + kus * v * v)
             beta = math.atan(0.5 * tan_d)
             r = v * math.cos(beta) * tan_d / wheelbase  # yaw rate
             heading = yaw + beta
@@ -276,8 +291,13 @@ class Vehicle:
         params: QCarParams = DEFAULT_PARAMS,
         on_stand: bool = False,
         pose: tuple[float, float, float] = (0.0, 0.0, -math.pi / 2.0),
+        realism: Realism | None = None,
     ):
         self.p = params
+        self.realism = realism = realism if realism is not None else IDEAL
+        self._servo = Servo(realism) if realism.servo else None
+        self._delay_ns = round(realism.steering_delay * 1e9)
+        self._pending: deque[tuple[int, float]] = deque()  # (due time in ns, wheel target) with a delay
         self.on_stand = bool(on_stand)
         p = params
         self.state = VehicleState(x=pose[0], y=pose[1], yaw=pose[2], soc=p.battery_soc0)
@@ -289,7 +309,7 @@ class Vehicle:
         self._g = g
         reflected = 0.0 if self.on_stand else p.mass * g**2
         rolling = 0.0 if self.on_stand else p.rolling_resistance * p.mass * p.gravity * g
-        k = np.zeros(16)
+        k = np.zeros(19)
         k[_P_DT] = p.physics_dt
         k[_P_TAU] = p.steering_tau
         k[_P_RBAT] = p.battery_resistance
@@ -306,6 +326,9 @@ class Vehicle:
         k[_P_L] = p.wheelbase
         k[_P_STAND] = 1.0 if self.on_stand else 0.0
         k[_P_CELLS] = p.battery_cells
+        k[_P_SLIP] = realism.slip_ratio
+        k[_P_SCRUB] = realism.scrub_per_g / p.gravity
+        k[_P_KUS] = realism.understeer_gradient
         self._k = k
         self._kl = k.tolist()  # the same constants for the plain-Python step (faster to index)
 
@@ -315,15 +338,39 @@ class Vehicle:
         return self.state._a[_SHUTDOWN] != 0.0
 
     def command(self, duty: float, delta: float) -> None:
-        """Set the PWM duty fraction and the steering command (rad); the servo clamps to +-max."""
+        """Set the PWM duty fraction and the steering command (rad); the servo clamps to +-max (and
+        a realism profile's servo adds its dead-band, backlash and trim, and its delay: the wheels'
+        target changes ``steering_delay`` s after the command)."""
         self.duty = duty
         m = self.p.max_steering
-        self.delta_cmd = m if delta > m else (-m if delta < -m else delta)
+        delta = m if delta > m else (-m if delta < -m else delta)
+        target = delta if self._servo is None else self._servo(delta)
+        if self._delay_ns:
+            self._pending.append((round(self.state._a[_T] * 1e9) + self._delay_ns, target))
+        else:
+            self.delta_cmd = target
 
     def step(self, dt: float) -> None:
-        """Advance by ``dt`` seconds in physics steps of at most ``params.physics_dt``."""
+        """Advance by ``dt`` seconds in physics steps of at most ``params.physics_dt`` (split where a
+        delayed steering command takes effect)."""
         if dt <= 0.0:
             return
+        pending = self._pending
+        if pending:
+            t_ns = round(self.state._a[_T] * 1e9)
+            end_ns = t_ns + round(dt * 1e9)
+            while pending and pending[0][0] < end_ns:
+                due, target = pending.popleft()
+                if due > t_ns:
+                    self._advance((due - t_ns) / 1e9)
+                    t_ns = due
+                self.delta_cmd = target
+            if end_ns > t_ns:
+                self._advance((end_ns - t_ns) / 1e9)
+            return
+        self._advance(dt)
+
+    def _advance(self, dt: float) -> None:
         # simulated time moves by dt rounded to the nanosecond, so that 100 steps of 10 ms make
         # exactly 1 s (the sub-steps' own sum drifts in the last bits)
         a = self.state._a
