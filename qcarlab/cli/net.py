@@ -15,8 +15,8 @@ import typer
 
 from qcarlab.car import open_car, parse_car_uri
 from qcarlab.cli.app import app
-from qcarlab.cli.common import (DEFAULT_REALISM, DebugOpt, JsonOpt, LiveOpt, LivePortOpt, ParamsOpt, RealismOpt, SeedOpt,
-                                WorldOpt)
+from qcarlab.cli.common import (DEFAULT_REALISM, DebugOpt, JsonOpt, LiveOpt, LivePortOpt, OutOpt, ParamsOpt, RealismOpt,
+                                SeedOpt, WorldOpt)
 from qcarlab.errors import CarError, InputError, NotBuiltError
 from qcarlab.wire.protocol import DEFAULT_PORT, VERSION
 
@@ -264,11 +264,12 @@ def ping_cmd(
     timeout: Annotated[float, typer.Option(help="Seconds to wait for the connection and for each reply.")] = 2.0,
     token: TokenOpt = None,
     json_out: JsonOpt = False,
+    out: OutOpt = None,
     debug: DebugOpt = False,
 ) -> None:
     """Round-trip latency, loss and identity of a car (sheet 3.1); exit 0 when it answers, 1 otherwise.
 
-    Example: qcarlab ping tcp://192.168.2.15:18960 --count 20 --interval 0.1
+    Example: qcarlab ping tcp://192.168.2.15:18960 --count 20 --interval 0.1 --out runs/3.1-ping
     """
     from qcarlab.car.tcp import TcpCar, TcpConnectError
 
@@ -281,12 +282,11 @@ def ping_cmd(
         car = TcpCar(host, port, role="monitor", token=token or None, timeout=timeout, connect_timeout=timeout,
                      client="qcarlab ping", tls=tls or None)
     except TcpConnectError as exc:
-        if json_out:
-            from qcarlab.record import dumps
-
-            sys.stdout.write(dumps({"uri": shown, "reachable": False, "reason": exc.kind, "error": str(exc)}) + "\n")
+        _ping_results({"uri": shown, "reachable": False, "reason": exc.kind, "error": str(exc)}, [], [], json_out,
+                      out)
         raise
     rtts: list[float] = []
+    replied: list[int] = []  # which round trips came back (for rtt.csv)
     lost = 0
     with car:
         ident = car.identity()
@@ -305,6 +305,7 @@ def ping_cmd(
             try:
                 rtt = car.ping(struct.pack("<Q", i), timeout=timeout)
                 rtts.append(rtt)
+                replied.append(i + 1)
                 if not json_out:
                     print(f"reply {i + 1}: {rtt * 1e3:.3f} ms", flush=True)
             except TimeoutError:
@@ -313,10 +314,8 @@ def ping_cmd(
                     print(f"reply {i + 1}: timed out after {timeout:g} s", flush=True)
             except TcpConnectError as exc:
                 lost += count - i
-                if json_out:
-                    from qcarlab.record import dumps
-
-                    sys.stdout.write(dumps({"uri": shown, "reachable": False, "reason": exc.kind, "error": str(exc)}) + "\n")
+                _ping_results({"uri": shown, "reachable": False, "reason": exc.kind, "error": str(exc)}, rtts,
+                              replied, json_out, out)
                 raise
             if i + 1 < count:
                 delay = start + (i + 1) * interval - time.monotonic()
@@ -338,16 +337,30 @@ def ping_cmd(
         "rtt_ms": stats,
         "samples_ms": [r * 1e3 for r in rtts],
     }
-    if json_out:
-        from qcarlab.record import dumps
-
-        sys.stdout.write(dumps(result) + "\n")
-    else:
+    _ping_results(result, rtts, replied, json_out, out)
+    if not json_out:
         print(f"--- {shown}: {count} sent, {len(rtts)} received, {100.0 * lost / count:.0f}% loss")
         if rtts:
             print("rtt min/avg/max/jitter = {min:.3f}/{avg:.3f}/{max:.3f}/{jitter:.3f} ms".format(**stats))
+        if out is not None:
+            print(f"wrote results.json and rtt.csv to {out}")
     if not rtts:
         raise TcpConnectError(f"{shown}: no reply to any of {count} pings (timed out after {timeout:g} s each)", "timeout")
+
+
+def _ping_results(result: dict, rtts: list[float], replied: list[int], json_out: bool, out) -> None:
+    """What every run's results carry (the command that made them, for qcarlab grade), saved to
+    --out (results.json and rtt.csv), written for the grader, and printed with --json."""
+    from qcarlab.cli.invocation import record_invocation, write_for_grader
+    from qcarlab.experiments.result import Result
+    from qcarlab.record import dumps
+
+    record_invocation(result)
+    if out is not None:
+        Result("ping", result, logs={"rtt.csv": {"reply": replied, "rtt_ms": [r * 1e3 for r in rtts]}}).save(out)
+    write_for_grader(result)
+    if json_out:
+        sys.stdout.write(dumps(result) + "\n")
 
 
 def _stats(rtts: list[float]) -> dict[str, float | None]:
