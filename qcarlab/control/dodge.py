@@ -154,24 +154,26 @@ def rollout(manoeuvres: list[Manoeuvre], obstacles: list[Obstacle], frame: LineF
                                  - ob.radius).min(axis=0))
     wall = np.full(k, np.inf)
     pts = np.asarray(static, dtype=float).reshape(-1, 2)
-    if len(pts):
-        dist = _footprint_distance(pts[None, None, :, 0], pts[None, None, :, 1], xs[:, :, None], ys[:, :, None],
-                                   yaws[:, :, None], hl, hw)
+    if len(pts):  # every 0.1 s of the way is enough for the walls (the car moves < 10 cm)
+        every = max(1, int(round(0.1 / dt)))
+        xw, yw, aw = xs[every - 1::every, :, None], ys[every - 1::every, :, None], yaws[every - 1::every, :, None]
+        dist = _footprint_distance(pts[None, None, :, 0], pts[None, None, :, 1], xw, yw, aw, hl, hw)
         wall = dist.min(axis=(0, 2))
     return np.maximum(ball, 0.0), np.maximum(wall, 0.0)
 
 
 def choose(manoeuvres: list[Manoeuvre], ball: np.ndarray, wall: np.ndarray, current: str | None = None,
-           y_car: float = 0.0, side: float = 0.0, want_ball: float = 0.3, want_wall: float = 0.12) -> int:
-    """The manoeuvre to drive: the largest ``min(ball, want_ball) + 0.5 min(wall, want_wall)``,
-    less 2 cm per 0.1 m the car has to move across (from ``y_car``, its lateral position in the
-    manoeuvres' frame), 5 cm for backing up and 1 m for touching a wall, plus 3 cm for the one
+           y_car: float = 0.0, side: float = 0.0, want_ball: float = 0.3, want_wall: float = 0.15) -> int:
+    """The manoeuvre to drive: the largest ``min(ball, want_ball) + min(wall, want_wall)`` (as
+    far from the obstacle as from the walls, up to enough of each), less 1 cm per 0.1 m the car
+    has to move across (from ``y_car``, its lateral position in the manoeuvres' frame), 5 cm for
+    backing up and 1 m for touching a wall, plus 3 cm for the one
     being driven and 5 cm for moving across to ``side`` (+1 left, -1 right: the side chosen
     before), so the choice does not flip between scans on a centimetre."""
     best, best_s = 0, -math.inf
     for i, m in enumerate(manoeuvres):
-        s = min(float(ball[i]), want_ball) + 0.5 * min(float(wall[i]), want_wall)
-        s -= 0.2 * abs((y_car if m.offset is None else m.offset) - y_car) + (0.05 if m.speed < 0.0 else 0.0)
+        s = min(float(ball[i]), want_ball) + min(float(wall[i]), want_wall)
+        s -= 0.1 * abs((y_car if m.offset is None else m.offset) - y_car) + (0.05 if m.speed < 0.0 else 0.0)
         if float(wall[i]) <= 0.01:
             s -= 1.0  # touches a wall
         if m.name == current:

@@ -301,6 +301,7 @@ class LidarAvoid:
         self.v_est = 0.0  # the car's speed (m/s) from the last two scans' match
         self.motion: Motion | None = None
         self.movers: list[Track] = []
+        self._static: np.ndarray | None = None  # this scan's returns less the moving objects'
         self.manoeuvre: str | None = None
         self._side = 0.0  # the side a dodge moves to: +1 left, -1 right, 0 none yet
         self.dodges = 0
@@ -371,8 +372,8 @@ class LidarAvoid:
         ms += [Manoeuvre(f"ahead{o:+.2f}", v_fwd, o) for o in offsets]
         ms += [Manoeuvre(f"back{o:+.2f}", -self.dodge_speed_back, o) for o in offsets]
         near = static[np.hypot(static[:, 0], static[:, 1]) < 3.5] if len(static) else static
-        if len(near) > 300:
-            near = near[np.linspace(0, len(near) - 1, 300).astype(int)]
+        if len(near) > 240:
+            near = near[np.linspace(0, len(near) - 1, 240).astype(int)]
         # long enough for the obstacle to pass the car standing still (when it comes at it)
         t_pass = max(0.0, -(first.x * first.vx + first.y * first.vy) / max(first.vx ** 2 + first.vy ** 2, 1e-6))
         horizon = min(7.0, max(2.0, t_pass + 1.0))
@@ -419,7 +420,15 @@ class LidarAvoid:
             self._backed = 0.0
 
     def _turn_side(self, w: AvoidWindows) -> float:
+        """+1 (left) or -1 (right): the side whose arcs are longer; on a tie (boxed in: every arc
+        0) the side whose nearest return beside the car is farther."""
         left, right = w.turn_left + w.gentle_left, w.turn_right + w.gentle_right
+        if abs(left - right) < 1e-9 and self._static is not None and len(self._static):
+            y = self._static[:, 1]
+            near_x = np.abs(self._static[:, 0]) <= self.params.length
+            room_l = float(y[near_x & (y > 0)].min()) if (near_x & (y > 0)).any() else math.inf
+            room_r = float(-y[near_x & (y < 0)].max()) if (near_x & (y < 0)).any() else math.inf
+            return 1.0 if room_l >= room_r else -1.0
         return 1.0 if left >= right else -1.0
 
     def __call__(self, ranges, angles, desired_speed: float) -> tuple[float, float]:
@@ -444,7 +453,7 @@ class LidarAvoid:
             return 0.0, 0.0
         dt = 0.0 if self._t is None else max(0.0, float(scan.t) - self._t)
         self._t = float(scan.t)
-        static = self._perceive(scan, dt)
+        static = self._static = self._perceive(scan, dt)
         w = self.windows = self._windows(scan, static)
         self._since += dt
         threats = self._threats() if self.dodge else []
