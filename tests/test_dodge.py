@@ -48,7 +48,7 @@ def test_scan_motion_finds_how_the_car_moved_between_two_scans_from_the_walls():
     true = (0.08, 0.01, 0.09)  # a tenth of a second at 0.8 m/s, turning at 0.9 rad/s
     b = compose(a, true)
     sa, sb = lidar.scan(a), lidar.scan(b)
-    m = scan_motion(sa.ranges, sa.angles, sb.ranges, sb.angles, guess=(0.0, 0.0, 0.0))  # no odometry at all
+    m = scan_motion(sa, sb, guess=(0.0, 0.0, 0.0))  # no odometry at all
     assert m.matched > 300
     assert m.dx == pytest.approx(true[0], abs=0.01) and m.dy == pytest.approx(true[1], abs=0.01)
     assert m.dyaw == pytest.approx(true[2], abs=0.005)
@@ -56,7 +56,7 @@ def test_scan_motion_finds_how_the_car_moved_between_two_scans_from_the_walls():
     p = in_frame(a, [(1.5, 1.0)])
     assert np.allclose(m.to_current(p), in_frame(b, [(1.5, 1.0)]), atol=0.02)
     empty = np.zeros_like(sb.ranges)
-    assert scan_motion(sa.ranges, sa.angles, empty, sb.angles, guess=(0.05, 0.0, 0.0)).matched == 0  # the guess
+    assert scan_motion(sa, (empty, sb.angles), guess=(0.05, 0.0, 0.0)).matched == 0  # the guess
 
 
 def test_scan_clusters_are_the_small_free_standing_objects_not_the_walls():
@@ -87,7 +87,7 @@ def test_a_rolling_ball_is_tracked_with_its_speed_over_the_ground_a_post_stands_
         s = lidar.scan(pose, t)
         motion = None
         if prev is not None:
-            motion = scan_motion(prev.ranges, prev.angles, s.ranges, s.angles, guess=(0.05, 0.0, 0.0))
+            motion = scan_motion(prev, s, guess=(0.05, 0.0, 0.0))
         tracker.update(t, motion, scan_clusters(s.ranges, s.angles, lidar.params.lidar_x))
         prev, pose = s, compose(pose, step)
     pose = compose(pose, (-step[0], -step[1], -step[2]))  # the pose of the last scan

@@ -10,7 +10,8 @@ at the car head-on; for one that crosses, the line of the car's own heading). On
 drives every manoeuvre, on the model and on the car (:func:`offset_steering`)::
 
     y      = (p - o) . n,   psi = heading - heading of the line          (the car on the line's frame)
-    psi_d  = sign(v) clip(k_y (y_t - y), -psi_max, psi_max)              (head for the offset line)
+    psi_d  = sign(v) clip(atan((y_t - y) / l), -psi_max, psi_max)       (head for the offset line
+                                                                         l = max(0.35 m, 0.9 s |v|) ahead)
     delta  = clip(atan(L k_psi (psi_d - psi) / v), -0.5, 0.5)          (turn the heading there)
 
 The model (:func:`rollout`) is the kinematic bicycle about the car's centre the simulator uses
@@ -32,7 +33,8 @@ from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 
 __all__ = ["Manoeuvre", "Obstacle", "LineFrame", "choose", "line_frame", "offset_steering", "rollout"]
 
-K_Y = 2.0  # rad per m of lateral error
+LOOK_MIN = 0.35  # m: the offset line is aimed at at least this far ahead ...
+LOOK_TIME = 0.9  # s: ... or this many seconds of driving (a fast car slants in more gently)
 PSI_MAX = 0.5  # rad: the steepest heading towards the offset line
 K_PSI = 2.5  # 1/s: how fast the heading error is turned away
 HEAD_ON = math.radians(60.0)  # a track within this of the car's reverse heading comes at it head-on
@@ -94,7 +96,8 @@ def offset_steering(y, psi, v, offset: float, params: QCarParams = DEFAULT_PARAM
     docstring. Works on arrays."""
     v = np.asarray(v, dtype=float)
     sgn = np.where(v < 0.0, -1.0, 1.0)
-    psi_d = sgn * np.clip(K_Y * (offset - np.asarray(y, dtype=float)), -PSI_MAX, PSI_MAX)
+    look = np.maximum(LOOK_MIN, LOOK_TIME * np.abs(v))
+    psi_d = sgn * np.clip(np.arctan((offset - np.asarray(y, dtype=float)) / look), -PSI_MAX, PSI_MAX)
     err = np.remainder(psi_d - np.asarray(psi, dtype=float) + math.pi, 2.0 * math.pi) - math.pi
     v_eff = sgn * np.maximum(np.abs(v), 0.15)
     return np.clip(np.arctan(params.wheelbase * K_PSI * err / v_eff), -params.max_steering, params.max_steering)
@@ -111,10 +114,13 @@ def _footprint_distance(px, py, cx, cy, cyaw, half_len, half_wid):
 
 def rollout(manoeuvres: list[Manoeuvre], obstacles: list[Obstacle], frame: LineFrame, static: np.ndarray,
             v0: float, delta0: float, params: QCarParams = DEFAULT_PARAMS, horizon: float = 4.0,
-            dt: float = 0.05, accel: float = 2.0, delay: float = 0.04) -> tuple[np.ndarray, np.ndarray]:
+            dt: float = 0.05, accel: float = 2.0, delay: float = 0.04,
+            period: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     """Drive every manoeuvre on the model from the car's state now (centre at the origin, heading 0,
-    speed ``v0``, wheels at ``delta0``) for ``horizon`` s; return each one's smallest clearance (m)
-    to the obstacles and to the ``static`` points ((m, 2), body frame) over that time."""
+    speed ``v0``, wheels at ``delta0``) for ``horizon`` s, the steering law evaluated once a
+    ``period`` (a LIDAR scan) and held; return each one's smallest clearance (m) to the obstacles
+    and to the ``static`` points ((m, 2), body frame) over that time, and, for the obstacles, as
+    they roll on 4 m past the horizon with the car standing where it got to."""
     k = len(manoeuvres)
     x, y, yaw = np.zeros(k), np.zeros(k), np.zeros(k)
     v = np.full(k, float(v0))
@@ -127,9 +133,12 @@ def rollout(manoeuvres: list[Manoeuvre], obstacles: list[Obstacle], frame: LineF
     steps = int(round(horizon / dt))
     xs, ys, yaws = np.empty((steps, k)), np.empty((steps, k)), np.empty((steps, k))
     h = frame.heading
+    hold = max(1, int(round(period / dt)))
+    cmd = np.zeros(k)
     for i in range(steps):
-        cmd = offset_steering(frame.lateral(x, y), yaw - h, np.where(np.abs(v) > 0.05, v, vref), off, params)
-        cmd = np.where(free, 0.0, cmd)
+        if i % hold == 0:  # a new command on each scan, held between them as the car does
+            cmd = offset_steering(frame.lateral(x, y), yaw - h, np.where(np.abs(v) > 0.05, v, vref), off, params)
+            cmd = np.where(free, 0.0, cmd)
         d += (cmd - d) * (1.0 - math.exp(-dt / tau))
         v += np.clip(vref - v, -accel * dt, accel * dt)
         tan_d = np.tan(d)

@@ -25,7 +25,7 @@ import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.control.dodge import Manoeuvre, Obstacle, choose, line_frame, offset_steering, rollout
-from qcarlab.control.moving_obstacles import Motion, Track, Tracker, scan_clusters, scan_motion
+from qcarlab.control.moving_obstacles import Motion, PreparedScan, Track, Tracker, prepare_scan, scan_clusters, scan_motion
 
 __all__ = ["LidarAvoid", "STATES", "forward_range", "free_distance", "lidar_steer", "lidar_stop",
            "rear_free_distance", "scan_points"]
@@ -295,7 +295,7 @@ class LidarAvoid:
         self.backups = 0
         self._clock = 0.0
         self.tracker.reset()
-        self._prev_scan: tuple[np.ndarray, np.ndarray] | None = None
+        self._prev_scan: PreparedScan | None = None  # the last scan, ready to be matched
         self._delta = 0.0  # the wheels' angle as the servo model has it (rad)
         self._cmd_delta = 0.0  # the steering last commanded
         self.v_est = 0.0  # the car's speed (m/s) from the last two scans' match
@@ -319,15 +319,16 @@ class LidarAvoid:
         self._delta += (self._cmd_delta - self._delta) * (1.0 - math.exp(-dt / self.params.steering_tau)) \
             if dt > 0.0 else 0.0
         motion = None
+        prepared = prepare_scan(r, a)
         if self._prev_scan is not None and dt > 0.0:
             v = self.v_est
             guess = (v * dt, 0.0, v * math.tan(self._delta) / L * dt)
-            motion = scan_motion(self._prev_scan[0], self._prev_scan[1], r, a, guess)
+            motion = scan_motion(self._prev_scan, prepared, guess)
             if motion.matched:
                 self.v_est = motion.dx / dt
             else:
                 self.v_est = self._v
-        self._prev_scan = (r, a)
+        self._prev_scan = prepared
         self.motion = motion
         self.tracker.update(float(scan.t), motion, scan_clusters(r, a, self.params.lidar_x))
         self.movers = self.tracker.moving()
@@ -420,10 +421,10 @@ class LidarAvoid:
             self._backed = 0.0
 
     def _turn_side(self, w: AvoidWindows) -> float:
-        """+1 (left) or -1 (right): the side whose arcs are longer; on a tie (boxed in: every arc
-        0) the side whose nearest return beside the car is farther."""
+        """+1 (left) or -1 (right): the side whose arcs are longer; on a tie (within 5 cm: boxed in,
+        every arc about 0) the side whose nearest return beside the car is farther."""
         left, right = w.turn_left + w.gentle_left, w.turn_right + w.gentle_right
-        if abs(left - right) < 1e-9 and self._static is not None and len(self._static):
+        if abs(left - right) < 0.05 and self._static is not None and len(self._static):
             y = self._static[:, 1]
             near_x = np.abs(self._static[:, 0]) <= self.params.length
             room_l = float(y[near_x & (y > 0)].min()) if (near_x & (y > 0)).any() else math.inf

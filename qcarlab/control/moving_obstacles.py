@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Cluster", "Motion", "Track", "Tracker", "scan_clusters", "scan_motion"]
+__all__ = ["Cluster", "Motion", "PreparedScan", "Track", "Tracker", "prepare_scan", "scan_clusters", "scan_motion"]
 
 
 @dataclass(frozen=True)
@@ -42,46 +42,76 @@ class Motion:
         return np.column_stack((c * p[:, 0] + s * p[:, 1], -s * p[:, 0] + c * p[:, 1]))
 
 
-def _sorted_points(ranges, angles) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Valid returns sorted by bearing in [-pi, pi): (bearings, ranges, (m, 2) points)."""
+@dataclass(frozen=True)
+class PreparedScan:
+    """A scan made ready for :func:`scan_motion`: the valid returns sorted by bearing in
+    [-pi, pi) (``bearings``, ``ranges``, ``points`` (m, 2)) and each return's local line normal
+    from its two neighbours (``normals``; ``normal_ok`` False where a neighbour is far: an edge)."""
+
+    bearings: np.ndarray
+    ranges: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    normal_ok: np.ndarray
+
+
+def prepare_scan(ranges, angles) -> PreparedScan:
+    """:class:`PreparedScan` of one scan (ranges m, 0 = none; angles rad): done once a scan, as
+    the newer scan of one match and the older one of the next."""
     r = np.asarray(ranges, dtype=float)
     a = np.remainder(np.asarray(angles, dtype=float) + math.pi, 2.0 * math.pi) - math.pi
     ok = np.isfinite(r) & (r > 0.0) & np.isfinite(a)
     r, a = r[ok], a[ok]
     order = np.argsort(a, kind="stable")
     r, a = r[order], a[order]
-    return a, r, np.column_stack((r * np.cos(a), r * np.sin(a)))
-
-
-def scan_motion(prev_ranges, prev_angles, ranges, angles, guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                iterations: int = 12, prior: tuple[float, float, float] = (2.0, 2.0, 0.5)) -> Motion:
-    """The car's motion between two scans (ranges m, 0 = none; angles rad, body frame), by
-    point-to-line matching of this scan's returns against the previous one's (projective ICP).
-
-    Each return ``q`` is moved by the current estimate ``T = (dx, dy, dyaw)`` into the previous
-    frame, ``p = R(dyaw) q + (dx, dy)``, and paired with the previous return at the nearer of the
-    two bearings either side of ``p``'s (the scans come sorted by bearing, so no search tree is
-    needed); the residual is its distance to that return's local line (normal ``n`` from its two
-    neighbours), ``e = n . (p - p_prev)``. Gauss-Newton on ``sum w e^2 + (T - guess)' P (T - guess)``
-    with Huber weights ``w`` (2 cm) and pairs farther apart than a shrinking gate (0.3 m down to
-    8 cm) dropped; the weak prior ``P`` (``prior``, per m^2 / rad^2) towards ``guess`` only
-    matters along a direction the walls leave open (down a long corridor with nothing at its end).
-    Returns the ``guess`` (``matched`` 0) when fewer than 20 returns pair up.
-    """
-    pa, pr, P = _sorted_points(prev_ranges, prev_angles)
-    _, _, Q = _sorted_points(ranges, angles)
-    g = np.asarray(guess, dtype=float)
-    if len(P) < 20 or len(Q) < 20:
-        return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
-    # local line normals of the previous scan, from each return's two neighbours (cyclic)
+    P = np.column_stack((r * np.cos(a), r * np.sin(a)))
+    if len(P) < 3:
+        return PreparedScan(a, r, P, np.zeros_like(P), np.zeros(len(P), dtype=bool))
     nxt, prv = np.roll(P, -1, axis=0), np.roll(P, 1, axis=0)
-    near = 0.05 + 0.03 * pr
+    near = 0.05 + 0.03 * r
     ok_n = (np.hypot(*(nxt - P).T) < near) & (np.hypot(*(prv - P).T) < near)
     tan = nxt - prv
     tl = np.hypot(tan[:, 0], tan[:, 1])
     ok_n &= tl > 1e-6
     tl = np.where(tl > 1e-6, tl, 1.0)
-    N = np.column_stack((-tan[:, 1] / tl, tan[:, 0] / tl))
+    return PreparedScan(a, r, P, np.column_stack((-tan[:, 1] / tl, tan[:, 0] / tl)), ok_n)
+
+
+def _prepared(scan) -> PreparedScan:
+    if isinstance(scan, PreparedScan):
+        return scan
+    if hasattr(scan, "ranges") and hasattr(scan, "angles"):
+        return prepare_scan(scan.ranges, scan.angles)
+    ranges, angles = scan
+    return prepare_scan(ranges, angles)
+
+
+def scan_motion(prev, scan, guess: tuple[float, float, float] = (0.0, 0.0, 0.0), iterations: int = 12,
+                prior: tuple[float, float, float] = (2.0, 2.0, 0.5)) -> Motion:
+    """The car's motion between two scans, by point-to-line matching of the newer scan's returns
+    against the older one's (projective ICP). ``prev`` and ``scan``: each a ``(ranges, angles)``
+    pair (m, 0 = none; rad, body frame), a :class:`~qcarlab.sensors.LidarScan` or a
+    :class:`PreparedScan`.
+
+    Each return ``q`` (a few hundred of them, evenly taken) is moved by the current estimate
+    ``T = (dx, dy, dyaw)`` into the previous frame, ``p = R(dyaw) q + (dx, dy)``, and paired with
+    the previous return at the nearer of the two bearings either side of ``p``'s (the scans come
+    sorted by bearing, so no search tree is needed); the residual is its distance to that
+    return's local line (normal ``n`` from its two neighbours), ``e = n . (p - p_prev)``.
+    Gauss-Newton on ``sum w e^2 + (T - guess)' P (T - guess)`` with Huber weights ``w`` (2 cm)
+    and pairs farther apart than a shrinking gate (0.3 m down to 8 cm) dropped; the weak prior
+    ``P`` (``prior``, per m^2 / rad^2) towards ``guess`` only matters along a direction the walls
+    leave open (down a long corridor with nothing at its end). Returns the ``guess``
+    (``matched`` 0) when fewer than 20 returns pair up.
+    """
+    old, new = _prepared(prev), _prepared(scan)
+    pa, P, N, ok_n = old.bearings, old.points, old.normals, old.normal_ok
+    Q = new.points
+    if len(Q) > 400:  # a few hundred returns are plenty for three unknowns
+        Q = Q[::2]
+    g = np.asarray(guess, dtype=float)
+    if len(P) < 20 or len(Q) < 20:
+        return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
     n = len(P)
     x = g.copy()
     lam = np.diag(np.asarray(prior, dtype=float))
@@ -90,28 +120,29 @@ def scan_motion(prev_ranges, prev_angles, ranges, angles, guess: tuple[float, fl
         c, s = math.cos(x[2]), math.sin(x[2])
         px = c * Q[:, 0] - s * Q[:, 1] + x[0]
         py = s * Q[:, 0] + c * Q[:, 1] + x[1]
-        b = np.arctan2(py, px)
-        k = np.searchsorted(pa, b) % n
-        k0 = (k - 1) % n
+        k = np.searchsorted(pa, np.arctan2(py, px)) % n
+        k0 = k - 1  # -1 wraps to the last return
         d1 = np.hypot(px - P[k, 0], py - P[k, 1])
         d0 = np.hypot(px - P[k0, 0], py - P[k0, 1])
-        idx = np.where(d0 < d1, k0, k)
-        dist = np.minimum(d0, d1)
+        nearer = d0 < d1
+        idx = np.where(nearer, k0, k)
+        dist = np.where(nearer, d0, d1)
         gate = max(0.08, 0.3 * 0.7 ** it)
         use = ok_n[idx] & (dist < gate)
-        matched = int(use.sum())
+        matched = int(np.count_nonzero(use))
         if matched < 20:
             return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
-        nx, ny = N[idx[use], 0], N[idx[use], 1]
+        iu = idx[use]
+        nx, ny = N[iu, 0], N[iu, 1]
         ux, uy = px[use], py[use]
-        e = nx * (ux - P[idx[use], 0]) + ny * (uy - P[idx[use], 1])
+        e = nx * (ux - P[iu, 0]) + ny * (uy - P[iu, 1])
         w = np.minimum(1.0, 0.02 / np.maximum(np.abs(e), 1e-9))
-        J = np.column_stack((nx, ny, nx * -(uy - x[1]) + ny * (ux - x[0])))
+        J = np.column_stack((nx, ny, ny * (ux - x[0]) - nx * (uy - x[1])))
         H = J.T @ (J * w[:, None]) + lam
         grad = J.T @ (w * e) + lam @ (x - g)
         step = np.linalg.solve(H, -grad)
         x += step
-        if abs(step[0]) + abs(step[1]) < 1e-5 and abs(step[2]) < 1e-5:
+        if abs(step[0]) + abs(step[1]) < 2e-4 and abs(step[2]) < 2e-4 and gate <= 0.1:
             break
     return Motion(float(x[0]), float(x[1]), float(x[2]), matched)
 
@@ -209,12 +240,20 @@ class Track:
     extent: float
     misses: int = 0
     cluster: Cluster | None = None  # this scan's, None when missed
+    _fit: tuple | None = field(default=None, repr=False, compare=False)  # fit()'s, until the next update
 
     def fit(self, max_residual: float = 0.03) -> tuple[np.ndarray, np.ndarray, float]:
         """``(position now, velocity, rms residual)``: the straight line ``p(t) = p0 + v t``
         fitted by least squares to the longest run of the newest kept positions (at least three)
         that it fits to ``max_residual`` m (an object that has just started to roll is fitted on
         its rolling part only); the newest position and zero velocity below two positions."""
+        if self._fit is not None and self._fit[0] == max_residual:
+            return self._fit[1]
+        out = self._fit_now(max_residual)
+        self._fit = (max_residual, out)
+        return out
+
+    def _fit_now(self, max_residual: float) -> tuple[np.ndarray, np.ndarray, float]:
         if len(self.t) < 2:
             return self.xy[-1], np.zeros(2), 0.0
         t_all = np.asarray(self.t) - self.t[-1]
@@ -266,6 +305,7 @@ class Tracker:
                 moved = motion.to_current(np.asarray(tr.xy))
                 tr.xy = [row for row in moved]
             tr.cluster = None
+            tr._fit = None
         pairs = []
         for i, tr in enumerate(self.tracks):
             v, _ = tr.velocity()
@@ -288,6 +328,7 @@ class Tracker:
             tr.extent = 0.7 * tr.extent + 0.3 * c.extent
             tr.misses = 0
             tr.cluster = c
+            tr._fit = None
         for i, tr in enumerate(self.tracks):
             if i not in used_t:
                 tr.misses += 1
