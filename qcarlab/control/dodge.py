@@ -175,18 +175,22 @@ def choose(manoeuvres: list[Manoeuvre], ball: np.ndarray, wall: np.ndarray, curr
            y_car: float = 0.0, side: float = 0.0, want_ball: float = 0.3, want_wall: float = 0.15) -> int:
     """The manoeuvre to drive: the largest ``min(ball, want_ball) + min(wall, want_wall)`` (as
     far from the obstacle as from the walls, up to enough of each), less 1 cm per 0.1 m the car
-    has to move across (from ``y_car``, its lateral position in the manoeuvres' frame), 5 cm for
-    backing up and 1 m for touching a wall, plus 3 cm for the one
-    being driven and 5 cm for moving across to ``side`` (+1 left, -1 right: the side chosen
-    before), so the choice does not flip between scans on a centimetre."""
+    has to move across (from ``y_car``, its lateral position in the manoeuvres' frame), 8 cm for
+    backing up and 1 m for touching a wall; plus 3 cm for the one being driven, 5 cm for one of
+    its kind (ahead or backing up, to a line or not) and 5 cm for moving across to ``side`` (+1
+    left, -1 right: the side chosen before), so the choice does not flip between scans on a
+    centimetre."""
     best, best_s = 0, -math.inf
+    cur = next((m for m in manoeuvres if m.name == current), None)
     for i, m in enumerate(manoeuvres):
         s = min(float(ball[i]), want_ball) + min(float(wall[i]), want_wall)
-        s -= 0.1 * abs((y_car if m.offset is None else m.offset) - y_car) + (0.05 if m.speed < 0.0 else 0.0)
+        s -= 0.1 * abs((y_car if m.offset is None else m.offset) - y_car) + (0.08 if m.speed < 0.0 else 0.0)
         if float(wall[i]) <= 0.01:
             s -= 1.0  # touches a wall
         if m.name == current:
             s += 0.03
+        if cur is not None and (m.speed < 0.0) == (cur.speed < 0.0) and (m.offset is None) == (cur.offset is None):
+            s += 0.05  # going on the way it goes (not from ahead to backing up on a centimetre)
         if side and m.offset is not None and (m.offset - y_car) * side > 0.0:
             s += 0.05  # the side already chosen
         if s > best_s:

@@ -13,7 +13,9 @@ a stop distance is measured from the LIDAR, as the sheet's function sees it.
   from the obstacle; the speed is untouched.
 - :class:`LidarAvoid` (Task 4, open problem): both at once, as the window state machine of the
   race-car team's report (Stop, Straight, Straight Left/Right, Turn Left/Right, Back) with LIDAR
-  windows along the arcs the car can drive (:func:`free_distance`) and a back-up recovery.
+  windows along the arcs the car can drive (:func:`free_distance`) and a back-up recovery; and,
+  for the report's rolling ball, the small objects tracked from scan to scan
+  (:mod:`qcarlab.control.moving_obstacles`) and a moving one dodged (:mod:`qcarlab.control.dodge`).
 """
 
 from __future__ import annotations
@@ -196,7 +198,8 @@ class _Scan:
         self.ranges, self.angles, self.t = ranges, angles, t
 
 
-STATES = ("stop", "straight", "straight-left", "straight-right", "turn-left", "turn-right", "back")
+STATES = ("stop", "straight", "straight-left", "straight-right", "turn-left", "turn-right", "back",
+          "dodge-left", "dodge-right", "give-way")
 
 
 @dataclass
@@ -243,8 +246,25 @@ class LidarAvoid:
     scan period plus the steering servo's lag) turns it into extra distance. The contact check
     uses ``max(gap, margin + stopping_distance(v))``, so a fast car stops in time.
 
+    Moving obstacles (``dodge``, on by default; the report's rolling ball). A window cannot tell a
+    ball rolling at the car from a wall: it turns when the ball is about 1 m off, too late, and
+    often to the ball's side. So each scan is also matched against the last one
+    (:func:`~qcarlab.control.moving_obstacles.scan_motion`: the car's own motion, from the
+    walls), its small free-standing objects (:func:`~qcarlab.control.moving_obstacles.scan_clusters`)
+    are followed (:class:`~qcarlab.control.moving_obstacles.Tracker`), and one that moves over the
+    ground at 0.35 m/s or more and will pass within 1 m of the car (closest approach still ahead)
+    is a threat; its returns leave the windows. For a threat the manoeuvres of
+    :mod:`qcarlab.control.dodge` are tried on a model of the car until the obstacle has passed
+    (wheels straight on, stop, and ahead at ``speed`` or backing up at ``dodge_back_speed`` to a
+    line 0.3, 0.45 or 0.6 m left or right of the obstacle's track); when going on straight
+    clears it by 15 cm the windows keep driving, else the best manoeuvre is driven (**dodge-left**,
+    **dodge-right**, or **give-way** for standing or going straight on) until the obstacle's
+    closest approach is behind it, then **straight**. A last stop holds for the walls (the
+    commanded arc or the rear 5 cm from a return).
+
     ``step(scan, speed)`` takes the scan (or None) and the desired speed, returns
-    ``(speed_ref, steering)``; ``state`` and ``windows`` show why.
+    ``(speed_ref, steering)``; ``state`` and ``windows`` show why (``movers``: the moving tracks,
+    ``dodges``: how many times it got out of one's way).
     """
 
     def __init__(

@@ -241,21 +241,23 @@ class Track:
     misses: int = 0
     cluster: Cluster | None = None  # this scan's, None when missed
     _fit: tuple | None = field(default=None, repr=False, compare=False)  # fit()'s, until the next update
+    run: int = 0  # positions the last fit used
 
     def fit(self, max_residual: float = 0.03) -> tuple[np.ndarray, np.ndarray, float]:
         """``(position now, velocity, rms residual)``: the straight line ``p(t) = p0 + v t``
         fitted by least squares to the longest run of the newest kept positions (at least three)
         that it fits to ``max_residual`` m (an object that has just started to roll is fitted on
-        its rolling part only); the newest position and zero velocity below two positions."""
+        its rolling part only; :attr:`run` says how many positions); the newest position and zero
+        velocity below two positions."""
         if self._fit is not None and self._fit[0] == max_residual:
             return self._fit[1]
-        out = self._fit_now(max_residual)
+        out, self.run = self._fit_now(max_residual)
         self._fit = (max_residual, out)
         return out
 
-    def _fit_now(self, max_residual: float) -> tuple[np.ndarray, np.ndarray, float]:
+    def _fit_now(self, max_residual: float) -> tuple[tuple[np.ndarray, np.ndarray, float], int]:
         if len(self.t) < 2:
-            return self.xy[-1], np.zeros(2), 0.0
+            return (self.xy[-1], np.zeros(2), 0.0), len(self.t)
         t_all = np.asarray(self.t) - self.t[-1]
         xy_all = np.asarray(self.xy)
         for k in range(len(t_all), 1, -1):
@@ -265,8 +267,8 @@ class Track:
             res = xy - A @ sol
             rms = float(math.sqrt(np.mean(np.sum(res * res, axis=1))))
             if rms <= max_residual or k <= 3:
-                return sol[0], sol[1], rms
-        return sol[0], sol[1], rms  # pragma: no cover (k = 2 returns above)
+                return (sol[0], sol[1], rms), k
+        return (sol[0], sol[1], rms), 2  # pragma: no cover (k = 3 returns above)
 
     def velocity(self) -> tuple[np.ndarray, float]:
         """Velocity over the ground (m/s, newest frame) and the fit's RMS residual (m): :meth:`fit`."""
@@ -285,11 +287,13 @@ class Tracker:
     (:meth:`Motion.to_current`); each track is predicted to ``t`` with its velocity and paired with
     the nearest unpaired cluster within ``gate`` m of similar size (nearest pairs first); the
     unpaired clusters start tracks, a track missed ``max_misses`` scans in a row is dropped.
-    :meth:`moving` gives the tracks seen ``min_seen`` times that move over the ground at
-    ``min_speed`` m/s or more along a straight line (fit residual below ``max_residual`` m).
+    :meth:`moving` gives the tracks that move over the ground at ``min_speed`` m/s or more along
+    a straight line fitted to their last ``min_seen`` positions or more (residual below
+    ``max_residual`` m): 0.4 s of rolling at 10 scans a second, before the direction is known
+    well enough to tell which side of it the car is.
     """
 
-    def __init__(self, gate: float = 0.35, keep: int = 10, max_misses: int = 3, min_seen: int = 4,
+    def __init__(self, gate: float = 0.35, keep: int = 10, max_misses: int = 3, min_seen: int = 5,
                  min_speed: float = 0.35, max_residual: float = 0.05):
         self.gate, self.keep, self.max_misses = gate, keep, max_misses
         self.min_seen, self.min_speed, self.max_residual = min_seen, min_speed, max_residual
@@ -345,6 +349,6 @@ class Tracker:
             if len(tr.t) < self.min_seen or tr.misses > 1:
                 continue
             v, res = tr.velocity()
-            if math.hypot(v[0], v[1]) >= self.min_speed and res <= self.max_residual:
+            if tr.run >= self.min_seen and math.hypot(v[0], v[1]) >= self.min_speed and res <= self.max_residual:
                 out.append(tr)
         return out
