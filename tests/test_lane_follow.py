@@ -166,3 +166,45 @@ def test_cli_bad_input(cli, args, words):
     code, _out, err = cli("lane-follow", *args)
     assert code == 2
     assert words in err and len(err.strip().splitlines()) == 1
+
+
+# --- the bright corner (issue 11): a lit floor beyond the white edge line is not the line -------
+def test_edge_line_mask_keeps_the_line_nearest_the_road_not_the_larger_blob_beyond_it():
+    from qcarlab.perception.lane import edge_line_mask
+
+    mask = np.zeros((480, 640), np.uint8)
+    cv2.line(mask, (200, 479), (330, 300), 255, 14)  # the edge line
+    cv2.fillConvexPoly(mask, np.array([[420, 479], [639, 479], [639, 400]], np.int32), 255)  # a lit floor wedge
+    right = edge_line_mask(mask, "right")
+    assert right[:, :340].any() and not right[:, 400:].any()  # right lane: the leftmost candidate
+    left = edge_line_mask(mask, "left")
+    assert left[:, 400:].any() and not left[:, :340].any()  # left lane: mirrored
+    assert not edge_line_mask(np.zeros_like(mask), "right").any()
+
+
+def test_the_white_backup_follows_the_edge_line_where_the_bright_corner_begins():
+    """Where the car leaves the normal light for the track's bright top-right corner, the camera
+    sees normally lit paint (V 235) and the corner's concrete (V 195, above the white level 0.8 x
+    235) at once; the floor beyond the edge line made a larger line-shaped blob than the line,
+    and the largest-blob rule steered the car off the road (one of five lane-follow trials)."""
+    from qcarlab.experiments.lane_follow import white_edge_mask
+    from qcarlab.perception.lane import detect_lane
+    from qcarlab.sim.camera import RGBDCamera
+    from qcarlab.sim.world import load_world
+
+    color = RGBDCamera(load_world("track")).render((1.44, 1.65, 2.63)).color  # in the curve, turning left
+    fit = linear_poly_fit(white_edge_mask(color, "right"))
+    assert fit is not None
+    steer = steering_calculation(fit, line_offset("right", "white"))
+    assert 0.1 < steer < 0.4  # the curve goes on to the left (the floor's blob read ~0: straight off the road)
+    det = detect_lane(color, "right")
+    assert det.source == "white" and det.fit.slope == pytest.approx(fit.slope, abs=0.05)
+
+
+@pytest.mark.parametrize("realism", ["lab", "ideal"])
+def test_cli_the_trial_started_before_the_bright_corner_stays_in_its_lane(cli_json, realism):
+    # the fifth of `lane-follow --trials 5` (seed 4): it left the lane at 8 s, in the bright corner
+    m = cli_json("lane-follow", "--start", "2.2157,0.0022,1.5741", "--seed", "4", "--duration", "12",
+                 "--realism", realism)
+    assert m["time_out_of_lane_s"] == 0.0 and m["max_lateral_deviation_m"] < 0.15
+    assert m["frames_white_backup"] > 100  # the curve is driven on the white edge line

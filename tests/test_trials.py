@@ -134,7 +134,8 @@ def test_the_hallway_ball_meets_the_car_at_the_default_speed():
     bx = np.array([ball.position(ti)[0] for ti in t])
     by = np.array([ball.position(ti)[1] for ti in t])
     gap = np.hypot(bx - x, by - y)
-    assert rolling.any() and gap[rolling].min() < 0.5  # it reaches the car while still rolling
+    # it reaches the car while still rolling (and passes beside it: the combined strategy dodges)
+    assert rolling.any() and gap[rolling].min() < 0.8
 
 
 def test_ctrl_c_keeps_the_trials_done_so_far():

@@ -13,7 +13,9 @@ a stop distance is measured from the LIDAR, as the sheet's function sees it.
   from the obstacle; the speed is untouched.
 - :class:`LidarAvoid` (Task 4, open problem): both at once, as the window state machine of the
   race-car team's report (Stop, Straight, Straight Left/Right, Turn Left/Right, Back) with LIDAR
-  windows along the arcs the car can drive (:func:`free_distance`) and a back-up recovery.
+  windows along the arcs the car can drive (:func:`free_distance`) and a back-up recovery; and,
+  for the report's rolling ball, the small objects tracked from scan to scan
+  (:mod:`qcarlab.control.moving_obstacles`) and a moving one dodged (:mod:`qcarlab.control.dodge`).
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
+from qcarlab.control.dodge import Manoeuvre, Obstacle, choose, line_frame, offset_steering, rollout
+from qcarlab.control.moving_obstacles import Motion, PreparedScan, Track, Tracker, prepare_scan, scan_clusters, scan_motion
 
 __all__ = ["LidarAvoid", "STATES", "forward_range", "free_distance", "lidar_steer", "lidar_stop",
            "rear_free_distance", "scan_points"]
@@ -194,7 +198,8 @@ class _Scan:
         self.ranges, self.angles, self.t = ranges, angles, t
 
 
-STATES = ("stop", "straight", "straight-left", "straight-right", "turn-left", "turn-right", "back")
+STATES = ("stop", "straight", "straight-left", "straight-right", "turn-left", "turn-right", "back",
+          "dodge-left", "dodge-right", "give-way")
 
 
 @dataclass
@@ -241,8 +246,25 @@ class LidarAvoid:
     scan period plus the steering servo's lag) turns it into extra distance. The contact check
     uses ``max(gap, margin + stopping_distance(v))``, so a fast car stops in time.
 
+    Moving obstacles (``dodge``, on by default; the report's rolling ball). A window cannot tell a
+    ball rolling at the car from a wall: it turns when the ball is about 1 m off, too late, and
+    often to the ball's side. So each scan is also matched against the last one
+    (:func:`~qcarlab.control.moving_obstacles.scan_motion`: the car's own motion, from the
+    walls), its small free-standing objects (:func:`~qcarlab.control.moving_obstacles.scan_clusters`)
+    are followed (:class:`~qcarlab.control.moving_obstacles.Tracker`), and one that moves over the
+    ground at 0.35 m/s or more and will pass within 1 m of the car (closest approach still ahead)
+    is a threat; its returns leave the windows. For a threat the manoeuvres of
+    :mod:`qcarlab.control.dodge` are tried on a model of the car until the obstacle has passed
+    (wheels straight on, stop, and ahead at ``speed`` or backing up at ``dodge_back_speed`` to a
+    line 0.3, 0.45 or 0.6 m left or right of the obstacle's track); when going on straight
+    clears it by 15 cm the windows keep driving, else the best manoeuvre is driven (**dodge-left**,
+    **dodge-right**, or **give-way** for standing or going straight on) until the obstacle's
+    closest approach is behind it, then **straight**. A last stop holds for the walls (the
+    commanded arc or the rear 5 cm from a return).
+
     ``step(scan, speed)`` takes the scan (or None) and the desired speed, returns
-    ``(speed_ref, steering)``; ``state`` and ``windows`` show why.
+    ``(speed_ref, steering)``; ``state`` and ``windows`` show why (``movers``: the moving tracks,
+    ``dodges``: how many times it got out of one's way).
     """
 
     def __init__(
@@ -263,6 +285,8 @@ class LidarAvoid:
         min_speed: float = 0.1,
         params: QCarParams = DEFAULT_PARAMS,
         scan_period: float | None = None,
+        dodge: bool = True,
+        dodge_back_speed: float = 0.3,
     ):
         self.params = params
         self.scan_period = 1.0 / params.lidar_rate if scan_period is None else float(scan_period)
@@ -274,6 +298,8 @@ class LidarAvoid:
         self.turn_speed_factor = turn_speed_factor
         self.back_speed, self.back_distance, self.stop_hold = back_speed, back_distance, stop_hold
         self.margin = margin
+        self.dodge, self.dodge_speed_back = dodge, dodge_back_speed
+        self.tracker = Tracker()
         self.reset()
 
     def reset(self) -> None:
@@ -288,9 +314,112 @@ class LidarAvoid:
         self._prev_straight: float | None = None
         self.backups = 0
         self._clock = 0.0
+        self.tracker.reset()
+        self._prev_scan: PreparedScan | None = None  # the last scan, ready to be matched
+        self._delta = 0.0  # the wheels' angle as the servo model has it (rad)
+        self._cmd_delta = 0.0  # the steering last commanded
+        self.v_est = 0.0  # the car's speed (m/s) from the last two scans' match
+        self.motion: Motion | None = None
+        self.movers: list[Track] = []
+        self._static: np.ndarray | None = None  # this scan's returns less the moving objects'
+        self.manoeuvre: str | None = None
+        self._side = 0.0  # the side a dodge moves to: +1 left, -1 right, 0 none yet
+        self.dodges = 0
 
-    def _windows(self, scan) -> AvoidWindows:
-        pts = scan_points(scan.ranges, scan.angles, self.params.lidar_x)
+    def _perceive(self, scan, dt: float) -> np.ndarray:
+        """The car's motion since the last scan, the small objects tracked, the moving ones; returns
+        the static returns (body frame about the centre: the moving objects' returns left out)."""
+        r = np.asarray(scan.ranges, dtype=float)
+        a = np.asarray(scan.angles, dtype=float)
+        pts = scan_points(r, a, self.params.lidar_x)
+        if not self.dodge:
+            return pts
+        L = self.params.wheelbase
+        # the servo model: the wheels follow the command with the servo's lag
+        self._delta += (self._cmd_delta - self._delta) * (1.0 - math.exp(-dt / self.params.steering_tau)) \
+            if dt > 0.0 else 0.0
+        motion = None
+        prepared = prepare_scan(r, a)
+        if self._prev_scan is not None and dt > 0.0:
+            v = self.v_est
+            guess = (v * dt, 0.0, v * math.tan(self._delta) / L * dt)
+            motion = scan_motion(self._prev_scan, prepared, guess)
+            if motion.matched:
+                self.v_est = motion.dx / dt
+            else:
+                self.v_est = self._v
+        self._prev_scan = prepared
+        self.motion = motion
+        self.tracker.update(float(scan.t), motion, scan_clusters(r, a, self.params.lidar_x))
+        self.movers = self.tracker.moving()
+        if not self.movers:
+            return pts
+        keep = np.ones(len(pts), dtype=bool)
+        for tr in self.movers:
+            if tr.cluster is not None:
+                keep[tr.cluster.index] = False
+        return pts[keep]
+
+    def _threats(self) -> list[Obstacle]:
+        """The moving objects coming towards the car: still ahead of their closest approach (the
+        relative motion ``w = u - (v, 0)``; ``t* = -b . w / |w|^2 > 0``) and passing within 1 m."""
+        out = []
+        for tr in self.movers:
+            (vx, vy), _ = tr.velocity()
+            bx, by = (float(c) for c in tr.position())
+            wx, wy = vx - self.v_est, vy
+            w2 = wx * wx + wy * wy
+            if w2 < 1e-6:
+                continue
+            t_star = -(bx * wx + by * wy) / w2
+            miss = math.hypot(bx + wx * t_star, by + wy * t_star)
+            if 0.0 < t_star < 6.0 and miss < 1.0:
+                out.append(Obstacle(bx, by, float(vx), float(vy), tr.extent / 2.0 + 0.04))
+        return out
+
+    def _dodge(self, threats: list[Obstacle], static: np.ndarray, speed: float) -> tuple[float, float] | None:
+        """Out of a moving obstacle's way (:mod:`qcarlab.control.dodge`): the manoeuvres tried on
+        the model, the best one's command for this scan; None when going on as the windows say is
+        safe (wheels straight clears it by 15 cm, or 25 cm once dodging)."""
+        first = min(threats, key=lambda ob: math.hypot(ob.x, ob.y))
+        frame = line_frame(first)
+        y_car = float(frame.lateral(0.0, 0.0))
+        if frame.ox == 0.0 and frame.oy == 0.0:  # crossing: offsets from the car's own line
+            offsets = [0.0, 0.3, -0.3]
+        else:
+            offsets = [0.3, -0.3, 0.45, -0.45, 0.6, -0.6]
+        v_fwd = float(speed)
+        ms = [Manoeuvre("hold", v_fwd, None), Manoeuvre("stop", 0.0, None)]
+        ms += [Manoeuvre(f"ahead{o:+.2f}", v_fwd, o) for o in offsets]
+        ms += [Manoeuvre(f"back{o:+.2f}", -self.dodge_speed_back, o) for o in offsets]
+        near = static[np.hypot(static[:, 0], static[:, 1]) < 3.5] if len(static) else static
+        if len(near) > 240:
+            near = near[np.linspace(0, len(near) - 1, 240).astype(int)]
+        # long enough for the obstacle to pass the car standing still (when it comes at it)
+        t_pass = max(0.0, -(first.x * first.vx + first.y * first.vy) / max(first.vx ** 2 + first.vy ** 2, 1e-6))
+        horizon = min(7.0, max(2.0, t_pass + 1.0))
+        ball, wall = rollout(ms, threats, frame, near, self.v_est, self._delta, self.params, horizon=horizon)
+        if self.manoeuvre is None and ball[0] >= 0.15:
+            return None  # going on as the windows say clears it
+        i = choose(ms, ball, wall, self.manoeuvre, y_car, self._side)
+        m = ms[i]
+        if self.manoeuvre is None:
+            self.dodges += 1
+        self.manoeuvre = m.name
+        if m.offset is not None and abs(m.offset - y_car) > 0.05:
+            self._side = 1.0 if m.offset > y_car else -1.0
+        if m.offset is None:
+            delta = 0.0
+        else:
+            delta = float(offset_steering(y_car, -frame.heading, m.speed if abs(self.v_est) < 0.05 else self.v_est,
+                                          m.offset, self.params))
+        self.state = "give-way" if m.offset is None or not self._side else (
+            "dodge-left" if self._side > 0 else "dodge-right")
+        return m.speed, delta
+
+    def _windows(self, scan, pts: np.ndarray | None = None) -> AvoidWindows:
+        if pts is None:
+            pts = scan_points(scan.ranges, scan.angles, self.params.lidar_x)
         f = lambda d: free_distance(pts, d, self.params, self.margin)  # noqa: E731
         g, s = self.gentle_steering, self.turn_steering
         return AvoidWindows(f(s), f(g), f(0.0), f(-g), f(-s), rear_free_distance(pts, self.params, self.margin))
@@ -312,7 +441,15 @@ class LidarAvoid:
             self._backed = 0.0
 
     def _turn_side(self, w: AvoidWindows) -> float:
+        """+1 (left) or -1 (right): the side whose arcs are longer; on a tie (within 5 cm: boxed in,
+        every arc about 0) the side whose nearest return beside the car is farther."""
         left, right = w.turn_left + w.gentle_left, w.turn_right + w.gentle_right
+        if abs(left - right) < 0.05 and self._static is not None and len(self._static):
+            y = self._static[:, 1]
+            near_x = np.abs(self._static[:, 0]) <= self.params.length
+            room_l = float(y[near_x & (y > 0)].min()) if (near_x & (y > 0)).any() else math.inf
+            room_r = float(-y[near_x & (y < 0)].max()) if (near_x & (y < 0)).any() else math.inf
+            return 1.0 if room_l >= room_r else -1.0
         return 1.0 if left >= right else -1.0
 
     def __call__(self, ranges, angles, desired_speed: float) -> tuple[float, float]:
@@ -324,15 +461,41 @@ class LidarAvoid:
 
     def step(self, scan, speed: float) -> tuple[float, float]:
         """One decision per LIDAR scan: ``(speed_ref m/s, steering rad)`` for desired ``speed``."""
+        v, delta = self._decide(scan, speed)
+        self._cmd_delta = float(delta)
+        return v, delta
+
+    def _decide(self, scan, speed: float) -> tuple[float, float]:
         if scan is None:
             self._enter("stop")
             self._t = None
             self._v = 0.0
+            self._prev_scan = None
             return 0.0, 0.0
         dt = 0.0 if self._t is None else max(0.0, float(scan.t) - self._t)
         self._t = float(scan.t)
-        w = self.windows = self._windows(scan)
+        static = self._static = self._perceive(scan, dt)
+        w = self.windows = self._windows(scan, static)
         self._since += dt
+        threats = self._threats() if self.dodge else []
+        if threats:
+            cmd = self._dodge(threats, static, speed)
+            if cmd is not None:
+                v, delta = cmd
+                # the manoeuvres were tried against the walls; a last stop for what does not move
+                if v > 0.0 and free_distance(static, delta, self.params, 0.0) < 0.05:
+                    v = 0.0
+                elif v < 0.0 and rear_free_distance(static, self.params, 0.0) < 0.05:
+                    v = 0.0
+                self._v = v
+                self._prev_straight = w.straight
+                return v, delta
+        if self.manoeuvre is not None:  # out of the way: the windows drive again
+            self.manoeuvre = None
+            self._side = 0.0
+            self.state = "straight"
+            self._since = 0.0
+            self._closing = [0.0, 0.0]
         if self._prev_straight is not None and dt > 0.0:
             rate = (self._prev_straight - w.straight) / dt
             self._closing = [self._closing[1], min(max(rate, 0.0), 3.0)]

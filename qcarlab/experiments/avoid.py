@@ -7,7 +7,8 @@ The model, :class:`AvoidLab`, is the sheet's Figure 59; each tick (``rate``, 100
     on a new scan (distances, headings: body frame, + = left, 0 = no return):
         stop:     v_ref = lidar_stop(d, h, speed), delta = 0               (Task 1-2)
         steer:    v_ref = speed, delta = lidar_steer(d, h, speed)          (Task 3)
-        combined: v_ref, delta = lidar_avoid(d, h, speed)                  (Task 4, open problem)
+        combined: v_ref, delta = lidar_avoid(d, h, speed)                  (Task 4, open problem;
+                  the reference also tracks moving objects between scans and dodges them)
         student:  the same with the student's own lidar_avoid
     depth (the race-car report's strategy, on the RGBD camera instead of the LIDAR):
         on a new depth frame (30 Hz): l, m, r = depth_windows(depth)       # mean depth, 3 windows
@@ -321,6 +322,8 @@ def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
     if cfg.strategy in ("combined", "student", "depth"):
         machine = lab.depth_avoid if cfg.strategy == "depth" else lab.lidar_avoid
         metrics["backups"] = getattr(machine, "backups", None)
+        if getattr(machine, "dodges", None) is not None:
+            metrics["dodges"] = machine.dodges  # times it got out of a moving obstacle's way
         metrics["time_in_state_s"] = states
     metrics["config"] = asdict(cfg)
     finish(metrics, log, lab, None, goal=not collision, goal_text="")

@@ -72,6 +72,7 @@ from qcarlab.experiments.safety import WorldWatch
 from qcarlab.experiments.result import Result
 from qcarlab.perception.lane import (
     LANES,
+    edge_line_mask,
     white_line_mask,
     linear_poly_fit,
     MIN_PIXELS,
@@ -357,14 +358,16 @@ class LaneFollowingLab(LabModel):
 
 
 def white_edge_mask(color: np.ndarray, lane: str) -> np.ndarray:
-    """The backup line: the lane's own white edge line (on the far side of the yellow line's region)."""
+    """The backup line: the lane's own white edge line (on the far side of the yellow line's
+    region), the white line-shaped blob nearest the road (:func:`edge_line_mask`: a brightly lit
+    floor beyond the edge line is not taken for it)."""
     white = image_selector(white_line_mask(color), lane, line="white")
     w = white.shape[1]
     if lane == "right":
         white[:, : int(0.15 * w)] = 0
     else:
         white[:, int(0.85 * w):] = 0
-    return white
+    return edge_line_mask(white, lane)
 
 
 class _Laps:

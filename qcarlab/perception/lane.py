@@ -72,6 +72,8 @@ __all__ = [
     "line_components",
     "linear_poly_fit",
     "white_line_mask",
+    "edge_line_mask",
+    "edge_line_side",
 ]
 
 LANES = ("right", "left")
@@ -341,17 +343,58 @@ def _check_bgr(image: np.ndarray) -> np.ndarray:
     return img
 
 
-def track_line(mask: np.ndarray, min_pixels: int, width: int, row0: int = 0, col0: int = 0):
+def track_line(mask: np.ndarray, min_pixels: int, width: int, row0: int = 0, col0: int = 0,
+               pick: str = "largest"):
     """The tracked line in a region's ``mask`` (at ``row0``, ``col0`` of an image ``width`` px
     wide): the largest line-shaped blob and the blobs collinear with it, fitted with
-    :func:`linear_poly_fit`'s per-row means. ``(LineFit | None, its pixels as a mask)``."""
+    :func:`linear_poly_fit`'s per-row means. ``(LineFit | None, its pixels as a mask)``.
+
+    ``pick="left"`` / ``"right"``: of the groups of at least ``min_pixels`` pixels, the leftmost /
+    rightmost one instead (two groups compared by their axes' columns in the middle of the rows
+    both cover): the road's white edge line, not a lit floor beyond it (:func:`edge_line_side`)."""
     blobs, labels = line_components(mask, max(10, min_pixels // 8), MAX_THICKNESS * width, row0=row0, col0=col0,
                                     return_labels=True)
     groups = group_collinear(blobs, GROUP_TOLERANCE * width)
     if not groups or groups[0].pixels < min_pixels:
         return None, None
-    line = mask_of(labels, groups[0])
+    chosen = groups[0]
+    if pick in ("left", "right"):
+        big = [g for g in groups if g.pixels >= min_pixels]
+        sign = 1.0 if pick == "left" else -1.0
+
+        def ahead(a, b) -> bool:  # a is more to the ``pick`` side than b, on the rows both cover
+            lo, hi = max(a.rows[0], b.rows[0]), min(a.rows[1], b.rows[1])
+            v = 0.5 * (lo + hi)  # (no common rows: where the two come closest)
+            return sign * (a.column_at(v) - b.column_at(v)) < 0.0
+
+        wins = [sum(ahead(a, b) for b in big if b is not a) for a in big]
+        chosen = big[int(np.argmax(wins))]
+    line = mask_of(labels, chosen)
     return _fit_rows(line, min_pixels, row0, col0), line
+
+
+def edge_line_side(lane: str) -> str:
+    """Which of several white line candidates is the lane's own edge line: the one nearest the
+    road, ``"left"`` in the right lane (the edge line is the road's right border), ``"right"`` in
+    the left lane. Beyond the edge line there is only floor: where it is lit more brightly than
+    the paint seen with it (the track's bright corner: concrete at V 195 beside normally lit paint
+    at 235, above the white level 0.8 x 235), it makes a second, larger line-shaped blob, cut by
+    the image's corner, that the largest-blob rule took for the line."""
+    _check_lane(lane)
+    return "left" if lane == "right" else "right"
+
+
+def edge_line_mask(white: np.ndarray, lane: str = "right", min_pixels: int = MIN_PIXELS) -> np.ndarray:
+    """The lane's white edge line's own pixels in a white-paint mask (uint8, same shape): the
+    line-shaped blob group nearest the road (:func:`edge_line_side`); all zeros when none has
+    ``min_pixels`` pixels (scaled with the image area)."""
+    m = np.asarray(white)
+    if m.ndim != 2:
+        raise InputError(f"edge_line_mask: expected a 2-D mask, got shape {m.shape}")
+    m = m if m.dtype == np.uint8 else (m != 0).astype(np.uint8) * 255
+    h, w = m.shape
+    _, line = track_line(m, _scaled(min_pixels, h, w), w, pick=edge_line_side(lane))
+    return line if line is not None else np.zeros_like(m)
 
 
 def _paste(part: np.ndarray | None, shape: tuple[int, int], r0: int, c0: int) -> np.ndarray:
@@ -401,7 +444,7 @@ def detect_lane(
     c0w, c1w = region_columns(w, lane, "white")
     wmask = white_from_hsv(hsv[:, c0w:c1w], white_s_max, white_v_min, white_contrast, w)
     nw = int(cv2.countNonZero(wmask))
-    fit, line = track_line(wmask, need, w, r0, c0w) if nw >= need else (None, None)
+    fit, line = track_line(wmask, need, w, r0, c0w, pick=edge_line_side(lane)) if nw >= need else (None, None)
     if fit is None:
         return LaneDetection(None, None, ny, nw, yellow_full, yellow_full)
     return LaneDetection(fit, "white", ny, nw, _paste(line, (h, w), r0, c0w), yellow_full)
