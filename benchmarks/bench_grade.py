@@ -3,6 +3,10 @@
     python benchmarks/bench_grade.py                 # both measurements (about 15 minutes on 2 cores)
     python benchmarks/bench_grade.py --student       # one student, all five sheets, --jobs 1 and 2
     python benchmarks/bench_grade.py --class-size 20 --reps 2
+    python benchmarks/bench_grade.py --student --cold    # also with every task a fresh interpreter
+
+Tasks are forked from a warm zygote (qcarlab/grading/warm.py) unless ``QCARLAB_GRADE_COLD=1``;
+``--cold`` measures both, alternated, so the warm start's saving is measured under the same load.
 
 Every figure is the wall time of ``qcarlab grade`` as a user types it (a fresh process), the
 median over ``--reps`` runs, the configurations alternated so that a change of the machine's
@@ -39,11 +43,15 @@ RAISES = "def stop_sign(distance_to_sign, desired_speed):\n    return desired_sp
 CPU: list[float] = []  # CPU seconds (user + system) of each grade run and all its task processes
 
 
-def grade(args: list[str]) -> float:
+def grade(args: list[str], cold: bool = False) -> float:
     """Wall seconds of one ``qcarlab grade`` run; its CPU seconds go to CPU."""
+    env = dict(os.environ)
+    env.pop("QCARLAB_GRADE_COLD", None)
+    if cold:
+        env["QCARLAB_GRADE_COLD"] = "1"
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "qcarlab", "grade", *args], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-m", "qcarlab", "grade", *args], capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     CPU.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
@@ -56,19 +64,22 @@ def load() -> str:
     return "load %.1f %.1f %.1f" % os.getloadavg()
 
 
-def student(reps: int, tmp: Path) -> None:
+def student(reps: int, tmp: Path, cold: bool) -> None:
     sub = correct_submission(tmp / "student")
-    times: dict[int, list[float]] = {1: [], 2: []}
+    configs = [(jobs, c) for c in ((False, True) if cold else (False,)) for jobs in (1, 2)]
+    times: dict[tuple[int, bool], list[float]] = {c: [] for c in configs}
+    cpu: dict[tuple[int, bool], list[float]] = {c: [] for c in configs}
     for rep in range(reps):
-        for jobs in (1, 2) if rep % 2 == 0 else (2, 1):
+        for jobs, c in configs if rep % 2 == 0 else configs[::-1]:
             before = load()
-            wall = grade([*FIVE, "--submission", str(sub), "--jobs", str(jobs), "--out", str(tmp / f"s{jobs}")])
-            times[jobs].append(wall)
-            print(f"  one student, five sheets, --jobs {jobs}: {wall:6.1f} s wall, {CPU[-1]:6.1f} s CPU   "
-                  f"({before} -> {load()})", flush=True)
-    for jobs, t in times.items():
-        print(f"one student, all five lab sheets (24 tasks), --jobs {jobs}: median {statistics.median(t):.1f} s "
-              f"over {len(t)} run(s)")
+            wall = grade([*FIVE, "--submission", str(sub), "--jobs", str(jobs), "--out", str(tmp / f"s{jobs}{c}")], c)
+            times[(jobs, c)].append(wall)
+            cpu[(jobs, c)].append(CPU[-1])
+            print(f"  one student, five sheets, --jobs {jobs}{' (cold)' if c else ''}: {wall:6.1f} s wall, "
+                  f"{CPU[-1]:6.1f} s CPU   ({before} -> {load()})", flush=True)
+    for (jobs, c), t in times.items():
+        print(f"one student, all five lab sheets (25 tasks), --jobs {jobs}{' cold' if c else ''}: median "
+              f"{statistics.median(t):.1f} s wall, {statistics.median(cpu[(jobs, c)]):.1f} s CPU over {len(t)} run(s)")
 
 
 def klass(size: int, reps: int, tmp: Path) -> None:
@@ -102,11 +113,12 @@ def main() -> None:
     ap.add_argument("--class-only", action="store_true", help="only the class measurement")
     ap.add_argument("--class-size", type=int, default=20)
     ap.add_argument("--reps", type=int, default=2)
+    ap.add_argument("--cold", action="store_true", help="also measure with every task a fresh interpreter")
     a = ap.parse_args()
     print(f"{os.cpu_count()} cores; {load()}")
     with tempfile.TemporaryDirectory(prefix="bench-grade-") as tmp:
         if not a.class_only:
-            student(a.reps, Path(tmp))
+            student(a.reps, Path(tmp), a.cold)
         if not a.student:
             klass(a.class_size, a.reps, Path(tmp))
 

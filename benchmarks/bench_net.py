@@ -74,6 +74,10 @@ def _serve(kind: str, conn, watchdog: float, hello_timeout: float, options: dict
             conn.send(f"{type(exc).__name__}: {exc}")
             return
     options = dict(options)
+    if options.pop("live", False):  # as qcarlab serve --live: the car wrapped to stream to a Foxglove view
+        from qcarlab.cli.recording import live_car
+
+        car = live_car(car, True, "127.0.0.1:0", None)
     options.setdefault("max_clients", 64)
     options.setdefault("prepare", not kind.endswith("-cold"))  # as qcarlab serve does; -cold: sensors built on demand
     options.setdefault("render_process", True)  # as qcarlab serve does
@@ -381,6 +385,27 @@ def bench_watchdog(repeats: int, pullers: int = 8) -> dict:
             proc.join(10)
     out[f"{pullers} monitors pulling every sensor"] = {"watchdog": w, "dropped": d,
                                                         "server": served.report.get("trip_delays", [])}
+    try:
+        import foxglove  # noqa: F401  (serve --live needs the record extra)
+    except ImportError:
+        foxglove = None
+    if foxglove is not None:  # the same under serve --live (every frame a monitor reads is streamed)
+        served = Served("sim", watchdog=0.25, live=True)
+        with served as port:
+            start, stop = ctx.Event(), ctx.Event()
+            procs = [ctx.Process(target=_sensor_puller, args=(port, ("lidar", "rgbd", "csi"), start, stop), daemon=True)
+                     for _ in range(pullers)]
+            for proc in procs:
+                proc.start()
+            time.sleep(2.0)
+            start.set()
+            time.sleep(0.5)
+            w, d = _watchdog_runs(port, repeats)
+            stop.set()
+            for proc in procs:
+                proc.join(10)
+        out[f"serve --live, {pullers} monitors pulling every sensor"] = {
+            "watchdog": w, "dropped": d, "server": served.report.get("trip_delays", [])}
     first: list[float] = []
     first_server: list[float] = []
     for _ in range(max(2, repeats // 3)):

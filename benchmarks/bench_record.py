@@ -7,7 +7,10 @@ Targets (issue 13): a 60 s lane-follow recording with the RGBD camera at 30 Hz s
 (compact profile: JPEG colour every frame, 16-bit mm depth every 15th frame), and recording costs
 at most 20 % of the real-time factor. Each figure is the median of alternating batches (plain,
 recorded, plain, recorded, ...) so a load change on a shared machine hits both alike; the load
-average is printed with them.
+average is printed with them. Beside the wall-clock figure, the same from the process's CPU time
+(all its threads): on a machine whose cores other jobs keep busy the wall clock swings by 2-3x
+between two runs of the same thing, the CPU time far less; it is what the real-time factor would
+be with a core to itself.
 """
 
 from __future__ import annotations
@@ -41,16 +44,20 @@ def lidar(car, seconds):
 LABS = {"lane-follow": ("track", lane), "avoid": ("obstacles", lidar)}
 
 
-def run_once(lab: str, seconds: float, record: Path | None, profile: str = "compact") -> tuple[float, int]:
-    """Wall time of one run (s) and the recording's size (bytes, 0 without)."""
+def run_once(lab: str, seconds: float, record: Path | None, profile: str = "compact",
+             cpu: list[float] | None = None) -> tuple[float, int]:
+    """Wall time of one run (s) and the recording's size (bytes, 0 without); ``cpu`` gets the
+    process's CPU time of the run appended."""
     world, fn = LABS[lab]
     car = open_car("sim", world=load_world(world), seed=0)
     if record is not None:
         car = RecordingCar(car, Recorder(record, profile=profile))
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     with car:
         fn(car, seconds)
     wall = time.perf_counter() - t  # includes finishing the file (closing is inside the with)
+    if cpu is not None:
+        cpu.append(time.process_time() - c)
     return wall, (record.stat().st_size if record is not None else 0)
 
 
@@ -74,15 +81,20 @@ def main() -> None:
         print(f"size: lane-follow 3 s, exact profile: {size_x / 1e6:.1f} MB ({size_x / 3.0 * 60 / 1e6:.0f} MB per "
               "minute; for exact replays of camera labs)")
         for lab in LABS:
-            plain, rec = [], []
+            plain, rec, cpu_p, cpu_r = [], [], [], []
             for b in range(args.batches):
-                plain.append(run_once(lab, speed_s, None)[0])
-                rec.append(run_once(lab, speed_s, Path(tmp) / f"{lab}{b}.mcap")[0])
+                plain.append(run_once(lab, speed_s, None, cpu=cpu_p)[0])
+                rec.append(run_once(lab, speed_s, Path(tmp) / f"{lab}{b}.mcap", cpu=cpu_r)[0])
             p, r = statistics.median(plain), statistics.median(rec)
             rtf_p, rtf_r = speed_s / p, speed_s / r
             print(f"speed: {lab} {speed_s:g} s x {args.batches}: real-time factor {rtf_p:.2f} plain, {rtf_r:.2f} "
                   f"recorded: recording costs {100 * (1 - rtf_r / rtf_p):.1f} % (target <= 20 %); "
                   f"walls plain {[round(x, 2) for x in plain]}, recorded {[round(x, 2) for x in rec]}")
+            cp, cr = statistics.median(cpu_p), statistics.median(cpu_r)
+            pairs = statistics.median(1 - a / b for a, b in zip(cpu_p, cpu_r))
+            print(f"       in CPU time: {speed_s / cp:.2f} plain, {speed_s / cr:.2f} recorded (real time per CPU "
+                  f"second): recording costs {100 * (1 - cp / cr):.1f} % (median of the pairs {100 * pairs:.1f} %); "
+                  f"CPU s plain {[round(x, 2) for x in cpu_p]}, recorded {[round(x, 2) for x in cpu_r]}")
     print(f"load average {os.getloadavg()[0]:.2f} at the end")
 
 

@@ -7,9 +7,9 @@
 The process pins itself to one core first (the targets are per core: a 2-core machine grades two
 runs at once), unless ``--all-cores``. Prints the machine and the load average, then the median
 rate over several timed batches of each sensor with its target. The LIDAR runs over the ROS map
-``berlin`` (600 x 600 cells of 5 cm, from ../shared/data/maps beside the repository) from random
-free poses (bench_lidar.py has the side-by-side with f1tenth_gym); the cameras in the ``track``
-world from poses along the road. Noise is on (seeded), as in a simulation run. The first call of
+``berlin`` (600 x 600 cells of 5 cm, from ../shared/data/maps beside the repository; marched)
+from random free poses (bench_lidar.py has the side-by-side with f1tenth_gym), and in the
+``track`` world (scanned per edge); the cameras in the ``track`` world from poses along the road. Noise is on (seeded), as in a simulation run. The first call of
 each sensor (numba compilation or cache load, rasters) is excluded and reported separately.
 
 Last, the whole simulated car (issue 12's target >= 60x real time on one core):
@@ -159,9 +159,16 @@ def main() -> int:
     else:
         print(f"  skipped: {BERLIN} not found")
 
-    print("RGBD camera in track, poses along the road, noise on:")
     track = load_world("track")
     road = [(x, -1.7, 0.0) for x in np.linspace(-1.0, 1.0, 64)]
+    print("LIDAR in track (a vector world: scanned per edge), poses along the road, noise on:")
+    lidar = Lidar(track, rng=np.random.default_rng(1))
+    f0 = first_call(lambda i: lidar.scan(road[i % 64]))
+    r = rate(lambda i: lidar.scan(road[i % 64]), int(4000 * scale), batches)
+    report(f"{p.lidar_beams} beams", r, "scans/s", None, f0)
+    track_lidar = r[0]
+
+    print("RGBD camera in track, poses along the road, noise on:")
     cam = RGBDCamera(track, rng=np.random.default_rng(2))
     f0 = first_call(lambda i: cam.render(road[i % 64], i / 30))
     rgbd = rate(lambda i: cam.render(road[i % 64], i / 30), int(600 * scale), batches)
@@ -173,9 +180,9 @@ def main() -> int:
     sets = rate(lambda i: csi.render(road[i % 64], i / 30), int(90 * scale), batches)
     report("4 x 820x410 views", sets, "sets/s", 30.0, f0)
 
-    if p.lidar_beams in lidar_rates:
-        cost = p.rgbd_rate / rgbd[0] + p.lidar_rate / lidar_rates[p.lidar_beams]
-        print("One simulated second with the LIDAR at 10 Hz and the RGBD camera at 30 Hz (sensors only):")
+    if track_lidar:
+        cost = p.rgbd_rate / rgbd[0] + p.lidar_rate / track_lidar
+        print("One simulated second in track with the LIDAR at 10 Hz and the RGBD camera at 30 Hz (sensors only):")
         print(f"  {cost * 1000:.1f} ms of sensor work: at most {1.0 / cost:.0f}x real time from the sensors alone")
 
     print("SimCar in track, 100 Hz steps (write, advance, read, read_lidar, read_rgbd), 3 simulated s:")

@@ -37,6 +37,8 @@ from typing import Any
 
 from qcarlab.errors import InputError, QcarlabError
 
+_clock = time.perf_counter
+
 __all__ = [
     "BlockSpec",
     "StudentBlock",
@@ -91,6 +93,8 @@ _LIMITS = {"speed": (10.0, "m/s"), "steering": (math.pi / 2.0, "rad"), "throttle
 
 def _number(block: str, value: Any, kind: str, what: str = "") -> float:
     limit, unit = _LIMITS[kind]
+    if type(value) is float and -limit <= value <= limit:  # the usual case, in plain comparisons (NaN fails them)
+        return value
     label = f"{what} " if what else ""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         shape = getattr(value, "shape", None)
@@ -174,25 +178,33 @@ class StudentBlock:
     def _guard(self, fn: Callable[..., Any], args: tuple, kwargs: Mapping[str, Any] | None = None) -> Any:
         try:
             return fn(*args, **(kwargs or {}))
-        except NotImplementedError:
+        except BaseException as exc:  # noqa: BLE001 - the student's code may raise anything
+            self._failed(exc)
+
+    def _failed(self, exc: BaseException) -> None:
+        """Raise what the student's exception ``exc`` means for the run (see the module docstring)."""
+        if isinstance(exc, NotImplementedError):
             raise InputError(f"{self.file}: {self.spec.name} is not filled in yet (sheet {self.spec.section}); "
                              "write its body, then run again") from None
-        except (KeyboardInterrupt, QcarlabError):
-            raise
-        except SystemExit as exc:
+        if isinstance(exc, (KeyboardInterrupt, QcarlabError)):
+            raise exc
+        if isinstance(exc, SystemExit):
             raise StudentBlockError(f"block {self.spec.name} ({self.source}) called sys.exit({exc.code!r}); "
                                     "a block returns its value instead") from None
-        except BaseException as exc:  # noqa: BLE001 - the student's code may raise anything
-            raise StudentBlockError(student_traceback(exc, self.file)
-                                    + f"\nblock {self.spec.name} ({self.source}) raised "
-                                    f"{type(exc).__name__}: {exc}") from None
+        raise StudentBlockError(student_traceback(exc, self.file)
+                                + f"\nblock {self.spec.name} ({self.source}) raised "
+                                f"{type(exc).__name__}: {exc}") from None
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        if self.fn is None:
-            self.start()
-        t0 = time.perf_counter()
-        value = self._guard(self.fn, args, kwargs)
-        spent = time.perf_counter() - t0
+        fn = self.fn
+        if fn is None:
+            fn = self.start().fn
+        t0 = _clock()
+        try:  # (self._guard written out: this runs every tick)
+            value = fn(*args, **kwargs)
+        except BaseException as exc:  # noqa: BLE001 - the student's code may raise anything
+            self._failed(exc)
+        spent = _clock() - t0
         self.calls += 1
         self.total_s += spent
         if spent > self.worst_s:

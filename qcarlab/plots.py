@@ -150,7 +150,9 @@ def plot_step_response(log: Mapping[str, Any], metrics: Mapping[str, Any], file:
     ax.plot(log["t"], log["v_ref"], "-", color="tab:orange", label="desired")
     ax.plot(log["t"], log["v_meas"], "-", color="tab:blue", label="measured")
     rise = metrics["rise_time_s"]
-    ax.set_title(f"Kp {metrics['kp']}, Ki {metrics['ki']}: rise {rise if rise is None else round(rise, 2)} s, "
+    who = metrics.get("controller", "")
+    gains = "your speed_controller" if who.startswith("your") else f"Kp {metrics['kp']}, Ki {metrics['ki']}"
+    ax.set_title(f"{gains}: rise {rise if rise is None else round(rise, 2)} s, "
                  f"overshoot {metrics['overshoot_pct']:.1f} %")
     ax.set_xlabel("time (s)")
     ax.set_ylabel("speed (m/s)")

@@ -104,3 +104,21 @@ def test_lane_follow_options_and_the_lamps_column_from_the_command_line(cli, tmp
     assert code == 2 and "--speed-selector must be a percentage" in err
     code, out, err = cli("lane-follow", "--start-at", "3", "--stop-at", "2", "--duration", "1")
     assert code == 2 and "--stop-at" in err
+
+
+def test_lane_follow_drives_with_a_tuned_hsv_profile(cli, cli_json, tmp_path):
+    """--hsv-tune writes hsv.yaml; --hsv FILE drives with the range it holds."""
+    profile = tmp_path / "mine.yaml"
+    profile.write_text("qcarlab: hsv-profile\nversion: 1\nyellow:\n  hsv_min: [18, 90, 75]\n  hsv_max: [37, 255, 255]\n")
+    m = cli_json("lane-follow", "--hsv", profile, "--duration", "4", "--out", tmp_path / "run")
+    assert m["goal_reached"]
+    import json as _json
+
+    saved = _json.loads((tmp_path / "run" / "results.json").read_text())
+    assert saved["config"]["hsv_min"] == [18, 90, 75] and saved["config"]["hsv_max"] == [37, 255, 255]
+    # the file and an explicit range conflict: one line, exit 2
+    code, _, err = cli("lane-follow", "--hsv", profile, "--hsv-min", "1,2,3")
+    assert code == 2 and "leave out --hsv-min" in err
+    profile.write_text("yellow: {hsv_min: [40, 0, 0], hsv_max: [10, 255, 255]}\n")
+    code, _, err = cli("lane-follow", "--hsv", profile)
+    assert code == 2 and "Traceback" not in err

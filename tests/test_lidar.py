@@ -220,6 +220,7 @@ def test_a_beam_along_a_cell_boundary_costs_steps_in_proportion_to_its_length():
     for the scan instead of 0.5); now every cell looked at moves the ray on by a cell or more."""
     w = boundary_room()
     lidar = Lidar(w, beams=800)
+    lidar.vector_walls = False  # march the raster (a vector world is scanned per edge by default)
     r = lidar._raster
     assert (0.5 - r.x0) / r.res == 1112.0 and (1.0 - r.y0) / r.res == 1212.0  # on the corner
     ranges = lidar.true_ranges((0.5, 1.0, 0.0))
@@ -231,6 +232,7 @@ def test_a_beam_along_a_cell_boundary_costs_steps_in_proportion_to_its_length():
     # and in absolute terms: at most 3 cells looked at per cell of each beam's length
     assert on_boundary <= 3 * np.sum(np.minimum(ranges, 12.0)) / r.res + 10 * lidar.beams
     one = Lidar(w, beams=4)  # beams 0, 90, 180, 270 deg: all four along cell boundaries
+    one.vector_walls = False
     rr = one.true_ranges((0.5, 1.0, 0.0))
     assert one.last_cell_steps <= 3 * np.sum(rr) / r.res + 40
 

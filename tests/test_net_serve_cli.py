@@ -63,6 +63,7 @@ def test_serve_lockstep_then_io_test_and_ping(cli):
     local = json.loads(cli(*args)[1])
     local.pop("car")
     local.pop("invocation")
+    assert local.pop("realism") == "lab"  # the served car is lab too (serve's default); a tcp result cannot know it
     assert tcp == local  # same seed, same numbers, across processes
     ping = json.loads(out_p)
     assert ping["backend"] == "sim" and ping["lockstep"] is True and ping["battery_v"] > 10

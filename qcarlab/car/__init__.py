@@ -18,8 +18,8 @@ __all__ = ["Car", "Command", "Identity", "Pose", "Readout", "Truth", "open_car",
 
 
 def parse_car_uri(uri: str) -> tuple[str, str | None, int | None]:
-    """Split ``sim`` / ``tcp://HOST:PORT`` / ``replay:FILE`` into (scheme, host or file, port);
-    bad URIs raise InputError."""
+    """Split ``sim`` / ``tcp://HOST:PORT`` / ``tcps://HOST:PORT`` (TLS) / ``replay:FILE`` into
+    (scheme, host or file, port); bad URIs raise InputError."""
     text = (uri or "").strip()
     if text in ("sim", "sim://", "sim:"):
         return "sim", None, None
@@ -28,12 +28,13 @@ def parse_car_uri(uri: str) -> tuple[str, str | None, int | None]:
         if not path:
             raise InputError(f"car address {uri!r}: expected replay:FILE (an .mcap recording or a rosbag2)")
         return "replay", path, None
-    if text.startswith("tcp://"):
-        rest = text[len("tcp://") :].rstrip("/")
-        host, sep, port_text = rest.rpartition(":")
-        if not sep or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
-            raise InputError(f"car address {uri!r}: expected tcp://HOST:PORT with a port in 1-65535")
-        return "tcp", host.strip("[]"), int(port_text)
+    for scheme in ("tcp", "tcps"):
+        if text.startswith(f"{scheme}://"):
+            rest = text[len(scheme) + 3 :].rstrip("/")
+            host, sep, port_text = rest.rpartition(":")
+            if not sep or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
+                raise InputError(f"car address {uri!r}: expected {scheme}://HOST:PORT with a port in 1-65535")
+            return scheme, host.strip("[]"), int(port_text)
     raise InputError(f"car address {uri!r}: expected 'sim' or 'tcp://HOST:PORT' (or 'replay:FILE', a recording)")
 
 
@@ -91,5 +92,7 @@ def open_car(
         from qcarlab.car.tcp import TcpCar
     except ImportError:
         raise NotBuiltError("--car tcp://...: the TCP car is not built yet (issue 5)") from None
+    if scheme == "tcps":  # TLS (qcarlab serve --tls-cert): tls_ca=, else QCARLAB_TLS_CA, else the system's CAs
+        options.setdefault("tls", True)
     # the server decides seed, world and stand; the client's on_stand only warns on a mismatch
     return TcpCar(host, port, params=params, throttle_limit=throttle_limit, on_stand=on_stand, **options)

@@ -282,14 +282,14 @@ class SimCar(Car):
         fx = self._effects.get("camera")
         if fx is None:
             return frame
-        lut = fx.lut(t)
+        gain = fx.gain(t)
         p = self.params
         if kind == "rgbd":  # pinhole: f = (H / 2) / tan(vfov / 2) px per rad at the centre
-            fx.apply(frame.color, lut, fx.blur_px(yaw_rate, 0.5 * p.rgbd_height / math.tan(0.5 * p.rgbd_vfov)))
+            fx.apply(frame.color, gain, fx.blur_px(yaw_rate, 0.5 * p.rgbd_height / math.tan(0.5 * p.rgbd_vfov)))
         else:  # the CSI views are cylindrical: width / fov px per rad of yaw
             blur = fx.blur_px(yaw_rate, p.csi_width / p.csi_fov)
             for img in frame.as_list():
-                fx.apply(img, lut, blur)
+                fx.apply(img, gain, blur)
         return frame
 
     def read_lidar(self) -> Any:

@@ -64,6 +64,8 @@ class TcpCar(Car):
         connect_timeout: float = 3.0,
         on_stand: bool | None = None,
         client: str = "qcarlab",
+        tls: Any = None,
+        tls_ca: str | None = None,
         **_sim_only: Any,  # world, seed, ... are the server's business
     ):
         super().__init__(params, throttle_limit)
@@ -73,7 +75,15 @@ class TcpCar(Car):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InputError(f"{name} must be a positive number of seconds, got {value!r}")
         self.host, self.port = host, int(port)
-        self.uri = f"tcp://{'[' + host + ']' if ':' in host else host}:{self.port}"
+        # tls: True (tcps://: the server's certificate checked against tls_ca, QCARLAB_TLS_CA or the
+        # system's authorities) or an ssl.SSLContext of the caller's; None/False: plain TCP
+        if tls is True or (tls is None and tls_ca is not None):
+            from qcarlab.wire.tls import client_context
+
+            tls = client_context(tls_ca)
+        self._tls = tls or None
+        scheme = "tcps" if self._tls is not None else "tcp"
+        self.uri = f"{scheme}://{'[' + host + ']' if ':' in host else host}:{self.port}"
         self.role = role
         self.timeout = float(timeout)
         self.status = 0
@@ -130,6 +140,8 @@ class TcpCar(Car):
         except OSError:
             pass
         sock.settimeout(0.0)  # non-blocking: waits go through the waiter, bounded by self.timeout
+        if self._tls is not None:
+            sock = self._start_tls(sock)
         self._sock = sock
         self._waiter = P.Waiter(sock)
         self._reader = P.FrameReader(sock, P.MAX_REPLY, waiter=self._waiter)
@@ -159,10 +171,12 @@ class TcpCar(Car):
             ) from None
         except OSError as exc:
             self._drop()
-            raise TcpConnectError(f"{uri}: connection lost during the hello ({exc.strerror or exc})", "protocol") from None
+            hint = "" if self._tls is not None else "; a server started with --tls-cert needs tcps://"
+            raise TcpConnectError(f"{uri}: connection lost during the hello ({exc.strerror or exc}){hint}", "protocol") from None
         if frame is None:
             self._drop()
-            raise TcpConnectError(f"{uri}: the server closed the connection without answering the hello", "protocol")
+            hint = "" if self._tls is not None else " (a server started with --tls-cert needs tcps://)"
+            raise TcpConnectError(f"{uri}: the server closed the connection without answering the hello{hint}", "protocol")
         self._rx = frame.seq
         if frame.type == M.ERROR:
             self._drop()
@@ -190,6 +204,31 @@ class TcpCar(Car):
         except P.ProtocolError as exc:
             self._drop()
             raise TcpConnectError(f"{uri}: wrong protocol: {exc.message}", "protocol") from None
+
+    def _start_tls(self, sock: socket.socket) -> Any:
+        """The TLS handshake (tcps://), within the reply timeout; a refusal in one line."""
+        import ssl
+
+        from qcarlab.wire.tls import CA_ENV, TLSSocket
+
+        uri = self.uri
+        try:
+            tsock = TLSSocket(self._tls.wrap_socket(sock, server_hostname=self.host, do_handshake_on_connect=False))
+            tsock.handshake(time.monotonic() + self.timeout, P.Waiter(tsock))
+            return tsock
+        except ssl.SSLCertVerificationError as exc:
+            sock.close()
+            raise TcpConnectError(f"{uri}: the server's certificate is not trusted ({exc.verify_message}); set {CA_ENV} "
+                                  "to the server's certificate (PEM) if it is self-signed", "tls") from None
+        except TimeoutError:
+            sock.close()
+            raise TcpConnectError(f"{uri}: no TLS handshake within {self.timeout:g} s (is the server started with "
+                                  "--tls-cert? a plain server is tcp://)", "tls") from None
+        except (ssl.SSLError, OSError) as exc:
+            sock.close()
+            why = getattr(exc, "reason", None) or getattr(exc, "strerror", None) or exc
+            raise TcpConnectError(f"{uri}: TLS handshake failed ({why}): is the server started with --tls-cert? "
+                                  "(a plain server is tcp://)", "tls") from None
 
     def _drop(self) -> None:
         sock, self._sock = self._sock, None

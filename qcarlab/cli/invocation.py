@@ -8,6 +8,7 @@ grader reads a run's results without parsing the student's prints on stdout.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import os
 from pathlib import Path
@@ -42,18 +43,27 @@ def record_invocation(metrics: dict[str, Any]) -> None:
     from qcarlab import __version__
 
     params = dict(ctx.params)
+    if params.get("token"):  # a served car's secret never goes into a results file
+        params["token"] = "(given)"
     metrics["invocation"] = {"command": ctx.info_name, "params": jsonable(params), "files": files_of(params),
                              "qcarlab": __version__}
+
+
+@functools.lru_cache(maxsize=1)
+def _commands() -> Any:
+    """The CLI's click group, built once (typer builds every command's parser anew on each call:
+    some 70 ms, which the grader paid several times per task)."""
+    import typer.main
+
+    from qcarlab.cli import app
+
+    return typer.main.get_command(app)
 
 
 def parse_command(argv: list[str]) -> tuple[str, dict[str, Any], dict[str, str]]:
     """A task's command words (after ``qcarlab``) parsed by the command's own parser: its name, its
     parameters in the command's order, and how each is written (``--speed``, ``PATH``)."""
-    import typer.main
-
-    from qcarlab.cli import app
-
-    group = typer.main.get_command(app)
+    group = _commands()
     if not argv:
         raise InputError("empty command")
     sub = group.get_command(None, argv[0])  # type: ignore[arg-type]
@@ -77,11 +87,7 @@ def parse_command(argv: list[str]) -> tuple[str, dict[str, Any], dict[str, str]]
 
 def command_accepts(argv: list[str], option: str) -> bool:
     """Whether the task's command has a parameter named ``option`` (e.g. "out", "params", "use")."""
-    import typer.main
-
-    from qcarlab.cli import app
-
-    sub = typer.main.get_command(app).get_command(None, argv[0])  # type: ignore[arg-type]
+    sub = _commands().get_command(None, argv[0])  # type: ignore[arg-type]
     return sub is not None and any(p.name == option for p in sub.params)
 
 

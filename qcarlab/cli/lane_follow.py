@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -25,7 +26,7 @@ from qcarlab.cli.common import (
     stdout,
     summary_table,
 )
-from qcarlab.cli.trials import MinSuccessOpt, TrialsOpt, check_trials, progress, trials_summary
+from qcarlab.cli.trials import MinSuccessOpt, TrialsOpt, check_trials, given, progress, trials_summary
 from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.lane_follow import (
@@ -87,6 +88,9 @@ def lane_follow_cmd(
     hsv_min: Annotated[str, typer.Option(help="Lower HSV bound H,S,V (H in OpenCV's 0..179 = deg/2).")]
     = ",".join(map(str, YELLOW_HSV_MIN)),
     hsv_max: Annotated[str, typer.Option(help="Upper HSV bound H,S,V.")] = ",".join(map(str, YELLOW_HSV_MAX)),
+    hsv: Annotated[Path | None, typer.Option("--hsv", help="HSV profile YAML to drive with (the tuner's hsv.yaml; see "
+                                             "qcarlab/hsv_profile.py). With --hsv-tune: where the tuned profile goes "
+                                             "(default OUT/hsv.yaml).", show_default=False)] = None,
     lookahead: Annotated[float, typer.Option(help="Where the fitted line is read, m ahead of the camera.")] = 0.5,
     stop_distance: Annotated[float, typer.Option(help="automatedDriving's minimum stopping distance, m.")] = 0.6,
     speed_selector: Annotated[float, typer.Option(help="userInputs' Speed Selector: per cent of --speed (the "
@@ -121,7 +125,8 @@ def lane_follow_cmd(
     """Follow the lane with the RGBD camera (HSV yellow line, linear fit, pure pursuit; sheet 5.3).
 
     Examples: qcarlab lane-follow | qcarlab lane-follow --laps 1 --out runs/lane |
-    qcarlab lane-follow --hsv-tune --hsv-min 20,100,100 --out runs/tune | qcarlab lane-follow --use mylab/lane.py
+    qcarlab lane-follow --hsv-tune --hsv-min 20,100,100 --out runs/tune | qcarlab lane-follow --hsv runs/tune/hsv.yaml |
+    qcarlab lane-follow --use mylab/lane.py
 
     Trials: qcarlab lane-follow --trials 5 --duration 20 (each from a random spot round the lane).
 
@@ -136,6 +141,14 @@ def lane_follow_cmd(
                            stop_offset=stop_offset, distance_to_lane=distance_to_lane, start_at=start_at,
                            stop_at=stop_at, rate=rate)
     apply_tunables(cfg, params, ctx)
+    if hsv is not None and not hsv_tune_:  # a tuned profile: the yellow range it holds
+        typed = [f"--{n.replace('_', '-')}" for n in ("hsv_min", "hsv_max") if given(ctx, n)]
+        if typed:
+            raise InputError(f"--hsv {hsv} gives the HSV range: leave out {' and '.join(typed)} (or the file)")
+        from qcarlab.hsv_profile import load_hsv_profile
+
+        profile = load_hsv_profile(hsv)
+        cfg.hsv_min, cfg.hsv_max = profile.hsv_min, profile.hsv_max
     cfg.check()
     mine = student_blocks(LaneFollowingLab, use, block)
     world_obj, pose = sim_world(car, world, start, "track", params)
@@ -173,10 +186,11 @@ def lane_follow_cmd(
             with open_from_options(car, world_obj, seed, realtime, params, start=spot, token=token) as qcar:
                 frames.append((spot, qcar.read_rgbd()))
         from qcarlab.cli.hsv_tune import run_hsv_tuner, tuned_metrics  # the sheet's tuner (issue 10)
-        tuned = run_hsv_tuner([f.color for _, f in frames], None, out / "hsv.yaml" if out else None,
+        where = hsv if hsv is not None else (out / "hsv.yaml" if out else None)
+        tuned = run_hsv_tuner([f.color for _, f in frames], None, where,
                               None if json_out else stdout, lane=lane, start=(cfg.hsv_min, cfg.hsv_max))
         result = hsv_tune(frames, cfg)
-        result.metrics["tuned"] = tuned_metrics(tuned, out / "hsv.yaml" if out else None)
+        result.metrics["tuned"] = tuned_metrics(tuned, where)
     else:
         with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
             result = run_lane_follow(qcar, cfg, world_obj, blocks=mine)

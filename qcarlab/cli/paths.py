@@ -11,6 +11,7 @@ import typer
 from rich.table import Table
 
 from qcarlab import paths, plots
+from qcarlab.car import parse_car_uri
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
@@ -20,11 +21,11 @@ from qcarlab.cli.common import (
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt,
     emit, open_from_options, sim_world, stdout, summary_table,
 )
-from qcarlab.constants import DEFAULT_PARAMS
+from qcarlab.constants import DEFAULT_PARAMS, load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.path_follow import CONTROLLERS, POSE_SOURCES, FollowConfig, PathFollowingLab, follow_path, lookahead_sweep
 from qcarlab.experiments.result import Result
-from qcarlab.experiments.step_response import step_response
+from qcarlab.experiments.step_response import step_response, step_start
 from qcarlab.record import dumps
 
 SHAPES = ", ".join(paths.BUILTIN)
@@ -182,7 +183,11 @@ def _sweep_summary(result: Result) -> None:
 
 def _step_summary(result: Result) -> None:
     m = result.metrics
-    table = summary_table(f"speed step 0 -> {m['speed_step_mps']} m/s (Kp {m['kp']}, Ki {m['ki']}, Kff {m['kff']})")
+    yours = m["controller"].startswith("your")
+    gains = "your speed_controller" if yours else f"Kp {m['kp']}, Ki {m['ki']}, Kff {m['kff']}"
+    table = summary_table(f"speed step 0 -> {m['speed_step_mps']} m/s ({gains})")
+    if yours:
+        table.add_row("controller", m["controller"].removeprefix("your speed_controller ").strip("()"))
 
     def fmt(v, unit):
         return "n/a" if v is None else f"{v:.3f} {unit}"
@@ -267,11 +272,13 @@ def path_follow_cmd(
     def open_car():
         return open_from_options(car, world_obj, seed, realtime, params, path=ref, token=token)
 
-    if step_response_:
+    if step_response_:  # the speed loop alone, with the student's speed blocks and the params' gains
         cfg = FollowConfig(speed=speed, kp=kp, ki=ki, kff=kff, rate=rate)
-        cfg.check()
-        with open_car() as qcar:
-            result = step_response(qcar, speed, kp, ki, kff, duration=max_time or 6.0, rate=rate)
+        apply_tunables(cfg, params, ctx)  # --kp/--ki/--kff/--speed typed here win over the file
+        start = step_start(world_obj, load_params(params)) if parse_car_uri(car)[0] == "sim" else None
+        with open_from_options(car, world_obj, seed, realtime, params, path=ref, token=token, start=start) as qcar:
+            result = step_response(qcar, cfg, duration=max_time or 6.0, blocks=mine, world=world_obj)
+        result.metrics.update({"car": car, "seed": seed})
         result.figures["step.png"] = lambda f: plots.plot_step_response(result.logs["log.csv"], result.metrics, f)
         emit(result, json_out, out, _step_summary)
         return

@@ -144,7 +144,7 @@ def live_car(qcar: Car, live: bool, live_port: str | None, token: str | None) ->
     except BaseException:
         qcar.close()
         raise
-    return RecordingCar(qcar, recorder)
+    return RecordingCar(qcar, recorder, follow_truth=True)  # its clients need not ask for the truth
 
 
 def recorded_world(source: str, params: Path | None):

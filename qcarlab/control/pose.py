@@ -35,6 +35,7 @@ class BicyclePoseEstimator:
 
     def reset(self) -> None:
         self.delta = 0.0
+        self._dt = self._servo_a = math.nan  # the servo factor's tick length (none yet)
 
     def __call__(
         self,
@@ -45,15 +46,16 @@ class BicyclePoseEstimator:
         yaw_rate: float | None = None,
     ) -> tuple[float, float, float]:
         """The pose ``dt`` s after ``pose`` at the measured ``speed`` with the commanded steering."""
-        p = self.params
         if self.model_servo:
-            self.delta += (steering_cmd - self.delta) * (1.0 - math.exp(-dt / p.steering_tau))
+            if dt != self._dt:  # the servo's step factor 1 - exp(-dt / tau), once per tick length
+                self._dt, self._servo_a = dt, 1.0 - math.exp(-dt / self.params.steering_tau)
+            delta = self.delta = self.delta + (steering_cmd - self.delta) * self._servo_a
         else:
-            self.delta = steering_cmd
+            delta = self.delta = steering_cmd
         x, y, yaw = pose
-        tan_d = math.tan(self.delta)
+        tan_d = math.tan(delta)
         beta = math.atan(0.5 * tan_d)
-        r = speed * math.cos(beta) * tan_d / p.wheelbase if yaw_rate is None else yaw_rate
+        r = speed * math.cos(beta) * tan_d / self.params.wheelbase if yaw_rate is None else yaw_rate
         heading = yaw + beta + 0.5 * r * dt  # midpoint heading over the step
         return (x + speed * dt * math.cos(heading), y + speed * dt * math.sin(heading),
                 (yaw + r * dt + math.pi) % (2.0 * math.pi) - math.pi)

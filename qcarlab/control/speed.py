@@ -29,6 +29,19 @@ def basic_speed_estimation(counts_per_s, params: QCarParams = DEFAULT_PARAMS):
     return wheel_rad_s * params.wheel_radius
 
 
+def speed_estimation(params: QCarParams = DEFAULT_PARAMS):
+    """:func:`basic_speed_estimation` bound to ``params``: ``f(counts_per_s) -> m/s``, the same
+    four terms in the same order (so the same numbers), with the parameters looked up once."""
+    cpr, gear, radius = params.encoder_cpr, params.gear_ratio, params.wheel_radius
+    two_pi = 2.0 * math.pi
+
+    def speed(counts_per_s):
+        return counts_per_s / cpr * gear * two_pi * radius
+
+    speed.__doc__ = basic_speed_estimation.__doc__
+    return speed
+
+
 def turn_speed_handling(desired_speed: float, steering: float, enable: bool = True) -> float:
     """Slow down in turns (block 6): v_ref * clip(cos(delta)^8, 0.5, 1) when enabled, else v_ref."""
     if not enable:
@@ -76,8 +89,11 @@ class SpeedController:
             return 0.0
         e = desired_speed - measured_speed
         lim = self.integral_limit
-        self.integral = min(lim, max(-lim, self.integral + self.ki * e * dt))
-        u = self.kff * desired_speed + self.kp * e + self.integral
+        i = self.integral + self.ki * e * dt
+        i = i if i > -lim else -lim  # min(lim, max(-lim, i)) written out (it runs every tick)
+        i = i if i < lim else lim
+        self.integral = i
+        u = self.kff * desired_speed + self.kp * e + i
         lim = self.throttle_limit
         return lim if u > lim else (-lim if u < -lim else u)
 

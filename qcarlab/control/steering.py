@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from bisect import bisect_right
 from typing import NamedTuple
 
 import numpy as np
@@ -37,10 +38,16 @@ __all__ = [
 ]
 
 
+_PI = math.pi
+_TWO_PI = 2.0 * math.pi
+
+
 def wrap_angle(a: float | np.ndarray) -> float | np.ndarray:
     """Wrap an angle (or array of angles) to [-pi, pi): ``(a + pi) mod 2 pi - pi``."""
+    if type(a) is float:  # the controllers' case: plain float arithmetic, no numpy on a scalar
+        return (a + _PI) % _TWO_PI - _PI
     if np.ndim(a) == 0:
-        return (float(a) + math.pi) % (2.0 * math.pi) - math.pi
+        return (float(a) + _PI) % _TWO_PI - _PI
     return (np.asarray(a, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
 
 
@@ -79,8 +86,11 @@ def pure_pursuit(
     if dist == 0.0:
         return 0.0
     ld = dist if dist > 0.0 else float(lookahead or 0.0)
-    alpha = wrap_angle(math.atan2(dy, dx) - yaw)
-    return _clip(math.atan(2.0 * wheelbase * math.sin(alpha) / ld), max_steering)
+    alpha = (math.atan2(dy, dx) - yaw + _PI) % _TWO_PI - _PI  # wrap_angle
+    delta = math.atan(2.0 * wheelbase * math.sin(alpha) / ld)
+    if max_steering is None:
+        return delta
+    return min(max(delta, -max_steering), max_steering)
 
 
 def rear_axle(pose: np.ndarray | tuple[float, float, float], wheelbase: float = DEFAULT_PARAMS.wheelbase
@@ -200,29 +210,63 @@ class LookaheadTarget:
         self.progress = 0.0
 
     def __call__(self, position: np.ndarray | tuple[float, float]) -> Target:
+        tx, ty, j, s = self.locate(float(position[0]), float(position[1]))
+        return Target(np.array([tx, ty]), j, s)
+
+    def locate(self, px: float, py: float) -> tuple[float, float, int, float]:
+        """:meth:`__call__` for a position ``(px, py)`` given as floats, returning plain floats:
+        ``(target_x, target_y, index, progress)`` (the lab's tick: no array is made)."""
         poly = self.poly
-        px, py = float(position[0]), float(position[1])
         ld = self.lookahead
-        j, t, d0 = poly.walk_forward(self.index, px, py, self.max_segments)
-        s = poly._cum[j] + t * poly._len[j]
+        xs, ys, dxs, dys, l2s = poly._x, poly._y, poly._dx, poly._dy, poly._l2
+        # j, t, d0 = poly.walk_forward(self.index, px, py, self.max_segments), written out (every tick)
+        j = self.index
+        last = j + self.max_segments
+        if last > poly.n - 2:
+            last = poly.n - 2
+        ax, ay, dx, dy, l2 = xs[j], ys[j], dxs[j], dys[j], l2s[j]
+        if l2 == 0.0:
+            t = 0.0
+        else:
+            u = ((px - ax) * dx + (py - ay) * dy) / l2
+            t = (u if u < 1.0 else 1.0) if u > 0.0 else 0.0
+        hypot = math.hypot
+        d0 = hypot(px - ax - t * dx, py - ay - t * dy)
+        while j < last:
+            k = j + 1
+            ax, ay, dx, dy, l2 = xs[k], ys[k], dxs[k], dys[k], l2s[k]
+            if l2 == 0.0:
+                tn = 0.0
+            else:
+                u = ((px - ax) * dx + (py - ay) * dy) / l2
+                tn = (u if u < 1.0 else 1.0) if u > 0.0 else 0.0
+            dn = hypot(px - ax - tn * dx, py - ay - tn * dy)
+            if dn > d0 + 1e-12:
+                break
+            j, t, d0 = k, tn, dn
+        cum, seglen = poly._cum, poly._len
+        s = cum[j] + t * seglen[j]
         if s < self.progress:  # never move back along the path
             s = self.progress
-            t = 0.0 if poly._len[j] == 0.0 else (s - poly._cum[j]) / poly._len[j]
+            t = 0.0 if seglen[j] == 0.0 else (s - cum[j]) / seglen[j]
             d0 = math.hypot(px - poly._x[j] - t * (poly._x[j + 1] - poly._x[j]),
                             py - poly._y[j] - t * (poly._y[j + 1] - poly._y[j]))
         self.index, self.progress = j, s
-        if d0 >= ld:
-            point, _ = poly.point_at(s + ld)
-            return Target(point, j, s)
+        if d0 >= ld:  # the point l_d ahead of the projection along the path (Polyline.point_at)
+            q = min(max(s + ld, 0.0), poly.length)
+            i = min(max(bisect_right(cum, q) - 1, 0), poly.n - 2)
+            u = 0.0 if seglen[i] == 0.0 else min(1.0, (q - cum[i]) / seglen[i])
+            return xs[i] + u * (xs[i + 1] - xs[i]), ys[i] + u * (ys[i + 1] - ys[i]), j, s
         # first vertex ahead at distance >= l_d from the car
-        xs, ys = poly._x, poly._y
-        last = min(poly.n - 1, j + 1 + self.max_segments)
+        last = j + 1 + self.max_segments
+        if last > poly.n - 1:
+            last = poly.n - 1
         k = j + 1
-        while k <= last and math.hypot(xs[k] - px, ys[k] - py) < ld:
+        while k <= last and hypot(xs[k] - px, ys[k] - py) < ld:
             k += 1
         if k > last:
             # nothing ahead leaves the circle: the end is within l_d (or the window is exhausted)
-            return Target(np.array([xs[last], ys[last]]), j, s)
+            return xs[last], ys[last], j, s
         if k == j + 1:
             ax, ay = xs[j] + t * (xs[j + 1] - xs[j]), ys[j] + t * (ys[j + 1] - ys[j])
         else:
@@ -233,6 +277,13 @@ class LookaheadTarget:
         qa = dx * dx + dy * dy
         qb = 2.0 * (wx * dx + wy * dy)
         qc = wx * wx + wy * wy - ld * ld
-        u = 1.0 if qa == 0.0 else (-qb + math.sqrt(max(qb * qb - 4.0 * qa * qc, 0.0))) / (2.0 * qa)
-        u = min(max(u, 0.0), 1.0)
-        return Target(np.array([ax + u * dx, ay + u * dy]), j, s)
+        if qa == 0.0:
+            u = 1.0
+        else:
+            disc = qb * qb - 4.0 * qa * qc
+            u = (-qb + math.sqrt(0.0 if 0.0 > disc else disc)) / (2.0 * qa)  # max(disc, 0)
+            if 0.0 > u:  # u = min(max(u, 0), 1), as the builtins order it
+                u = 0.0
+            if 1.0 < u:
+                u = 1.0
+        return ax + u * dx, ay + u * dy, j, s

@@ -58,9 +58,14 @@ class LoopLog:
         for key, value in values.items():
             self.columns.setdefault(key, []).append(value)
 
-    def arrays(self) -> dict[str, np.ndarray]:
+    def arrays(self, keys: Any = None) -> dict[str, np.ndarray]:
+        """The columns as numpy arrays (only those of ``keys`` that exist, when given: turning a
+        column of thousands of Python floats into an array costs about as much as logging it)."""
         n = self.ticks
-        return {k: np.asarray(v[:n]) for k, v in self.columns.items()}
+        cols = self.columns
+        if keys is None:
+            return {k: np.asarray(v[:n]) for k, v in cols.items()}
+        return {k: np.asarray(cols[k][:n]) for k in keys if k in cols}
 
 
 def check_rate(rate: float) -> float:
@@ -109,25 +114,27 @@ def run_loop(
         start(car, period)
     has_truth = record_truth and car.truth() is not None
     stepped = car.stepped
-    truth = car.truth
+    read, write, truth, advance = car.read, car.write, car.truth, car.advance
     base = ("t", "throttle", "steering", "encoder_counts", "tach", "motor_current", "battery_voltage", "gyro_z")
     tcols = ("true_x", "true_y", "true_yaw", "true_speed", "true_steering") if has_truth else ()
     for key in (base + tcols) if keep_rows else ():
         cols[key] = []
-    c_t, c_th, c_st, c_enc, c_tach, c_cur, c_bat, c_gz = (cols.get(k) for k in base)
-    if has_truth and keep_rows:
-        c_x, c_y, c_yaw, c_v, c_d = (cols[k] for k in tcols)
+    n_fixed = len(cols)  # the loop's own columns; the rest are the step's (Step.log)
+    # each column's append, bound once (the tick runs thousands of times a second)
+    a_t, a_th, a_st, a_enc, a_tach, a_cur, a_bat, a_gz, a_x, a_y, a_yaw, a_v, a_d = _appends(cols, base, tcols)
+    lab_append: dict[str, Callable[[Any], None]] = {}  # the step's columns' appends
     t0 = car.time
     dt = period
     next_wall = last_wall = time.monotonic()
-    k = 0
+    k = ticks = 0  # (log.ticks is set from ticks when the loop ends)
     recorder = getattr(car, "recorder", None)  # --record/--live (qcarlab.recording): the lab's values too
+    ends = hasattr(car, "ended")  # --car replay: the recording runs out
     try:
         for k in range(n_ticks):
-            if getattr(car, "ended", False):  # --car replay: the recording has run out
+            if ends and car.ended:  # the recording has run out
                 log.stopped_early = True
                 break
-            readout = car.read()
+            readout = read()
             t = readout.t - t0
             out = step(t, readout, dt)
             if out is STOP:
@@ -137,38 +144,42 @@ def run_loop(
                 values, out = out.log, out.command
             else:
                 values = None
-            cmd = car.write(out.throttle, out.steering, out.leds)
+            cmd = write(out.throttle, out.steering, out.leds)
             if keep_rows:
-                c_t.append(t)
-                c_th.append(cmd.throttle)
-                c_st.append(cmd.steering)
-                c_enc.append(readout.encoder_counts)
-                c_tach.append(readout.tach)
-                c_cur.append(readout.motor_current)
-                c_bat.append(readout.battery_voltage)
-                c_gz.append(float(readout.gyro[2]))
+                a_t(t)
+                a_th(cmd.throttle)
+                a_st(cmd.steering)
+                a_enc(readout.encoder_counts)
+                a_tach(readout.tach)
+                a_cur(readout.motor_current)
+                a_bat(readout.battery_voltage)
+                gyro = readout.gyro
+                a_gz(float(gyro.item(2) if type(gyro) is np.ndarray else gyro[2]))
                 if has_truth:
                     tr = truth()
-                    c_x.append(tr.x)
-                    c_y.append(tr.y)
-                    c_yaw.append(tr.yaw)
-                    c_v.append(tr.speed)
-                    c_d.append(tr.steering)
+                    a_x(tr.x)
+                    a_y(tr.y)
+                    a_yaw(tr.yaw)
+                    a_v(tr.speed)
+                    a_d(tr.steering)
                 if values:
                     for key, value in values.items():
-                        column = cols.get(key)
-                        if column is None:
-                            column = cols[key] = [None] * log.ticks  # a value first logged late
-                        column.append(value)
+                        append = lab_append.get(key)
+                        if append is None:  # a value first logged late: None for the ticks before
+                            column = cols.get(key)
+                            if column is None:
+                                column = cols[key] = [None] * ticks
+                            append = lab_append[key] = column.append
+                        append(value)
             if recorder is not None and values:  # the lab's own values (a step's ``log``)
                 recorder.log_values(readout.t, {"t": t, **values})
-            log.ticks += 1
-            if values is not None and keep_rows and len(values) != len(cols) - len(base) - len(tcols):
-                _pad(cols, log.ticks)
+            ticks += 1
+            if keep_rows and (len(values) if values else 0) != len(cols) - n_fixed:
+                _pad(cols, ticks)  # a step's column not logged this tick
             if on_tick is not None:
                 on_tick(t, readout, cmd)
             if stepped:
-                car.advance(period)
+                advance(period)
             if pace or not stepped:
                 next_wall += period
                 now = time.monotonic()
@@ -189,6 +200,8 @@ def run_loop(
     except BaseException:
         _stop_quietly(car)  # the error in flight is the one to report, not a failing stop
         raise
+    finally:
+        log.ticks = ticks
     car.stop()
     if keep_rows:
         _pad(cols, log.ticks)
@@ -202,6 +215,13 @@ def _stop_quietly(car: Car) -> None:
         car.stop()
     except Exception:  # noqa: BLE001
         pass
+
+
+def _appends(cols: dict[str, list[Any]], base: tuple[str, ...], tcols: tuple[str, ...]) -> tuple:
+    """The loop's columns' append methods, ``base`` then ``tcols`` (None for a column not kept):
+    bound once, called every tick."""
+    out = [cols[k].append if k in cols else None for k in base + tcols]
+    return tuple(out) + (None,) * (13 - len(out))
 
 
 def _pad(cols: dict[str, list[Any]], n: int) -> None:

@@ -26,11 +26,11 @@ BASIC_SPEED_ESTIMATION = BlockSpec(
     "3.3; lane example block 9", "Car speed from the motor encoder's rate.", "speed")
 SPEED_CONTROLLER = BlockSpec(
     "speed_controller", "speed_controller(v_ref, v_measured, dt) -> throttle", "m/s, m/s, s -> duty fraction",
-    "4.2.3, Figure 43", "Feed-forward PI from the desired speed to the throttle (a class: it integrates).",
-    "throttle", stateful=True)
+    "4.2.3, Figure 43; lane example block 7",
+    "Feed-forward PI from the desired speed to the throttle (a class: it integrates).", "throttle", stateful=True)
 INDICATOR_AND_LAMPS = BlockSpec(
     "indicator_and_lamps", "indicator_and_lamps(steering, v_ref) -> lamp names",
-    "rad, m/s -> names (brake, reverse, left-indicators, right-indicators)", "lane example block 10",
+    "rad, m/s -> names (brake, reverse, left-indicators, right-indicators)", "lane example block 8",
     "Brake lamp at v_ref = 0, reverse lamps backing up, indicators in turns.")
 TURN_SPEED_HANDLING = BlockSpec(
     "turn_speed_handling", "turn_speed_handling(desired_speed, steering) -> speed", "m/s, rad -> m/s",

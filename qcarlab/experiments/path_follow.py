@@ -23,17 +23,16 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
-from functools import partial
 from typing import Any
 
 import numpy as np
 
-from qcarlab.blocks import BlockSpec
+from qcarlab.blocks import BlockSpec, StudentBlock
 from qcarlab.car.base import Car, Command, Readout
 from qcarlab.car.lamps import ALL_OFF, parse_lamps
 from qcarlab.constants import QCarParams
 from qcarlab.control.pose import BicyclePoseEstimator
-from qcarlab.control.speed import KFF, KI, KP, SpeedController, basic_speed_estimation, turn_speed_handling
+from qcarlab.control.speed import KFF, KI, KP, SpeedController, speed_estimation, turn_speed_handling
 from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pursuit, rear_axle, stanley
 from qcarlab.control.tracking import Polyline, cross_track_errors, progress_along
 from qcarlab.errors import InputError
@@ -46,6 +45,7 @@ CONTROLLERS = ("pure-pursuit", "carrot", "stanley")
 POSE_SOURCES = ("bicycle", "gyro", "truth")
 A_STOP = 0.8  # m/s^2, the deceleration the stop profile plans with
 _BRAKE = parse_lamps(["brake"])
+_new_tuple = tuple.__new__  # Command is a named tuple: made without its Python-level __new__ every tick
 
 
 @dataclass
@@ -149,35 +149,47 @@ class PathFollowingLab(LabModel):
         self.steer = 0.0
         self.arrived = False
         self.first = True
+        # the tick's constants, looked up once (the step runs 100 times a simulated second)
+        self._gyro, self._true_pose = cfg.pose == "gyro", cfg.pose == "truth"
+        self._length, self._max_steering, self._wheelbase = self.poly.length, params.max_steering, params.wheelbase
+        self._stop_margin = 0.5 * cfg.goal_tolerance
+        self._two_a_stop = 2.0 * A_STOP
+        # a student's steering block gets the target as an array (as the sheet's template says
+        # and as it always has); the reference functions take the two floats as they are
+        self._array_target = isinstance(self.pure_pursuit, StudentBlock) or isinstance(self.follow_the_carrot,
+                                                                                         StudentBlock)
 
     def reference_blocks(self) -> dict[str, Any]:
         c, p = self.cfg, self.p
+        # the steering blocks as they are: step() clips whatever a steering block returns (the
+        # student's too) to +-max_steering, which is what binding max_steering would do first
+        # (a keyword bound with functools.partial costs more than the controller's arithmetic)
         return {
-            "basic_speed_estimation": partial(basic_speed_estimation, params=p),
+            "basic_speed_estimation": speed_estimation(p),
             "pose_estimator": BicyclePoseEstimator(p),
-            "pure_pursuit": partial(pure_pursuit, max_steering=p.max_steering),
-            "follow_the_carrot": partial(follow_the_carrot, max_steering=p.max_steering),
-            "stanley": partial(stanley, max_steering=p.max_steering),
+            "pure_pursuit": pure_pursuit,
+            "follow_the_carrot": follow_the_carrot,
+            "stanley": stanley,
             "turn_speed_handling": turn_speed_handling,
             "speed_controller": SpeedController(c.kp, c.ki, c.kff, throttle_limit=self.throttle_limit),
         }
 
     def step(self, t: float, r: Readout, dt: float) -> Step | object:
-        c, p = self.cfg, self.p
+        c = self.cfg
         v = self.basic_speed_estimation(r.tach)
         if self.first:
             self.first = False
         else:
-            yaw_rate = float(r.gyro[2]) if c.pose == "gyro" else None
+            yaw_rate = float(r.gyro[2]) if self._gyro else None  # (a student's may use it)
             self.pose = self.pose_estimator(self.pose, v, self.steer, dt, yaw_rate)
         est = self.pose
-        if c.pose == "truth":
+        if self._true_pose:
             tr = self.truth()
             pose = (tr.x, tr.y, tr.yaw)
         else:
             pose = est
-        target, index, progress = self.search(pose)
-        remaining = self.poly.length - progress
+        tx, ty, index, progress = self.search.locate(float(pose[0]), float(pose[1]))
+        remaining = self._length - progress
         if not self.arrived and (
             remaining <= 0.0 or (progress >= self.end_zone and math.dist(pose[:2], self.goal) <= c.goal_tolerance)
         ):
@@ -187,20 +199,30 @@ class PathFollowingLab(LabModel):
             if abs(v) < 0.01:
                 return STOP
         else:
-            if c.controller == "pure-pursuit":
-                delta = self.pure_pursuit(rear_axle(pose, p.wheelbase), target, c.lookahead, p.wheelbase)
-            elif c.controller == "carrot":
+            controller = c.controller
+            target = np.array((tx, ty)) if self._array_target else (tx, ty)
+            if controller == "pure-pursuit":
+                L = self._wheelbase
+                delta = self.pure_pursuit(rear_axle(pose, L), target, c.lookahead, L)
+            elif controller == "carrot":
                 delta = self.follow_the_carrot(pose, target, c.k_carrot)
             else:
-                delta = self.stanley(pose, self.poly, index, v, c.k_stanley, p.wheelbase)
-            delta = min(max(delta, -p.max_steering), p.max_steering)
+                delta = self.stanley(pose, self.poly, index, v, c.k_stanley, self._wheelbase)
+            m = self._max_steering
+            if -m > delta:  # delta = min(max(delta, -m), m), written out (the builtins cost more)
+                delta = -m
+            if m < delta:
+                delta = m
             v_ref = self.turn_speed_handling(c.speed, delta) if c.turn_speed else c.speed
-            v_ref = min(v_ref, math.sqrt(2.0 * A_STOP * max(remaining - 0.5 * c.goal_tolerance, 0.0)))
+            room = remaining - self._stop_margin
+            v_stop = math.sqrt(self._two_a_stop * (0.0 if 0.0 > room else room))
+            if v_stop < v_ref:  # v_ref = min(v_ref, v_stop)
+                v_ref = v_stop
         throttle = self.speed_controller(v_ref, v, dt)
         self.steer = delta
-        return Step(Command(throttle, delta, _BRAKE if self.arrived else ALL_OFF),
+        return Step(_new_tuple(Command, (throttle, delta, _BRAKE if self.arrived else ALL_OFF)),  # Command(...)
                     {"est_x": est[0], "est_y": est[1], "est_yaw": est[2], "v_ref": v_ref, "v_meas": v,
-                     "target_x": float(target[0]), "target_y": float(target[1])})
+                     "target_x": tx, "target_y": ty})
 
 
 def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
@@ -222,7 +244,7 @@ def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
     model = watch.wrap(lab) if watch is not None else lab
     max_time = cfg.max_time or (1.5 * lab.poly.length / cfg.speed + 10.0)
     log = run_loop(car, model, max_time, cfg.rate, on_tick=on_tick)
-    cols = log.arrays()
+    cols = log.arrays(LOG_COLUMNS)
     metrics = score_run(cols, route, cfg, truth=truth0 is not None, stopped=log.stopped_early and not
                         (watch and watch.event))
     metrics["config"] = asdict(cfg)
@@ -315,7 +337,10 @@ def score_run(cols: dict[str, np.ndarray], route: np.ndarray, cfg: FollowConfig,
     return metrics
 
 
+#: The columns of the run's log.csv (and all that score_run reads), in order.
+LOG_COLUMNS = ("t", "target_x", "target_y", "est_x", "est_y", "est_yaw", "true_x", "true_y", "true_yaw",
+               "throttle", "steering", "v_ref", "v_meas", "true_speed")
+
+
 def _log_columns(cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    keep = ["t", "target_x", "target_y", "est_x", "est_y", "est_yaw", "true_x", "true_y", "true_yaw",
-            "throttle", "steering", "v_ref", "v_meas", "true_speed"]
-    return {k: cols[k] for k in keep if k in cols}
+    return {k: cols[k] for k in LOG_COLUMNS if k in cols}

@@ -11,8 +11,9 @@ Every lab command's results carry an ``invocation`` (added by the CLI's ``emit``
 ``params`` are the command's parsed options and arguments (defaults included), so option order
 and spelling do not matter. :func:`verify` accepts a results file for a task only when its
 command and every option that shapes the run equal the task's (``--out``, ``--json``, ``--car``,
-``--realtime``, ``--debug``, the recording options and the student's ``--use``/``--block``/``--params`` may differ; the
-files are checked by hash against the submission when one is given). So a ``p1-line`` results
+``--realtime``, ``--token``, ``--debug``, the recording options, the car a sheet's ``{car}`` stands
+for and the student's ``--use``/``--block``/``--params`` may differ; the files are checked by hash
+against the submission when one is given). A token is recorded as ``(given)``, never itself. So a ``p1-line`` results
 file copied into ``p3-butterfly/`` is refused, naming the first option that differs.
 
 This guards against mistakes and copied runs, not against a student who edits the JSON by hand:
@@ -28,8 +29,9 @@ from pathlib import Path
 from typing import Any
 
 # options that do not change what a run measures (or are checked through the files' hashes)
-FREE = frozenset({"out", "json_out", "debug", "car", "realtime", "use", "block", "params", "frames",
+FREE = frozenset({"out", "json_out", "debug", "car", "token", "realtime", "use", "block", "params", "frames",
                   "record", "record_exact", "live", "live_port", "topics"})  # (recording: issue 13)
+CAR = "{car}"  # a sheet's placeholder for the car (qcarlab.grading.sheet.CAR): any car's run is the task's
 
 
 def jsonable(value: Any) -> Any:
@@ -95,7 +97,7 @@ def verify(results: dict[str, Any], name: str, want: dict[str, Any],
         return f"the results are of 'qcarlab {inv.get('command')}', not of the task's 'qcarlab {name}'"
     got = inv["params"]
     for key in [*want, *sorted(set(got) - set(want))]:  # the command's own order: its arguments first
-        if key in FREE:
+        if key in FREE or want.get(key) == CAR:  # e.g. ping {car}: the run names the car it pinged
             continue
         if jsonable(want.get(key)) != got.get(key):
             option = (labels or {}).get(key) or "--" + key.replace("_", "-")

@@ -5,7 +5,8 @@ carries everything its process needs (the command's words, the submission's file
 limits), so the same :func:`execute` runs it in a local thread pool or on a Ray worker on another
 machine. It makes a fresh folder, writes the submission's files into ``submission/``, and starts
 ``python -m qcarlab.grading.child spec.json`` there in a new process group, stdout and stderr to
-files. It waits at most the wall-time limit, then kills the group. The outcome says what came
+files (or, given a :class:`~qcarlab.grading.warm.WarmStart`, forks the same task from a zygote that
+has loaded qcarlab already). It waits at most the wall-time limit, then kills the group. The outcome says what came
 back (the results, or each case's value) or, in one line, why nothing did:
 
     did not finish within 5 s (stopped)          a hang (the whole process group is killed)
@@ -31,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from qcarlab.grading.limits import THREAD_VARS, Limits
+from qcarlab.grading.warm import WarmStart
 
 TAIL = 4096  # bytes of stdout/stderr kept for the report
 FIGURES = (".png",)
@@ -96,7 +98,8 @@ def _last_line(text: str) -> str:
     return _PREFIX.sub("", line).removeprefix("error: ")
 
 
-def _env(results: Path) -> dict[str, str]:
+def task_env(results: Path | None = None) -> dict[str, str]:
+    """The environment of a task's process (a warm zygote's too, without ``results``)."""
     import qcarlab
 
     env = {k: v for k, v in os.environ.items() if k not in ("QCARLAB_DEBUG", "QCARLAB_RESULTS", "PYTHONSTARTUP")}
@@ -105,9 +108,10 @@ def _env(results: Path) -> dict[str, str]:
     root = Path(qcarlab.__file__).resolve().parents[1]  # the qcarlab the grader runs, also from a checkout
     if root.name not in ("site-packages", "dist-packages"):
         env["PYTHONPATH"] = str(root) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    env.update({"QCARLAB_RESULTS": str(results), "MPLBACKEND": "Agg", "PYTHONDONTWRITEBYTECODE": "1",
-                "PYTHONUNBUFFERED": "1", "COLUMNS": "120", "NO_COLOR": "1", "TERM": "dumb",
-                "PYTHONHASHSEED": "0"})
+    env.update({"MPLBACKEND": "Agg", "PYTHONDONTWRITEBYTECODE": "1", "PYTHONUNBUFFERED": "1", "COLUMNS": "120",
+                "NO_COLOR": "1", "TERM": "dumb", "PYTHONHASHSEED": "0"})
+    if results is not None:
+        env["QCARLAB_RESULTS"] = str(results)
     return env
 
 
@@ -123,8 +127,11 @@ def _spec(job: Job, work: Path, results: Path) -> dict[str, Any]:
     return spec
 
 
-def execute(job: Job) -> dict[str, Any]:
-    """Run ``job`` in its own process under its limits; the outcome as a JSON-able dict (figures as bytes)."""
+def execute(job: Job, warm: WarmStart | None = None) -> dict[str, Any]:
+    """Run ``job`` in its own process under its limits; the outcome as a JSON-able dict (figures as bytes).
+
+    With ``warm`` (:class:`~qcarlab.grading.warm.WarmStart`) the process is forked from a zygote that
+    has loaded qcarlab already; without it (or when the zygote cannot), a fresh interpreter."""
     import qcarlab
 
     if job.qcarlab and job.qcarlab != qcarlab.__version__:
@@ -142,26 +149,35 @@ def execute(job: Job) -> dict[str, Any]:
         spec_path = work / "spec.json"
         spec_path.write_text(json.dumps(_spec(job, work, results)), encoding="utf-8")
         out_path, err_path = work / "stdout.txt", work / "stderr.txt"
-        timed_out = False
-        with open(out_path, "wb") as out, open(err_path, "wb") as err:
-            proc = subprocess.Popen([sys.executable, "-m", "qcarlab.grading.child", str(spec_path)], cwd=work,
-                                    stdin=subprocess.DEVNULL, stdout=out, stderr=err, env=_env(results),
-                                    start_new_session=True, close_fds=True)
-            try:
-                proc.wait(timeout=limits.timeout)
-            except subprocess.TimeoutExpired:
-                timed_out = True
-            finally:
-                try:
-                    os.killpg(proc.pid, signal.SIGKILL)  # the task and anything it started
-                except (ProcessLookupError, PermissionError):
-                    pass
-                proc.wait()
-        outcome = _classify(job, limits, proc.returncode, timed_out, work, results, out_path, err_path)
+        ran = warm.run(spec_path, work, out_path, err_path, {"QCARLAB_RESULTS": str(results)}, limits.timeout) \
+            if warm is not None else None
+        rc, timed_out = ran if ran is not None else _cold(spec_path, work, out_path, err_path, results, limits)
+        outcome = _classify(job, limits, rc, timed_out, work, results, out_path, err_path)
         outcome["seconds"] = round(time.monotonic() - t0, 3)
         return _relative(outcome, str(sub) + os.sep)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def _cold(spec_path: Path, work: Path, out_path: Path, err_path: Path, results: Path,
+          limits: Limits) -> tuple[int, bool]:
+    """``python -m qcarlab.grading.child SPEC`` in a new session; (exit code, timed out)."""
+    timed_out = False
+    with open(out_path, "wb") as out, open(err_path, "wb") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "qcarlab.grading.child", str(spec_path)], cwd=work,
+                                stdin=subprocess.DEVNULL, stdout=out, stderr=err, env=task_env(results),
+                                start_new_session=True, close_fds=True)
+        try:
+            proc.wait(timeout=limits.timeout)
+        except subprocess.TimeoutExpired:
+            timed_out = True
+        finally:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)  # the task and anything it started
+            except (ProcessLookupError, PermissionError):
+                pass
+            proc.wait()
+    return proc.returncode, timed_out
 
 
 def _classify(job: Job, limits: Limits, rc: int, timed_out: bool, work: Path, results: Path,
@@ -252,4 +268,4 @@ def _clip(text: str, limit: int = 300) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-__all__ = ["Job", "execute"]
+__all__ = ["Job", "execute", "task_env"]

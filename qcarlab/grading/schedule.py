@@ -19,22 +19,37 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from typing import Any
 
 from qcarlab.errors import InputError
-from qcarlab.grading.runner import Job, execute
+from qcarlab.grading.runner import Job, execute, task_env
+from qcarlab.grading.warm import WarmStart
 
 Progress = Callable[[Job, dict[str, Any]], None]
 
 
+#: Scenario tasks from which a warm zygote pays for its own start (about one task's start-up).
+WARM_FROM = 2
+
+
 def run_local(jobs: list[Job], workers: int = 1, done: Progress | None = None) -> list[dict[str, Any]]:
-    """Each job in its own process, ``workers`` at a time; outcomes in the jobs' order."""
+    """Each job in its own process, ``workers`` at a time; outcomes in the jobs' order. With
+    several scenario tasks the processes are forked from a warm zygote (:mod:`.warm`)."""
+    warm = WarmStart.start(task_env()) if sum(j.kind == "scenario" for j in jobs) >= WARM_FROM else None
+    try:
+        return _run_local(jobs, workers, done, warm)
+    finally:
+        if warm is not None:
+            warm.close()
+
+
+def _run_local(jobs: list[Job], workers: int, done: Progress | None, warm: WarmStart | None) -> list[dict[str, Any]]:
     outcomes: list[dict[str, Any] | None] = [None] * len(jobs)
     if workers <= 1:
         for i, job in enumerate(jobs):
-            outcomes[i] = execute(job)
+            outcomes[i] = execute(job, warm)
             if done:
                 done(job, outcomes[i])  # type: ignore[arg-type]
         return outcomes  # type: ignore[return-value]
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="qcarlab-grade") as pool:
-        futures = {pool.submit(execute, job): i for i, job in enumerate(jobs)}
+        futures = {pool.submit(execute, job, warm): i for i, job in enumerate(jobs)}
         for fut in as_completed(futures):
             i = futures[fut]
             try:

@@ -104,6 +104,9 @@ class SensorHub:
             try:
                 arrays = worker.draw(kind, job.pose, job.t)
                 t = job.t
+                drawn = getattr(job, "drawn", None)
+                if drawn is not None:  # a recording car records the frame the worker drew
+                    drawn(t, arrays)
             except WorkerGone as exc:
                 log.warning("%s; drawing sensor frames in the server's own process from now on", exc)
                 self.worker = None

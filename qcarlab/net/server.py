@@ -212,6 +212,7 @@ class CarServer:
         prepare: bool = False,
         render_process: bool = False,
         priority: bool = True,
+        tls: Any = None,
     ):
         if not (isinstance(port, int) and 0 <= port < 65536):
             raise InputError(f"--port must be in 0-65535, got {port!r}")
@@ -251,6 +252,7 @@ class CarServer:
         self.prepare = prepare
         self.render_process = render_process
         self.priority = priority  # ask for real-time priority for the watchdog's and the controller's threads
+        self.tls = tls  # an ssl.SSLContext (qcarlab.wire.tls.server_context): every connection speaks TLS
         self.tuned = False  # tune_process() ran: every thread is real-time, monitors stay so after their hello
         self.worker: Any = None  # the RenderWorker drawing a real-time simulator's frames, once started
 
@@ -330,7 +332,8 @@ class CarServer:
     @property
     def uri(self) -> str:
         host, port = self.address
-        return f"tcp://{'[' + host + ']' if ':' in host else host}:{port}"
+        scheme = "tcps" if self.tls is not None else "tcp"
+        return f"{scheme}://{'[' + host + ']' if ':' in host else host}:{port}"
 
     @property
     def loopback(self) -> bool:
@@ -350,8 +353,8 @@ class CarServer:
                 f"refusing to serve on {shown} without a token: that address is not loopback, anyone on its "
                 "network could drive the car; set QCARLAB_TOKEN (qcarlab serve --new-token makes one), or bind to 127.0.0.1"
             )
-        if self.render_process and not self.lockstep and callable(getattr(type(self.car), "sensor_recipe", None)):
-            # (the car's own class: a wrapper that records frames must see them pass)
+        if self.render_process and not self.lockstep and callable(getattr(self.car, "sensor_recipe", None)):
+            # (a wrapper that records frames sees them pass: its sensor job's ``drawn`` hook)
             self._start_worker()
         if self.prepare and self.worker is None:
             try:
@@ -553,6 +556,7 @@ class CarServer:
     # --- housekeeping: log lines, the real-time simulator's clock ---------------------------------
     def _housekeeping_loop(self) -> None:
         next_sync = 0.0
+        heartbeat = getattr(self.car, "heartbeat", None)
         while not self._stop_evt.wait(HOUSEKEEPING_S):
             now = time.monotonic()
             if not self.lockstep and now >= next_sync:
@@ -564,6 +568,13 @@ class CarServer:
                         self.car.time
                 except Exception:
                     pass
+            if heartbeat is not None:  # a recorded car (serve --live): its pose, whoever drives it
+                try:
+                    with self.drive_lock:
+                        heartbeat()
+                except Exception as exc:
+                    _log(logging.WARNING, "live view: %s", _one_line(str(exc)))
+                    heartbeat = None
             self._flush_notes()
             self.refusals.flush(now)
 
@@ -589,6 +600,17 @@ class CarServer:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
             except OSError:
                 pass
+            if self.tls is not None:  # wrapped here (no I/O); the handshake runs on the connection's thread
+                try:
+                    from qcarlab.wire.tls import TLSSocket
+
+                    sock = TLSSocket(self.tls.wrap_socket(sock, server_side=True, do_handshake_on_connect=False))
+                except (OSError, ValueError):
+                    try:
+                        sock.close()
+                    except OSError:
+                        pass
+                    continue
             session = _Session(self, sock, addr)
             victim = None
             with self.state_lock:
@@ -802,6 +824,8 @@ class _Session:
     def run(self) -> None:
         reason = "closed"
         try:
+            if self.server.tls is not None:
+                self._handshake()
             reason = self._loop()
         except _End as end:
             reason = end.reason
@@ -852,6 +876,20 @@ class _Session:
         self.close_socket()
         if not was_controller:
             server.release(self)
+
+    def _handshake(self) -> None:
+        """TLS: the handshake, within the hello's deadline (a client that stalls in it is cut off
+        as one that never says hello)."""
+        import ssl
+
+        try:
+            self.sock.handshake(self.reader.deadline, self.waiter)
+        except TimeoutError:
+            raise _End(f"no TLS handshake within {self.server.hello_timeout:g} s of connecting", "tls") from None
+        except ssl.SSLError as exc:
+            raise _End(f"TLS handshake failed: {exc.reason or exc} (a client without TLS? it needs tcps://)", "tls") from None
+        except OSError as exc:
+            raise _End(f"TLS handshake failed: {exc.strerror or exc}", "tls") from None
 
     def _wait_for_request(self) -> None:
         """The controller's next request usually comes within microseconds of its reply: look for it

@@ -13,10 +13,12 @@ opened). The laptop keeps qcarlab (Python >= 3.11) and connects with ``--car tcp
 It speaks the protocol ``docs/protocol.md`` describes (the same bytes as ``qcarlab serve``) with
 the same safety: one controller; a watchdog that stops the car when the controller goes quiet,
 on its own thread, which takes no lock but the board's (held for one HIL call at a time); a
-controller silent for ``--controller-timeout`` after the watchdog stopped the car loses control;
-a whole HELLO within 2 s and every frame within 5 s of its first byte; one slot kept for a
-controller; a throttle limit applied whatever clients send; a token of 16 or more characters
-whenever the bound address is not loopback; SIGINT, SIGTERM, SIGHUP and SIGQUIT stop the car.
+controller silent for ``--controller-timeout`` after the watchdog stopped the car loses control
+(one that never sent a command too: the watchdog stops its car all the same); a monitor's requests
+are served at most 1,000 a second (bursts of 20: a flood waits, it is never refused); a whole
+HELLO within 2 s and every frame within 5 s of its first byte; one slot kept for a controller; a
+throttle limit applied whatever clients send; a token of 16 or more characters whenever the bound
+address is not loopback; SIGINT, SIGTERM, SIGHUP and SIGQUIT stop the car.
 
 Quanser-specific facts (board names, channels, signs, LIDAR URL and angles, camera ids) live in
 ``CARS`` below, each entry with the Quanser file it comes from. Where the material could not be
@@ -97,6 +99,8 @@ LAMP_NAMES = (
 ALL_OFF = (0.0,) * N_LAMPS
 STOP_LAMPS = (1.0,) + (0.0,) * 11  # Car.stop(): brake lamp on
 WATCHDOG_LAMPS = (1.0,) + (0.0,) * 7 + (1.0,) * 4  # brake + hazard (all four indicators)
+MONITOR_REQUESTS_PER_S = 1000.0  # a monitor's requests are served at most this often ...
+MONITOR_BURST = 20.0  # ... after a burst of this many (qcarlab/net/server.py: the same numbers)
 
 # =================================================================================================
 # The two cars, as Quanser's own code drives them.
@@ -1389,6 +1393,8 @@ class _Session(object):
         self.bye_ref = None
         self.refusal = None  # (code, detail) when this connection never became a client
         self.next_frame = {}  # a monitor's next sensor slots: reply type -> monotonic time
+        self.tokens = MONITOR_BURST  # a monitor's request budget (token bucket)
+        self.tokens_at = self.accepted
 
     # --- sending --------------------------------------------------------------------------------
     def send(self, mtype, ref, *parts):
@@ -1590,7 +1596,23 @@ class _Session(object):
             if mtype == BYE:
                 self.bye_ref = seq
                 return "said bye"
+            if self.role == "monitor":
+                self._throttle()
             self._dispatch(mtype, seq, payload)
+
+    def _throttle(self):
+        """A monitor's requests are served at most MONITOR_REQUESTS_PER_S, in bursts of MONITOR_BURST:
+        one over the budget waits for it (a slower reply, never an error), so no monitor can take the
+        car computer's CPU from the controller and the watchdog."""
+        now = time.monotonic()
+        self.tokens = min(MONITOR_BURST, self.tokens + (now - self.tokens_at) * MONITOR_REQUESTS_PER_S)
+        self.tokens_at = now
+        if self.tokens < 1.0:
+            self.server._stop_evt.wait((1.0 - self.tokens) / MONITOR_REQUESTS_PER_S)
+            now = time.monotonic()
+            self.tokens = min(MONITOR_BURST, self.tokens + (now - self.tokens_at) * MONITOR_REQUESTS_PER_S)
+            self.tokens_at = now
+        self.tokens = max(0.0, self.tokens - 1.0)
 
     # --- hello ----------------------------------------------------------------------------------
     def _hello(self, mtype, seq, payload):

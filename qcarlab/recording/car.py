@@ -7,8 +7,17 @@
 Every readout, command (and stop), ground truth, LIDAR scan and camera frame that passes through
 is handed to the :class:`~qcarlab.recording.writer.Recorder`; a frame read twice is recorded once.
 The lab's own values go to ``car.recorder.log_values(t, {...})`` (the control loop does it).
-Anything else (``pose_at``, ``lidar_beams``, ``ping``, ...) is the wrapped car's: reading or
-setting it reaches the car underneath. Closing the car stops it, then finishes the recording.
+Anything else (``pose_at``, ``lidar_beams``, ``ping``, ``warm_physics``, ``sensor_recipe``, ...)
+is the wrapped car's: reading or setting it reaches the car underneath. Closing the car stops it,
+then finishes the recording.
+
+Served (``qcarlab serve --live``): the server takes sensor frames through :meth:`sensor_job`,
+which is the wrapped car's own job (the frame's time and pose fixed under the server's drive lock,
+the drawing done off it, or in the server's render process), recorded when it has been drawn; so
+a recorded car's sensors never hold up a command or the watchdog either. ``follow_truth=True``
+(a served car, whose clients need not ask for the ground truth) records the truth with every read
+and every :meth:`heartbeat` (the server's housekeeping), at most at the recorder's pose rate, so
+the live view's car moves whoever drives it.
 """
 
 from __future__ import annotations
@@ -17,17 +26,22 @@ from typing import Any
 
 from qcarlab.car.base import Car, Command, Identity, Readout, Truth
 from qcarlab.car.lamps import ALL_OFF
+from qcarlab.wire.frames import make_frame
+from qcarlab.wire.protocol import MsgType as M
 
-_OWN = frozenset({"inner", "recorder", "closed", "_t", "_last"})
+_OWN = frozenset({"inner", "recorder", "closed", "_t", "_last", "follow_truth"})
+_REPLY = {"lidar": M.LIDAR, "rgbd": M.RGBD, "csi": M.CSI}
+TRUTH_PERIOD_S = 0.02  # follow_truth: the truth recorded at most this often (the recorder's pose rate)
 
 
 class RecordingCar(Car):
     """Wraps ``car``; records what passes through into ``recorder``."""
 
-    def __init__(self, car: Car, recorder: Any):
+    def __init__(self, car: Car, recorder: Any, *, follow_truth: bool = False):
         object.__setattr__(self, "inner", car)
         object.__setattr__(self, "recorder", recorder)
         object.__setattr__(self, "closed", False)
+        object.__setattr__(self, "follow_truth", bool(follow_truth))
         object.__setattr__(self, "_t", None)  # time of the latest readout: the tick commands belong to
         object.__setattr__(self, "_last", {})  # sensor -> the latest recorded frame
         ident = car.identity()
@@ -52,6 +66,11 @@ class RecordingCar(Car):
     @property
     def params(self):  # type: ignore[override]
         return self.inner.params
+
+    @property
+    def ended(self) -> bool:
+        """A replayed car's recording has run out (the control loop asks every tick)."""
+        return getattr(self.inner, "ended", False)
 
     @property
     def throttle_limit(self) -> float:  # type: ignore[override]
@@ -97,9 +116,22 @@ class RecordingCar(Car):
     # --- sensors --------------------------------------------------------------------------------
     def read(self) -> Readout:
         r = self.inner.read()
-        self._t = r.t
+        object.__setattr__(self, "_t", r.t)  # (not through __setattr__: every tick)
         self.recorder.readout(r)
+        if self.follow_truth:
+            self._follow(r.t)
         return r
+
+    def _follow(self, t: float) -> None:
+        last = self._last.get("truth")
+        if last is not None and t - last >= TRUTH_PERIOD_S:
+            self.truth()
+
+    def heartbeat(self) -> None:
+        """A served car, idle or not: the truth recorded when due (``follow_truth``). The server
+        calls it with its drive lock held, a few times a second."""
+        if self.follow_truth and "truth" in self._last:
+            self._follow(self.inner.time)
 
     def truth(self) -> Truth | None:
         tr = self.inner.truth()
@@ -124,6 +156,19 @@ class RecordingCar(Car):
     def read_csi(self) -> Any:
         return self._frame("csi", self.inner.read_csi(), self.recorder.csi)
 
+    def _record(self, kind: str, frame: Any) -> Any:
+        return self._frame(kind, frame, getattr(self.recorder, "scan" if kind == "lidar" else kind))
+
+    # --- served: the wrapped car's own sensor path ------------------------------------------------
+    def sensor_job(self, kind: str) -> Any:
+        """The wrapped car's job for a ``kind`` frame (called under a server's drive lock, run off
+        it), recording the frame once drawn. Not the Car default, which would read the frame at
+        once, under the drive lock, and let a slow render delay the watchdog."""
+        return _RecordedJob(self, kind, self.inner.sensor_job(kind))
+
+    def prepare_sensors(self) -> None:
+        self.inner.prepare_sensors()
+
     # --- lifecycle ------------------------------------------------------------------------------
     def close(self) -> None:
         if self.closed:
@@ -142,3 +187,33 @@ class RecordingCar(Car):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class _RecordedJob:
+    """A wrapped car's sensor job whose frame is recorded once drawn: by calling it (here), or by a
+    server's render process from the job's ``pose`` and ``t`` (:meth:`drawn`). ``key``, ``pose`` and
+    ``t`` are the wrapped job's, so the server treats it as it would the car's own."""
+
+    __slots__ = ("car", "kind", "job")
+
+    def __init__(self, car: RecordingCar, kind: str, job: Any):
+        self.car, self.kind, self.job = car, kind, job
+
+    @property
+    def key(self) -> Any:
+        return getattr(self.job, "key", None)
+
+    @property
+    def pose(self) -> Any:
+        return getattr(self.job, "pose", None)
+
+    @property
+    def t(self) -> Any:
+        return getattr(self.job, "t", None)
+
+    def __call__(self) -> Any:
+        return self.car._record(self.kind, self.job())
+
+    def drawn(self, t: float, arrays: list[Any]) -> None:
+        """The frame as another process drew it (its arrays in the wire's field order)."""
+        self.car._record(self.kind, make_frame(_REPLY[self.kind], t, arrays))

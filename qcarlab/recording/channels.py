@@ -1,11 +1,12 @@
 """What a recording holds: topics, coordinate frames, and the conversions from qcarlab's types.
 
-Topics (Foxglove's well-known schemas where one fits, JSON with a JSON Schema otherwise)::
+Topics (Foxglove's well-known schemas where one fits; else qcarlab's own, protobuf for the
+per-tick readouts, commands and truth, JSON with a JSON Schema for the rest)::
 
-    /qcar/readout          qcarlab.Readout       every read(): encoder, tach, current, battery, IMU
-    /qcar/command          qcarlab.Command       every write() and stop(): what was applied
-    /qcar/truth            qcarlab.Truth         the simulator's ground truth (simulated cars)
-    /qcar/lab              qcarlab.LabValues     the lab's own logged values (v_ref, state, ...)
+    /qcar/readout          qcarlab.Readout       every read(): encoder, tach, current, battery, IMU (protobuf)
+    /qcar/command          qcarlab.Command       every write() and stop(): what was applied (protobuf)
+    /qcar/truth            qcarlab.Truth         the simulator's ground truth (simulated cars; protobuf)
+    /qcar/lab              qcarlab.LabValues     the lab's own logged values (v_ref, state, ...; JSON)
     /qcar/lidar            foxglove.LaserScan    each new scan, frame "lidar"
     /qcar/rgbd/color       foxglove.CompressedImage (JPEG) | foxglove.RawImage bgr8 (exact)
     /qcar/rgbd/depth       foxglove.RawImage     16UC1 mm (compact) | 32FC1 m (exact)
@@ -22,7 +23,8 @@ Topics (Foxglove's well-known schemas where one fits, JSON with a JSON Schema ot
 
 Times: a message's log time is ``t0_ns + round(t * 1e9)`` with ``t`` the car's time (s since it
 was opened) and ``t0_ns`` the wall clock when recording started (in the file's ``qcarlab``
-metadata). The JSON messages carry ``t`` as the exact float.
+metadata). The messages carry ``t`` as the exact float (recordings of version 1 wrote readouts,
+commands and truth as JSON; the reader reads both).
 
 LIDAR no-returns (range 0 in qcarlab) are written as NaN, which Foxglove leaves out of the scan;
 a replay turns them back into 0.
@@ -33,6 +35,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import struct
 from collections.abc import Mapping
 from typing import Any
 
@@ -74,27 +77,6 @@ DEPTH_EVERY = 15  # compact: every 15th depth frame (2 Hz at 30 fps)
 _NUM = {"type": "number"}
 _VEC3 = {"type": "array", "items": _NUM, "minItems": 3, "maxItems": 3}
 JSON_SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
-    READOUT: ("qcarlab.Readout", {
-        "type": "object",
-        "title": "One read of the car's basic sensors (SI units)",
-        "properties": {
-            "t": _NUM, "encoder_counts": {"type": "integer"}, "tach": _NUM, "motor_current": _NUM,
-            "battery_voltage": _NUM, "gyro": _VEC3, "accel": _VEC3, "steering": _NUM, "throttle": _NUM,
-            "leds": {"type": "array", "items": _NUM},
-        },
-    }),
-    COMMAND: ("qcarlab.Command", {
-        "type": "object",
-        "title": "A command as applied (throttle duty fraction, steering rad, + = left)",
-        "properties": {"t": _NUM, "throttle": _NUM, "steering": _NUM, "leds": {"type": "array", "items": _NUM},
-                       "stop": {"type": "boolean"}},
-    }),
-    TRUTH: ("qcarlab.Truth", {
-        "type": "object",
-        "title": "The simulator's ground truth",
-        "properties": {k: _NUM for k in ("t", "x", "y", "yaw", "speed", "wheel_speed", "steering", "distance",
-                                         "wheel_distance")},
-    }),
     LAB: ("qcarlab.LabValues", {
         "type": "object",
         "title": "The lab's own values at one tick (v_ref, errors, state of the state machine, ...)",
@@ -123,26 +105,156 @@ def json_bytes(values: Mapping[str, Any]) -> bytes:
         return json.dumps(to_jsonable(values), allow_nan=False, separators=(",", ":")).encode()
 
 
-def readout_json(r: Any) -> dict[str, Any]:
-    return {
-        "t": float(r.t), "encoder_counts": int(r.encoder_counts), "tach": float(r.tach),
-        "motor_current": float(r.motor_current), "battery_voltage": float(r.battery_voltage),
-        "gyro": [float(v) for v in r.gyro], "accel": [float(v) for v in r.accel],
-        "steering": float(r.steering), "throttle": float(r.throttle), "leds": [float(v) for v in r.leds],
-    }
+# --- the per-tick messages ------------------------------------------------------------------------
+# A recorded run writes a readout, a command and the truth every tick. As JSON, writing each float
+# as its shortest exact decimal (the only JSON that reads back bit for bit) cost more than the run's
+# own step; these three are protobuf instead (schemas ``qcarlab.Readout``, ``qcarlab.Command``,
+# ``qcarlab.Truth``, whose descriptors the file carries, so Foxglove and any protobuf reader decode
+# them): doubles as their 8 bytes, exact, NaN and infinities included, packed by one struct call.
+# The lab's values (free-form names) stay JSON, written from a template (values_bytes).
+PB_PACKAGE = "qcarlab"
+READOUT_FIELDS = ("t", "encoder_counts", "tach", "motor_current", "battery_voltage", "gyro", "accel",
+                  "steering", "throttle", "leds")
+COMMAND_FIELDS = ("t", "throttle", "steering", "leds", "stop")
+TRUTH_FIELDS = ("t", "x", "y", "yaw", "speed", "wheel_speed", "steering", "distance", "wheel_distance")
+PB_SCHEMAS = {READOUT: "qcarlab.Readout", COMMAND: "qcarlab.Command", TRUTH: "qcarlab.Truth"}
+
+# Readout {double t = 1; sfixed64 encoder_counts = 2; double tach = 3, motor_current = 4,
+# battery_voltage = 5; repeated double gyro = 6, accel = 7 (packed, 3 each); double steering = 8,
+# throttle = 9; repeated double leds = 10}: a tag byte ((field << 3) | wire type) before each value
+_READOUT_PB = struct.Struct("<BdBqBdBdBdBB3dBB3dBdBd")
+_COMMAND_PB = struct.Struct("<BdBdBd")  # Command {double t = 1, throttle = 2, steering = 3; leds = 4; bool stop = 5}
+_TRUTH_PB = struct.Struct("<" + "Bd" * 9)  # Truth {double t = 1 ... wheel_distance = 9}
+_LEDS_PB: dict[tuple[int, Any], bytes] = {}  # (field tag, lamp tuple) -> the packed field (the same few tuples every tick)
+_KEYS: dict[str, str] = {}  # a lab value's name -> its JSON key text
+_STRS: dict[str, str] = {}  # a short string value (a state's name) -> its JSON text
+_CACHE_MAX = 512
+_FREPR = float.__repr__
 
 
-def command_json(t: float, cmd: Any, stop: bool = False) -> dict[str, Any]:
-    out = {"t": float(t), "throttle": float(cmd.throttle), "steering": float(cmd.steering),
-           "leds": [float(v) for v in cmd.leds]}
-    if stop:
-        out["stop"] = True
+def _packed(tag: int, values: Any) -> bytes:
+    """A packed repeated double field (cached for hashable lamp tuples)."""
+    try:
+        return _LEDS_PB[(tag, values)]
+    except (KeyError, TypeError):
+        pass
+    vals = [float(v) for v in values]
+    out = bytes((tag,)) + _varint(8 * len(vals)) + struct.pack(f"<{len(vals)}d", *vals)
+    try:
+        if len(_LEDS_PB) >= _CACHE_MAX:
+            _LEDS_PB.clear()
+        _LEDS_PB[(tag, values)] = out
+    except TypeError:  # a list: not cached
+        pass
     return out
 
 
-def truth_json(tr: Any) -> dict[str, Any]:
-    return {k: float(getattr(tr, k)) for k in ("t", "x", "y", "yaw", "speed", "wheel_speed", "steering",
-                                               "distance", "wheel_distance")}
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while n > 0x7F:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
+
+
+# (struct's "d" takes any number, NumPy's included, as float() would: no float() calls per value)
+def readout_pb(r: Any) -> bytes:
+    """A readout as ``qcarlab.Readout`` protobuf bytes."""
+    g, a = r.gyro, r.accel
+    if hasattr(g, "tolist"):
+        g = g.tolist()
+    if hasattr(a, "tolist"):
+        a = a.tolist()
+    return _READOUT_PB.pack(0x09, r.t, 0x11, int(r.encoder_counts), 0x19, r.tach, 0x21, r.motor_current,
+                            0x29, r.battery_voltage, 0x32, 24, *g, 0x3A, 24, *a, 0x41, r.steering, 0x49, r.throttle
+                            ) + _packed(0x52, r.leds)
+
+
+def command_pb(t: float, cmd: Any, stop: bool = False) -> bytes:
+    """A command as ``qcarlab.Command`` protobuf bytes (``stop``: the car's stop(), not a write)."""
+    out = _COMMAND_PB.pack(0x09, t, 0x11, cmd.throttle, 0x19, cmd.steering) + _packed(0x22, cmd.leds)
+    return out + b"\x28\x01" if stop else out
+
+
+def truth_pb(tr: Any) -> bytes:
+    """The simulator's ground truth as ``qcarlab.Truth`` protobuf bytes."""
+    return _TRUTH_PB.pack(0x09, tr.t, 0x11, tr.x, 0x19, tr.y, 0x21, tr.yaw, 0x29, tr.speed, 0x31, tr.wheel_speed,
+                          0x39, tr.steering, 0x41, tr.distance, 0x49, tr.wheel_distance)
+
+
+def pb_descriptor() -> bytes:
+    """The FileDescriptorSet of the three messages (the schema data every one of their channels
+    carries, as protobuf channels in MCAP and Foxglove do)."""
+    from google.protobuf import descriptor_pb2 as D
+
+    F = D.FieldDescriptorProto
+    double, sfixed64, boolean = F.TYPE_DOUBLE, F.TYPE_SFIXED64, F.TYPE_BOOL
+    one, many = F.LABEL_OPTIONAL, F.LABEL_REPEATED
+    messages = {
+        "Readout": [("t", double, one), ("encoder_counts", sfixed64, one), ("tach", double, one),
+                    ("motor_current", double, one), ("battery_voltage", double, one), ("gyro", double, many),
+                    ("accel", double, many), ("steering", double, one), ("throttle", double, one),
+                    ("leds", double, many)],
+        "Command": [("t", double, one), ("throttle", double, one), ("steering", double, one), ("leds", double, many),
+                    ("stop", boolean, one)],
+        "Truth": [(name, double, one) for name in TRUTH_FIELDS],
+    }
+    fds = D.FileDescriptorSet()
+    f = fds.file.add(name="qcarlab/recording.proto", package=PB_PACKAGE, syntax="proto3")
+    for name, fields in messages.items():
+        m = f.message_type.add(name=name)
+        for number, (field, kind, label) in enumerate(fields, start=1):
+            m.field.add(name=field, number=number, type=kind, label=label)
+    return fds.SerializeToString()
+
+
+def pb_dict(msg: Any) -> dict[str, Any]:
+    """A decoded protobuf message as a dict of every field (repeated ones as lists)."""
+    out = {}
+    for f in msg.DESCRIPTOR.fields:
+        v = getattr(msg, f.name)
+        out[f.name] = v if isinstance(v, (bool, int, float, str, bytes)) else list(v)  # a repeated field
+    return out
+
+
+def values_bytes(values: Mapping[str, Any]) -> bytes:
+    """A lab's values as JSON (as :func:`json_bytes`: non-finite floats as null), faster for the
+    plain values labs log (floats, ints, bools, short strings, None)."""
+    parts = []
+    for key, v in values.items():
+        k = _KEYS.get(key)
+        if k is None:
+            if not isinstance(key, str):
+                return json_bytes(values)
+            k = json.dumps(key) + ":"
+            if len(_KEYS) >= _CACHE_MAX:
+                _KEYS.clear()
+            _KEYS[key] = k
+        tv = type(v)
+        if tv is float:
+            text = _FREPR(v) if v - v == 0.0 else "null"  # inf - inf and nan - nan are nan
+        elif tv is str:
+            text = _STRS.get(v)
+            if text is None:
+                text = json.dumps(v)
+                if len(v) <= 64:
+                    if len(_STRS) >= _CACHE_MAX:
+                        _STRS.clear()
+                    _STRS[v] = text
+        elif tv is bool:
+            text = "true" if v else "false"
+        elif tv is int:
+            text = int.__repr__(v)
+        elif v is None:
+            text = "null"
+        elif isinstance(v, np.floating):
+            f = float(v)
+            text = _FREPR(f) if math.isfinite(f) else "null"
+        else:  # lists, arrays, numpy ints, ...: the general path
+            return json_bytes(values)
+        parts.append(k + text)
+    return ("{" + ",".join(parts) + "}").encode()
 
 
 def encode_angles(angles: np.ndarray) -> str:

@@ -1,10 +1,19 @@
 """qcarlab's sensor data as Foxglove's well-known messages (foxglove-sdk), one function per kind.
 
 Pure conversions: numbers in, ``foxglove.messages`` objects out; no files, no channels.
+
+The messages a recording writes many times a second (``pb_*``: the poses, the transforms and the
+LIDAR scans) are written straight to their protobuf bytes in the same Foxglove schemas
+(``foxglove.PoseInFrame``, ``foxglove.FrameTransforms``, ``foxglove.LaserScan``, the SDK's own
+descriptors): building the SDK's objects field by field cost more than everything else a tick
+records. Protobuf's wire format for these is fixed: a tag byte ``(field << 3) | wire type`` before
+each field, doubles as 8 little-endian bytes (type 1), nested messages, strings and packed
+repeated doubles as a length-prefixed run (type 2), integers as varints (type 0).
 """
 
 from __future__ import annotations
 
+import struct
 from typing import Any
 
 import cv2
@@ -202,3 +211,99 @@ def balls_entity(circles: list[Any], ns: int) -> SceneEntity:
 
 def scene_update(entities: list[SceneEntity]) -> SceneUpdate:
     return SceneUpdate(entities=entities)
+
+
+# ------------------------------------------------------------------------------------ protobuf bytes
+_V3 = struct.Struct("<BdBdBd")  # Vector3 {x = 1, y = 2, z = 3}: doubles
+_Q4 = struct.Struct("<BdBdBdBd")  # Quaternion {x = 1, y = 2, z = 3, w = 4}: doubles
+_D = struct.Struct("<Bd")
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while n > 0x7F:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
+
+
+def _field(tag: int, payload: bytes) -> bytes:
+    """A length-delimited field (a message, a string, packed numbers)."""
+    return bytes((tag,)) + _varint(len(payload)) + payload
+
+
+_SECONDS: dict[int, bytes] = {}  # the seconds' varint: the same for a whole second of messages
+
+
+def pb_timestamp(ns: int) -> bytes:
+    """Field 1 ``timestamp`` (google.protobuf.Timestamp {seconds = 1, nanos = 2}) of every message here."""
+    sec, nanos = divmod(int(ns), 1_000_000_000)
+    head = _SECONDS.get(sec)
+    if head is None:
+        if len(_SECONDS) > 64:
+            _SECONDS.clear()
+        head = _SECONDS[sec] = b"\x08" + _varint(sec) + b"\x10"
+    if nanos >= 1 << 28:  # (most of a second's nanoseconds: five bytes, written out)
+        body = head + bytes(((nanos & 0x7F) | 0x80, ((nanos >> 7) & 0x7F) | 0x80, ((nanos >> 14) & 0x7F) | 0x80,
+                             ((nanos >> 21) & 0x7F) | 0x80, nanos >> 28))
+    else:
+        body = head + _varint(nanos)
+    return bytes((0x0A, len(body))) + body  # (a timestamp is under 128 bytes)
+
+
+def _pb_pose(x: float, y: float, z: float, q: tuple[float, float, float, float]) -> bytes:
+    """foxglove.Pose {position = 1, orientation = 2}: always 2 + 27 + 2 + 36 = 67 bytes."""
+    return (b"\x0a\x1b" + _V3.pack(0x09, x, 0x11, y, 0x19, z)
+            + b"\x12\x24" + _Q4.pack(0x09, q[0], 0x11, q[1], 0x19, q[2], 0x21, q[3]))
+
+
+_WORLD = _field(0x12, C.WORLD_FRAME.encode())
+
+
+def pb_pose_in_frame(pose: tuple[float, float, float], ns: int, stamp: bytes | None = None) -> bytes:
+    """:func:`pose_in_frame` as foxglove.PoseInFrame bytes {timestamp = 1, frame_id = 2, pose = 3}."""
+    x, y, yaw = pose
+    return (stamp or pb_timestamp(ns)) + _WORLD + b"\x1a\x43" + _pb_pose(float(x), float(y), 0.0, C.yaw_quaternion(yaw))
+
+
+_TO_BASE = _field(0x12, C.WORLD_FRAME.encode()) + _field(0x1A, C.BASE_FRAME.encode())
+_TO_ESTIMATE = _field(0x12, C.WORLD_FRAME.encode()) + _field(0x1A, C.ESTIMATE_FRAME.encode())
+
+
+def _pb_world_tf(stamp: bytes, frames: bytes, pose: tuple[float, float, float]) -> bytes:
+    """One entry of FrameTransforms.transforms (field 1): foxglove.FrameTransform {timestamp = 1,
+    parent_frame_id = 2, child_frame_id = 3, translation = 4, rotation = 5}."""
+    x, y, yaw = pose
+    q = C.yaw_quaternion(yaw)
+    body = (stamp + frames + b"\x22\x1b" + _V3.pack(0x09, float(x), 0x11, float(y), 0x19, 0.0)
+            + b"\x2a\x24" + _Q4.pack(0x09, q[0], 0x11, q[1], 0x19, q[2], 0x21, q[3]))
+    return _field(0x0A, body)
+
+
+def pb_transforms(ns: int, true_pose=None, estimate=None, static: bytes = b"", stamp: bytes | None = None) -> bytes:
+    """:func:`transforms` as foxglove.FrameTransforms bytes; ``static`` is the encoded mounts
+    (``transforms(ns, static=mounts(...)).encode()``: a FrameTransforms is its repeated field, so
+    two encodings put together are the message with both lists)."""
+    stamp = stamp or pb_timestamp(ns)
+    out = static
+    body = true_pose if true_pose is not None else estimate
+    if body is not None:
+        out += _pb_world_tf(stamp, _TO_BASE, body)
+    if estimate is not None:
+        out += _pb_world_tf(stamp, _TO_ESTIMATE, estimate)
+    return out
+
+
+_LIDAR = _field(0x12, C.LIDAR_FRAME.encode())
+
+
+def pb_laser_scan(scan: Any, ns: int) -> bytes:
+    """:func:`laser_scan` as foxglove.LaserScan bytes {timestamp = 1, frame_id = 2, start_angle = 4,
+    end_angle = 5, ranges = 6 (packed doubles)}: no-returns (0) as NaN."""
+    angles = np.asarray(scan.angles)
+    ranges = np.asarray(scan.ranges, dtype=np.float64)
+    shown = np.where(ranges > 0.0, ranges, np.nan).astype("<f8", copy=False)
+    start, end = (float(angles[0]), float(angles[-1])) if angles.size else (0.0, 0.0)
+    return (pb_timestamp(ns) + _LIDAR + _D.pack(0x21, start) + _D.pack(0x29, end)
+            + _field(0x32, shown.tobytes()))

@@ -329,6 +329,8 @@ class Recording:
         light = [C.READOUT, C.COMMAND, C.TRUTH, C.LAB, C.FRAMES, C.LIDAR]
         has_color = has_csi = False
         for topic, _name, ns, msg in self.messages(light + [C.COLOR] + list(C.CSI.values()), decode=set(light)):
+            if topic in C.PB_SCHEMAS and not isinstance(msg, dict):  # version 2: protobuf (1: JSON)
+                msg = C.pb_dict(msg)
             if topic == C.READOUT:
                 tape.readouts.append(_readout(msg))
             elif topic == C.COMMAND:
@@ -336,7 +338,7 @@ class Recording:
                                                                tuple(float(v) for v in msg.get("leds", ()))),
                                       bool(msg.get("stop", False))))
             elif topic == C.TRUTH:
-                tape.truths.append(Truth(**{k: float(msg[k]) for k in C.JSON_SCHEMAS[C.TRUTH][1]["properties"]}))
+                tape.truths.append(Truth(**{k: float(msg[k]) for k in C.TRUTH_FIELDS}))
             elif topic == C.LAB:
                 tape.lab.append(msg)
             elif topic == C.FRAMES:

@@ -6,8 +6,19 @@
 
 Written with foxglove-sdk's MCAP writer: messages go into zstd-compressed chunks of about 1 MB as
 they come, so a run stopped by Ctrl-C or SIGTERM (the CLI turns SIGTERM into Ctrl-C) closes the
-file with its summary, and a run killed outright (SIGKILL) loses at most the chunk being filled;
-:mod:`qcarlab.recording.reader` reads such a file without its summary.
+file with its summary, and a run killed outright (SIGKILL) loses at most the chunk being filled
+(and the last few milliseconds of messages, below); :mod:`qcarlab.recording.reader` reads such a
+file without its summary.
+
+The per-tick messages (readouts, commands, the truth, the lab's values, LIDAR scans, and the poses
+and transforms they give) are queued as they come and written in batches, at the latest
+FLUSH_PERIOD_S (20 ms) after they came and before any camera frame: a run pays the encoding in one
+tight loop rather than a little of it at every tick, where the simulator's own work has pushed the
+recorder's code and data out of the caches (their order is kept). Camera frames are encoded in the
+caller's thread: on a thread of their own (OpenCV's encoder lets go of the interpreter lock) they
+cost as much CPU and, on a machine whose cores are busy, more time (measured, bench_record.py).
+What a recording holds is unchanged: every readout, command, truth and value, in full, each with
+its exact time.
 
 Two profiles for the cameras (the rest is always lossless):
 
@@ -24,7 +35,9 @@ from __future__ import annotations
 import json
 import math
 import sys
+import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -35,12 +48,15 @@ from qcarlab.errors import InputError
 from qcarlab.recording import channels as C
 from qcarlab.recording import require
 
-VERSION = 1
+VERSION = 2  # 2: readouts, commands and truth as protobuf (1: JSON)
 COMPRESSION_THREADS = 1  # zstd compresses the chunks on a thread of its own, beside the run
 CALIBRATION_EVERY = 30  # RGBD frames between two camera calibration messages
 BALLS_PERIOD = 0.1  # s between two updates of the moving balls in the scene
 MOUNTS_PERIOD_NS = 1_000_000_000  # the static sensor transforms are repeated once a second
 POSE_PERIOD_NS = 20_000_000  # poses and transforms: 50 Hz (the readouts and the truth: every one)
+_PB_POSE, _PB_TF, _PB_SCAN = "pb:PoseInFrame", "pb:FrameTransforms", "pb:LaserScan"  # encoded by messages.pb_*
+FLUSH_EVENTS = 256  # the per-tick messages are written in batches of at most this many ...
+FLUSH_PERIOD_S = 0.02  # ... or this old (wall clock): what a live viewer waits at most
 
 
 class Recorder:
@@ -58,6 +74,14 @@ class Recorder:
         require("--record" if path is not None else "--live")
         import foxglove
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+
+        from qcarlab.control.pose import BicyclePoseEstimator
+        from qcarlab.control.speed import basic_speed_estimation
+        from qcarlab.recording import messages
+
+        self._M = messages  # (imported here: foxglove is the optional extra)
+        self._speed = basic_speed_estimation
+        self._estimator_cls = BicyclePoseEstimator
 
         if profile not in C.PROFILES:
             raise InputError(f"recording profile must be one of {', '.join(C.PROFILES)}, got {profile!r}")
@@ -81,6 +105,11 @@ class Recorder:
             except Exception as exc:  # the SDK's own error type: a path we cannot write
                 raise InputError(f"--record {self.path}: cannot write ({exc})") from None
         self._channels: dict[str, Any] = {}
+        self._pb_schema: bytes | None = None
+        self.counts: dict[str, int] = {}  # messages written per topic
+        self._pending: deque[tuple[Any, tuple]] = deque()  # the per-tick messages not written yet
+        self._flush_lock = threading.Lock()
+        self._flushed_at = time.monotonic()
         self.live = live
         self._scene: dict[str, Any] = {}  # the scene's entities by id, sent again to a live viewer who joins later
         self._scene_due = False
@@ -90,13 +119,14 @@ class Recorder:
             # within milliseconds, foxglove-sdk 0.30)
             image = "RawImage" if self.exact else "CompressedImage"
             for topic, kind in ((C.READOUT, None), (C.COMMAND, None), (C.TRUTH, None), (C.LAB, None),
-                                (C.LIDAR, "LaserScan"), (C.COLOR, image), (C.DEPTH, "RawImage"),
-                                (C.CALIBRATION, "CameraCalibration"), (C.POSE_TRUE, "PoseInFrame"),
-                                (C.POSE_ESTIMATE, "PoseInFrame"), (C.TF, "FrameTransforms"),
+                                (C.LIDAR, _PB_SCAN), (C.COLOR, image), (C.DEPTH, "RawImage"),
+                                (C.CALIBRATION, "CameraCalibration"), (C.POSE_TRUE, _PB_POSE),
+                                (C.POSE_ESTIMATE, _PB_POSE), (C.TF, _PB_TF),
                                 (C.SCENE, "SceneUpdate"), *((C.CSI[v], image) for v in C.CSI_VIEWS)):
                 self._channel(topic, kind)
             live.attach(self.ctx, on_subscribe=self._subscribed)
         self._angles: np.ndarray | None = None
+        self._angles_src: Any = None  # a read-only angles array known to equal _angles
         self._rgbd_count = 0
         self._estimator = None
         self._last_readout_t: float | None = None
@@ -106,7 +136,6 @@ class Recorder:
         self._balls_t = -math.inf
         self._mounts_ns = -MOUNTS_PERIOD_NS
         self._pose_ns = -POSE_PERIOD_NS
-        self.counts: dict[str, int] = {}
         self.closed = False
         meta = {"version": VERSION, "profile": profile, "t0_ns": self.t0_ns, "argv": sys.argv[1:]}
         meta.update(metadata or {})
@@ -115,18 +144,32 @@ class Recorder:
 
     # --- plumbing -------------------------------------------------------------------------------
     def ns(self, t: float) -> int:
-        return C.stamp_ns(self.t0_ns, t)
+        return self.t0_ns + round(float(t) * 1e9)  # C.stamp_ns, inlined: it runs several times a tick
 
     def _channel(self, topic: str, kind: str | None = None):
         ch = self._channels.get(topic)
         if ch is None:
-            if kind is None:  # JSON with a named JSON Schema
+            if kind is None and topic in C.PB_SCHEMAS:  # qcarlab's own protobuf messages
+                import foxglove
+
+                if self._pb_schema is None:
+                    self._pb_schema = C.pb_descriptor()
+                ch = foxglove.Channel(topic, context=self.ctx, message_encoding="protobuf",
+                                      schema=foxglove.Schema(name=C.PB_SCHEMAS[topic], encoding="protobuf",
+                                                             data=self._pb_schema))
+            elif kind is None:  # JSON with a named JSON Schema
                 import foxglove
 
                 name, schema = C.JSON_SCHEMAS[topic]
                 ch = foxglove.Channel(topic, context=self.ctx, message_encoding="json",
                                       schema=foxglove.Schema(name=name, encoding="jsonschema",
                                                              data=json.dumps(schema).encode()))
+            elif kind.startswith("pb:"):  # a Foxglove schema, the bytes encoded here (messages.pb_*)
+                import foxglove
+                import foxglove.messages as fm
+
+                ch = foxglove.Channel(topic, context=self.ctx, message_encoding="protobuf",
+                                      schema=getattr(fm, kind[3:]).get_schema())
             else:
                 import foxglove.channels as fc
 
@@ -145,10 +188,19 @@ class Recorder:
         if ch is None:
             return
         if kind is None:
-            ch.log(C.json_bytes(msg), log_time=ns)
+            ch.base.log(msg if type(msg) is bytes else C.json_bytes(msg), ns)
         else:
             ch.log(msg, log_time=ns)
         self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def _bytes(self, topic: str, encode, ns: int, *args: Any) -> None:
+        """A per-tick message: ``encode(*args)`` (its bytes) is only called when someone listens."""
+        ch = self._channels.get(topic) or self._channel(topic)
+        if self.writer is None and not ch.has_sinks():
+            return
+        ch.base.log(encode(*args), ns)
+        counts = self.counts
+        counts[topic] = counts.get(topic, 0) + 1
 
     def metadata(self, name: str, values: dict[str, Any]) -> None:
         """An MCAP metadata record (string values; others as JSON)."""
@@ -160,102 +212,139 @@ class Recorder:
             self._scene_due = True
 
     def _resend_scene(self, ns: int) -> None:
-        from qcarlab.recording import messages as M
-
+        M = self._M
         self._scene_due = False
         if self._scene:
             self._log(C.SCENE, "SceneUpdate", M.scene_update(list(self._scene.values())), ns)
 
+    # --- deferred: the per-tick messages, written in batches ---------------------------------------
+    def _defer(self, fn, args: tuple) -> None:
+        """Queue ``fn(*args)``; the queue is written when it is FLUSH_EVENTS long or FLUSH_PERIOD_S
+        old (a live viewer sees the car within that), before any camera frame, and on close."""
+        pending = self._pending
+        pending.append((fn, args))
+        if len(pending) >= FLUSH_EVENTS or time.monotonic() - self._flushed_at >= FLUSH_PERIOD_S:
+            if self._flush_lock.acquire(blocking=False):  # another thread writing the queue: it goes on
+                try:
+                    self._drain()
+                finally:
+                    self._flush_lock.release()
+
+    def flush(self) -> None:
+        """Write every queued message now, in the order they came."""
+        with self._flush_lock:
+            self._drain()
+
+    def _drain(self) -> None:
+        pending = self._pending
+        self._flushed_at = time.monotonic()
+        while pending:
+            fn, args = pending.popleft()
+            fn(*args)
+
     # --- what the car says ---------------------------------------------------------------------
     def readout(self, r: Any) -> None:
         """A basic-sensor readout; also advances the dead-reckoning pose estimate."""
+        self._defer(self._readout, (r,))
+
+    def command(self, t: float, cmd: Any, stop: bool = False) -> None:
+        self._defer(self._command, (t, cmd, stop))
+
+    def truth(self, tr: Any) -> None:
+        self._defer(self._truth, (tr,))
+
+    def _readout(self, r: Any) -> None:
         ns = self.ns(r.t)
         if self._scene_due:
             self._resend_scene(ns)
-        self._log(C.READOUT, None, C.readout_json(r), ns)
+        self._bytes(C.READOUT, C.readout_pb, ns, r)
         est = self._estimate(r)
         if not self._has_truth:
             self._poses(ns, None, est)
 
-    def command(self, t: float, cmd: Any, stop: bool = False) -> None:
-        self._log(C.COMMAND, None, C.command_json(t, cmd, stop), self.ns(t))
+    def _command(self, t: float, cmd: Any, stop: bool) -> None:
+        self._bytes(C.COMMAND, C.command_pb, self.ns(t), t, cmd, stop)
 
-    def truth(self, tr: Any) -> None:
+    def _truth(self, tr: Any) -> None:
         ns = self.ns(tr.t)
         if self._scene_due:
             self._resend_scene(ns)
         self._has_truth = True
-        self._log(C.TRUTH, None, C.truth_json(tr), ns)
+        self._bytes(C.TRUTH, C.truth_pb, ns, tr)
         self._truth_pose = (tr.x, tr.y, tr.yaw)
         est = self._est_pose if self._estimator is not None else None
         self._poses(ns, self._truth_pose, est)
         world = self._world
         if world is not None and getattr(world, "balls", None) and tr.t - self._balls_t >= BALLS_PERIOD:
-            from qcarlab.recording import messages as M
-
+            M = self._M
             self._balls_t = tr.t
             self._log(C.SCENE, "SceneUpdate", M.scene_update([M.balls_entity(world.obstacles_at(tr.t), ns)]), ns)
 
     def start_pose(self, pose: tuple[float, float, float]) -> None:
         """Where the dead-reckoning estimate starts (the true start pose, when known)."""
-        from qcarlab.control.pose import BicyclePoseEstimator
-
-        self._estimator = BicyclePoseEstimator(self.params)
+        self.flush()
+        self._estimator = self._estimator_cls(self.params)
         self._est_pose = tuple(pose)
 
     def _estimate(self, r: Any) -> tuple[float, float, float] | None:
-        from qcarlab.control.speed import basic_speed_estimation
-
         if self._estimator is None:
             self.start_pose((0.0, 0.0, 0.0))
         if self._last_readout_t is not None:
             dt = float(r.t) - self._last_readout_t
             if 0.0 < dt < 1.0:
-                self._est_pose = self._estimator(self._est_pose, basic_speed_estimation(r.tach, self.params),
+                self._est_pose = self._estimator(self._est_pose, self._speed(r.tach, self.params),
                                                  float(r.steering), dt, yaw_rate=float(r.gyro[2]))
         self._last_readout_t = float(r.t)
         return self._est_pose
 
     def _poses(self, ns: int, true_pose, estimate) -> None:
-        from qcarlab.recording import messages as M
-
         if ns - self._pose_ns < POSE_PERIOD_NS:  # poses and transforms at most at 50 Hz
             return
+        M = self._M
         self._pose_ns = ns
-
-        tf = self._wanted(C.TF, "FrameTransforms")
+        stamp = M.pb_timestamp(ns)
+        counts = self.counts
+        tf = self._wanted(C.TF, _PB_TF)
         if tf is not None:  # the sensor mounts (static) once a second, the car's pose every time
-            mounts = None
+            mounts = b""
             if ns - self._mounts_ns >= MOUNTS_PERIOD_NS:
                 self._mounts_ns = ns
-                mounts = M.mounts(self.params, ns)
-            tf.log(M.transforms(ns, true_pose, estimate, mounts), log_time=ns)
-            self.counts[C.TF] = self.counts.get(C.TF, 0) + 1
-        if true_pose is not None:
-            self._log(C.POSE_TRUE, "PoseInFrame", M.pose_in_frame(true_pose, ns), ns)
-        if estimate is not None:
-            self._log(C.POSE_ESTIMATE, "PoseInFrame", M.pose_in_frame(estimate, ns), ns)
+                mounts = M.transforms(ns, static=M.mounts(self.params, ns)).encode()
+            tf.base.log(M.pb_transforms(ns, true_pose, estimate, mounts, stamp), ns)
+            counts[C.TF] = counts.get(C.TF, 0) + 1
+        for topic, pose in ((C.POSE_TRUE, true_pose), (C.POSE_ESTIMATE, estimate)):
+            if pose is not None:
+                ch = self._wanted(topic, _PB_POSE)
+                if ch is not None:
+                    ch.base.log(M.pb_pose_in_frame(pose, ns, stamp), ns)
+                    counts[topic] = counts.get(topic, 0) + 1
 
     # --- sensors --------------------------------------------------------------------------------
     def scan(self, scan: Any) -> None:
-        from qcarlab.recording import messages as M
+        """A LIDAR scan (queued with the per-tick messages: its arrays are not written to after)."""
+        self._defer(self._scan, (scan,))
 
+    def _scan(self, scan: Any) -> None:
+        M = self._M
         ns = self.ns(scan.t)
         info: dict[str, Any] = {"sensor": "lidar", "t": float(scan.t), "stamp": ns}
-        angles = np.asarray(scan.angles, dtype=np.float64)
-        if self._angles is None or self._angles.shape != angles.shape or not np.array_equal(self._angles, angles):
-            self._angles = angles.copy()
-            info["angles"] = C.encode_angles(angles)
+        src = scan.angles
+        if src is not self._angles_src:  # (the simulator hands the same angles array every scan)
+            angles = np.asarray(src, dtype=np.float64)
+            if self._angles is None or self._angles.shape != angles.shape or not np.array_equal(self._angles, angles):
+                self._angles = angles.copy()
+                info["angles"] = C.encode_angles(angles)
+            self._angles_src = src if isinstance(src, np.ndarray) and not src.flags.writeable else None
         if self.writer is not None:  # replay needs it; the live view does not
             self._log(C.FRAMES, None, info, ns)
-        ch = self._wanted(C.LIDAR, "LaserScan")
+        ch = self._wanted(C.LIDAR, _PB_SCAN)
         if ch is not None:
-            ch.log(M.laser_scan(scan, ns), log_time=ns)
+            ch.base.log(M.pb_laser_scan(scan, ns), ns)
             self.counts[C.LIDAR] = self.counts.get(C.LIDAR, 0) + 1
 
     def rgbd(self, frame: Any) -> None:
-        from qcarlab.recording import messages as M
-
+        self.flush()  # (then encoded outside the queue's lock: a JPEG never holds up another thread)
+        M = self._M
         ns = self.ns(frame.t)
         k = self._rgbd_count
         self._rgbd_count += 1
@@ -276,8 +365,8 @@ class Recorder:
                 self.counts[C.DEPTH] = self.counts.get(C.DEPTH, 0) + 1
 
     def csi(self, frames: Any) -> None:
-        from qcarlab.recording import messages as M
-
+        self.flush()
+        M = self._M
         ns = self.ns(frames.t)
         if self.writer is not None:
             self._log(C.FRAMES, None, {"sensor": "csi", "t": float(frames.t), "stamp": ns}, ns)
@@ -291,12 +380,15 @@ class Recorder:
     # --- what the lab says ----------------------------------------------------------------------
     def log_values(self, t: float, values: dict[str, Any]) -> None:
         """The lab's own values at time ``t`` (s): v_ref, cross-track error, state, ..."""
-        self._log(C.LAB, None, {"t": float(t), **values}, self.ns(t))
+        self._defer(self._values, (t, {"t": float(t), **values}))  # (a copy: the caller may reuse its dict)
+
+    def _values(self, t: float, values: dict[str, Any]) -> None:
+        self._bytes(C.LAB, C.values_bytes, self.ns(t), values)
 
     def scene(self, world: Any = None, path: Any = None, t: float = 0.0) -> None:
         """The world's static shapes and/or the reference path (x, y points), once."""
-        from qcarlab.recording import messages as M
-
+        self.flush()
+        M = self._M
         ns = self.ns(t)
         entities = {}
         if world is not None:
@@ -315,8 +407,11 @@ class Recorder:
             return
         self.closed = True
         try:
-            if self.writer is not None:
-                self.writer.close()
+            try:
+                self.flush()
+            finally:
+                if self.writer is not None:
+                    self.writer.close()
         finally:
             if self.live is not None:
                 self.live.stop()

@@ -132,10 +132,10 @@ def march(px, py, dx, dy, t, tmax, cells):
     while t < tmax:
         x = px + t * dx
         y = py + t * dy
-        ix = int(math.floor(x))
-        iy = int(math.floor(y))
-        if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+        if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
             return tmax, -1, 0, steps
+        ix = int(x)  # = floor: x >= 0 (truncation is off the loop's critical path, floor is not)
+        iy = int(y)
         c = int(cells[iy, ix])
         steps += 1
         if c >= OCC:
@@ -193,10 +193,10 @@ def march_tiles(px, py, dx, dy, t, tmax, tiles, nx, ny, ntx):
     while t < tmax:
         x = px + t * dx
         y = py + t * dy
-        ix = int(math.floor(x))
-        iy = int(math.floor(y))
-        if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+        if not (x >= 0.0 and y >= 0.0 and x < nx and y < ny):
             return tmax, -1, steps
+        ix = int(x)  # = floor: x >= 0 (truncation is off the loop's critical path, floor is not)
+        iy = int(y)
         c = _tile_at(tiles, ix, iy, ntx)
         steps += 1
         if c == TILE_OCC:
@@ -225,6 +225,228 @@ def march_tiles(px, py, dx, dy, t, tmax, tiles, nx, ny, ntx):
                 t += c * TILE_UNIT - 1.4143
                 break
     return tmax, -1, steps
+
+
+@njit(**_JIT)
+def _start_in_grid(px, py, dx, dy, t, tmax, nx, ny):
+    """Where :func:`march` and :func:`march_tiles` start: t, moved to where the ray enters the
+    grid when it starts outside (tmax when it never does before tmax)."""
+    x = px + t * dx
+    y = py + t * dy
+    if x < 0.0 or y < 0.0 or x >= nx or y >= ny:
+        te = _enter_box(px, py, dx, dy, nx, ny)
+        if te < 0.0 or te > tmax:
+            return tmax
+        if te > t:
+            return te + 1e-7
+    return t
+
+
+@njit(**_JIT)
+def march_tiles_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, tiles, nx, ny, ntx):
+    """:func:`march_tiles` of two rays from the same point at once, a step of each in turn: a
+    ray's steps form one dependency chain (position, cell, lookup, jump) that leaves the core
+    mostly waiting, and two independent chains interleave. The same numbers as two calls
+    (t, label and cells looked at of each): returns (ta, laba, tb, labb, steps)."""
+    steps = 0
+    ta = _start_in_grid(px, py, dxa, dya, t0, tmax, nx, ny)
+    tb = _start_in_grid(px, py, dxb, dyb, t0, tmax, nx, ny)
+    # mode 0: jumping, 1: walking cell by cell, 2: done
+    ma = 0
+    mb = 0
+    la = -1
+    lb = -1
+    ixa = iya = sxa = sya = 0
+    ixb = iyb = sxb = syb = 0
+    tdxa = tdya = tmxa = tmya = 0.0
+    tdxb = tdyb = tmxb = tmyb = 0.0
+    while ma != 2 or mb != 2:
+        if ma == 0:
+            x = px + ta * dxa
+            y = py + ta * dya
+            if not (ta < tmax and x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+                ma = 2
+                ta = tmax
+            else:
+                ixa = int(x)
+                iya = int(y)
+                c = _tile_at(tiles, ixa, iya, ntx)
+                steps += 1
+                if c == TILE_OCC:
+                    ma = 2
+                    la = 0
+                elif c > TILE_SKIP_FROM:
+                    ta += c * TILE_UNIT - 1.4143
+                else:
+                    sxa, tdxa, tmxa = dda_axis(dxa, ixa, x, ta)
+                    sya, tdya, tmya = dda_axis(dya, iya, y, ta)
+                    ma = 1
+        elif ma == 1:
+            steps += 1
+            if tmxa < tmya:
+                ta = tmxa
+                tmxa += tdxa
+                ixa += sxa
+            else:
+                ta = tmya
+                tmya += tdya
+                iya += sya
+            if ta >= tmax or ixa < 0 or iya < 0 or ixa >= nx or iya >= ny:
+                ma = 2
+                ta = tmax
+            else:
+                c = _tile_at(tiles, ixa, iya, ntx)
+                if c == TILE_OCC:
+                    ma = 2
+                    la = 0
+                elif c > TILE_WALK_UNTIL:
+                    ta += c * TILE_UNIT - 1.4143
+                    ma = 0
+        if mb == 0:
+            x = px + tb * dxb
+            y = py + tb * dyb
+            if not (tb < tmax and x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+                mb = 2
+                tb = tmax
+            else:
+                ixb = int(x)
+                iyb = int(y)
+                c = _tile_at(tiles, ixb, iyb, ntx)
+                steps += 1
+                if c == TILE_OCC:
+                    mb = 2
+                    lb = 0
+                elif c > TILE_SKIP_FROM:
+                    tb += c * TILE_UNIT - 1.4143
+                else:
+                    sxb, tdxb, tmxb = dda_axis(dxb, ixb, x, tb)
+                    syb, tdyb, tmyb = dda_axis(dyb, iyb, y, tb)
+                    mb = 1
+        elif mb == 1:
+            steps += 1
+            if tmxb < tmyb:
+                tb = tmxb
+                tmxb += tdxb
+                ixb += sxb
+            else:
+                tb = tmyb
+                tmyb += tdyb
+                iyb += syb
+            if tb >= tmax or ixb < 0 or iyb < 0 or ixb >= nx or iyb >= ny:
+                mb = 2
+                tb = tmax
+            else:
+                c = _tile_at(tiles, ixb, iyb, ntx)
+                if c == TILE_OCC:
+                    mb = 2
+                    lb = 0
+                elif c > TILE_WALK_UNTIL:
+                    tb += c * TILE_UNIT - 1.4143
+                    mb = 0
+    return ta, la, tb, lb, steps
+
+
+@njit(**_JIT)
+def march_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, cells):
+    """:func:`march` of two rays from the same point at once (see :func:`march_tiles_pair`): the
+    same t, label and cells looked at as two calls; returns (ta, laba, tb, labb, steps)."""
+    ny, nx = cells.shape
+    steps = 0
+    ta = _start_in_grid(px, py, dxa, dya, t0, tmax, nx, ny)
+    tb = _start_in_grid(px, py, dxb, dyb, t0, tmax, nx, ny)
+    # mode 0: jumping, 1: walking cell by cell, 2: done
+    ma = 0
+    mb = 0
+    la = -1
+    lb = -1
+    ixa = iya = sxa = sya = 0
+    ixb = iyb = sxb = syb = 0
+    tdxa = tdya = tmxa = tmya = 0.0
+    tdxb = tdyb = tmxb = tmyb = 0.0
+    while ma != 2 or mb != 2:
+        if ma == 0:
+            x = px + ta * dxa
+            y = py + ta * dya
+            if not (ta < tmax and x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+                ma = 2
+                ta = tmax
+            else:
+                ixa = int(x)
+                iya = int(y)
+                c = int(cells[iya, ixa])
+                steps += 1
+                if c >= OCC:
+                    ma = 2
+                    la = c - OCC
+                elif c > SKIP_FROM:
+                    ta += c * DT_UNIT - 1.4143
+                else:
+                    sxa, tdxa, tmxa = dda_axis(dxa, ixa, x, ta)
+                    sya, tdya, tmya = dda_axis(dya, iya, y, ta)
+                    ma = 1
+        elif ma == 1:
+            steps += 1
+            if tmxa < tmya:
+                ta = tmxa
+                tmxa += tdxa
+                ixa += sxa
+            else:
+                ta = tmya
+                tmya += tdya
+                iya += sya
+            if ta >= tmax or ixa < 0 or iya < 0 or ixa >= nx or iya >= ny:
+                ma = 2
+                ta = tmax
+            else:
+                c = int(cells[iya, ixa])
+                if c >= OCC:
+                    ma = 2
+                    la = c - OCC
+                elif c > WALK_UNTIL:
+                    ta += c * DT_UNIT - 1.4143
+                    ma = 0
+        if mb == 0:
+            x = px + tb * dxb
+            y = py + tb * dyb
+            if not (tb < tmax and x >= 0.0 and y >= 0.0 and x < nx and y < ny):
+                mb = 2
+                tb = tmax
+            else:
+                ixb = int(x)
+                iyb = int(y)
+                c = int(cells[iyb, ixb])
+                steps += 1
+                if c >= OCC:
+                    mb = 2
+                    lb = c - OCC
+                elif c > SKIP_FROM:
+                    tb += c * DT_UNIT - 1.4143
+                else:
+                    sxb, tdxb, tmxb = dda_axis(dxb, ixb, x, tb)
+                    syb, tdyb, tmyb = dda_axis(dyb, iyb, y, tb)
+                    mb = 1
+        elif mb == 1:
+            steps += 1
+            if tmxb < tmyb:
+                tb = tmxb
+                tmxb += tdxb
+                ixb += sxb
+            else:
+                tb = tmyb
+                tmyb += tdyb
+                iyb += syb
+            if tb >= tmax or ixb < 0 or iyb < 0 or ixb >= nx or iyb >= ny:
+                mb = 2
+                tb = tmax
+            else:
+                c = int(cells[iyb, ixb])
+                if c >= OCC:
+                    mb = 2
+                    lb = c - OCC
+                elif c > WALK_UNTIL:
+                    tb += c * DT_UNIT - 1.4143
+                    mb = 0
+    return ta, la, tb, lb, steps
 
 
 @njit(**_JIT)
@@ -353,7 +575,6 @@ def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, cells, tiles, ntx, 
     syaw = math.sin(yaw)
     tmax = rmax * inv + 2.0
     tol = 2.5 * res
-    nb = balls.shape[0]
     total = 0
     tiled = tiles.shape[0] > 0
     ny, nx = cells.shape
@@ -373,14 +594,42 @@ def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, cells, tiles, ntx, 
             if c0 < OCC and c0 > SKIP_FROM:
                 t0 = 0.0 + (c0 * DT_UNIT - 1.4143)
                 total += 1
-    for i in range(cos_b.shape[0]):
+    nbeams = cos_b.shape[0]
+    hit_t = np.empty(nbeams)
+    hit_l = np.empty(nbeams, np.int64)
+    i = 0
+    # two beams at a time (march_tiles_pair, march_pair: the same numbers, the latencies overlap)
+    while i + 1 < nbeams:
+        dxa = cos_b[i] * cyaw - sin_b[i] * syaw
+        dya = sin_b[i] * cyaw + cos_b[i] * syaw
+        dxb = cos_b[i + 1] * cyaw - sin_b[i + 1] * syaw
+        dyb = sin_b[i + 1] * cyaw + cos_b[i + 1] * syaw
+        if tiled:
+            ta, la, tb, lb, steps = march_tiles_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, tiles, nx, ny, ntx)
+        else:
+            ta, la, tb, lb, steps = march_pair(px, py, dxa, dya, dxb, dyb, t0, tmax, cells)
+        hit_t[i] = ta
+        hit_l[i] = la
+        hit_t[i + 1] = tb
+        hit_l[i + 1] = lb
+        total += steps
+        i += 2
+    while i < nbeams:
         dx = cos_b[i] * cyaw - sin_b[i] * syaw
         dy = sin_b[i] * cyaw + cos_b[i] * syaw
         if tiled:
             t, lab, steps = march_tiles(px, py, dx, dy, t0, tmax, tiles, nx, ny, ntx)
         else:
             t, lab, side, steps = march(px, py, dx, dy, t0, tmax, cells)
+        hit_t[i] = t
+        hit_l[i] = lab
         total += steps
+        i += 1
+    for i in range(nbeams):
+        dx = cos_b[i] * cyaw - sin_b[i] * syaw
+        dy = sin_b[i] * cyaw + cos_b[i] * syaw
+        t = hit_t[i]
+        lab = hit_l[i]
         r = BIG
         if lab >= 0:
             r = t * res
@@ -388,30 +637,158 @@ def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, cells, tiles, ntx, 
                 te, to, nx_, ny_ = exact(lab, ox, oy, dx, dy, r, tol, kinds, pstart, pcount, verts, circles)
                 if te >= 0.0:
                     r = te
-        for j in range(nb):
-            fx = ox - balls[j, 0]
-            fy = oy - balls[j, 1]
-            b = fx * dx + fy * dy
-            c = fx * fx + fy * fy - balls[j, 2] * balls[j, 2]
-            disc = b * b - c
-            if disc >= 0.0:
-                tb = -b - math.sqrt(disc)
-                if 0.0 <= tb < r:
-                    r = tb
-        if near_mode < 0:
-            out[i] = r if r <= rmax else np.inf
-            continue
-        if r > rmax:
-            out[i] = 0.0
-            continue
-        if noisy:
-            r += noise[i]
-        if r > rmax:
-            r = 0.0
-        elif r < rmin:
-            r = rmin if near_mode == 1 else 0.0
-        out[i] = r
+        out[i] = _reading(r, ox, oy, dx, dy, balls, noise[i] if noisy else 0.0, rmax, rmin, near_mode)
     return total
+
+
+@njit(**_JIT)
+def _reading(r, ox, oy, dx, dy, balls, noise, rmax, rmin, near_mode):
+    """A beam's reading from the distance ``r`` (m) of its first static hit (BIG: none): the
+    nearer of it and the balls (circles (x, y, radius) cut by the scan plane), then as
+    :func:`lidar_scan` tells (``near_mode``: -1 exact, inf for none; else noise and limits)."""
+    for j in range(balls.shape[0]):
+        fx = ox - balls[j, 0]
+        fy = oy - balls[j, 1]
+        b = fx * dx + fy * dy
+        c = fx * fx + fy * fy - balls[j, 2] * balls[j, 2]
+        disc = b * b - c
+        if disc >= 0.0:
+            tb = -b - math.sqrt(disc)
+            if 0.0 <= tb < r:
+                r = tb
+    if near_mode < 0:
+        return r if r <= rmax else np.inf
+    if r > rmax:
+        return 0.0
+    r += noise
+    if r > rmax:
+        return 0.0
+    if r < rmin:
+        return rmin if near_mode == 1 else 0.0
+    return r
+
+
+@njit(**_JIT)
+def lidar_scan_edges(ox, oy, yaw, cos_b, sin_b, a0, da, full, rmax, edges, kinds, circles, balls, noise, rmin,
+                     near_mode, out):
+    """:func:`lidar_scan` for a world of polygons and circles alone, found per *edge*: beam i looks
+    along body angle a0 + i da (``full``: a whole turn, da = 2 pi / beams; else a sector), with
+    direction (cos_b[i], sin_b[i]); each polygon edge (``edges``, see :func:`edge_table`) is
+    intersected with just the beams whose angles it spans (an edge's points a + s (b - a), s in
+    [0, 1)), each circle likewise, and a beam keeps its nearest crossing. From inside a shape
+    every beam's first hit is at 0 (as the raster's march finds it). Returns the number of
+    beam-edge intersections computed (the work it took)."""
+    n = cos_b.shape[0]
+    cyaw = math.cos(yaw)
+    syaw = math.sin(yaw)
+    noisy = noise.shape[0] == n
+    dist = np.full(n, BIG)
+    work = 0
+    twopi = 2.0 * math.pi
+    # inside a polygon (even-odd rule along +x) or a circle: every beam hits at 0
+    inside = False
+    crossings = 0
+    last = -1.0
+    for e in range(edges.shape[0]):
+        lab = edges[e, 4]
+        if lab != last:
+            if crossings % 2 == 1:
+                inside = True
+            crossings = 0
+            last = lab
+        ay = edges[e, 1] - oy
+        by = edges[e, 3] - oy
+        if (ay > 0.0) != (by > 0.0):
+            ax = edges[e, 0] - ox
+            bx = edges[e, 2] - ox
+            if ax + (0.0 - ay) * (bx - ax) / (by - ay) > 0.0:
+                crossings += 1
+    if crossings % 2 == 1:
+        inside = True
+    for lab in range(kinds.shape[0]):
+        if kinds[lab] == 2:
+            qx = circles[lab, 0] - ox
+            qy = circles[lab, 1] - oy
+            if qx * qx + qy * qy < circles[lab, 2] * circles[lab, 2]:
+                inside = True
+    if inside:
+        for i in range(n):
+            dist[i] = 0.0
+    else:
+        for e in range(edges.shape[0]):
+            ax = edges[e, 0] - ox
+            ay = edges[e, 1] - oy
+            bx = edges[e, 2] - ox
+            by = edges[e, 3] - oy
+            # the beams between the ends' angles (the short way round: the edge misses the sensor)
+            pa = math.atan2(ay, ax) - yaw
+            pb = math.atan2(by, bx) - yaw
+            w = (pb - pa) % twopi
+            if w > math.pi:
+                lo = pb
+                w = twopi - w
+            else:
+                lo = pa
+            lo = (lo - a0) % twopi  # from beam 0's angle, in [0, 2 pi)
+            ex = bx - ax
+            ey = by - ay
+            for shift in range(2 if not full else 1):
+                base = lo - shift * twopi
+                k0 = int(math.floor(base / da)) - 1
+                k1 = int(math.floor((base + w) / da)) + 1
+                if not full:
+                    k0 = max(k0, 0)
+                    k1 = min(k1, n - 1)
+                for kk in range(k0, k1 + 1):
+                    i = kk % n if full else kk
+                    dx = cos_b[i] * cyaw - sin_b[i] * syaw
+                    dy = sin_b[i] * cyaw + cos_b[i] * syaw
+                    work += 1
+                    den = dx * ey - dy * ex
+                    if den == 0.0:
+                        continue
+                    sn = ax * dy - ay * dx
+                    if den > 0.0:
+                        if sn < 0.0 or sn >= den:
+                            continue
+                    elif sn > 0.0 or sn <= den:
+                        continue
+                    tt = (ax * ey - ay * ex) / den
+                    if 0.0 <= tt < dist[i]:
+                        dist[i] = tt
+        for lab in range(kinds.shape[0]):
+            if kinds[lab] != 2:
+                continue
+            qx = circles[lab, 0] - ox
+            qy = circles[lab, 1] - oy
+            r = circles[lab, 2]
+            d = math.sqrt(qx * qx + qy * qy)
+            th = (math.atan2(qy, qx) - yaw - a0) % twopi
+            al = math.asin(min(r / d, 1.0))
+            for shift in range(2 if not full else 1):
+                base = th - al - shift * twopi
+                k0 = int(math.floor(base / da)) - 1
+                k1 = int(math.floor((base + 2.0 * al) / da)) + 1
+                if not full:
+                    k0 = max(k0, 0)
+                    k1 = min(k1, n - 1)
+                for kk in range(k0, k1 + 1):
+                    i = kk % n if full else kk
+                    dx = cos_b[i] * cyaw - sin_b[i] * syaw
+                    dy = sin_b[i] * cyaw + cos_b[i] * syaw
+                    work += 1
+                    b = -(qx * dx + qy * dy)
+                    disc = b * b - (qx * qx + qy * qy - r * r)
+                    if disc < 0.0:
+                        continue
+                    tt = -b - math.sqrt(disc)
+                    if 0.0 <= tt < dist[i]:
+                        dist[i] = tt
+    for i in range(n):
+        dx = cos_b[i] * cyaw - sin_b[i] * syaw
+        dy = sin_b[i] * cyaw + cos_b[i] * syaw
+        out[i] = _reading(dist[i], ox, oy, dx, dy, balls, noise[i] if noisy else 0.0, rmax, rmin, near_mode)
+    return work
 
 
 @njit(**_JIT)
@@ -439,10 +816,10 @@ def render_columns(
     """Draw the walls, obstacles and balls of every column of a level camera over the floor.
 
     ``color`` (W, H) uint32 (packed BGRA pixels, see :func:`pack_bgr`) and ``depth`` (W, H)
-    float32 are *transposed* images (one row per image column). With ``markers`` each column's
-    colour is first cleared to 0, "nothing drawn here" (every drawn pixel has alpha 255, and a
-    depth), and its depth left as it was: :func:`finish_frame` puts the background and the floor
-    there later.
+    float32 are *transposed* images (one row per image column) of a cylindrical view (the CSI
+    cameras; the RGBD camera is drawn by :func:`column_layers` and :func:`compose_rows`). With
+    ``markers`` each column's colour is first cleared to 0, "nothing drawn here" (every drawn
+    pixel has alpha 255, and a depth), and its depth left as it was, for a caller to fill.
     Otherwise ``color`` already holds the floor below row ``sky_rows``, and each column first
     gets the background ``sky`` (a packed pixel) above that row and the depth of the floor
     (``floor_depth``, same shape, inf above the horizon). Then this paints, far to near, each
@@ -620,7 +997,7 @@ def _finish_depth_row(row, noise, nv, nb, noisy, c, lo, hi):
         for u in range(W):
             d = row[u]
             d = np.float32(0.0) if d > hi else d
-            d = d + c * (d * d * nrow[u])
+            d = d + c * (d * d * np.float32(nrow[u]))
             row[u] = np.float32(0.0) if (d > hi) | (d <= lo) else d
     else:
         for u in range(W):
@@ -632,7 +1009,8 @@ def _finish_depth_row(row, noise, nv, nb, noisy, c, lo, hi):
 def finish_depth(depth, noise, na, nb, coef, dmin, dmax):
     """The depth image as the D435 reports it, in place: ``depth`` (H, W) float32 z-depth (inf =
     nothing) -> 0 beyond ``dmax``, plus noise ``coef * z^2 * noise[na + v, nb + u]`` (when
-    ``noise`` is not empty), then 0 beyond ``dmax`` and at or nearer than ``dmin``.
+    ``noise`` is not empty; int8 steps of a standard deviation times ``coef``, see
+    ``camera.DEPTH_TILE_STEP``), then 0 beyond ``dmax`` and at or nearer than ``dmin``.
 
     One pass, row by row over contiguous slices so that LLVM vectorises it (about 4x the three
     OpenCV passes it replaces).
@@ -645,42 +1023,689 @@ def finish_depth(depth, noise, na, nb, coef, dmin, dmax):
         _finish_depth_row(depth[v], noise, na + v, nb, noisy, c, lo, hi)
 
 
-@njit(**_JIT)
-def finish_frame(color, depth, v0, r0, bg, floor, row_depth, finish, noise, na, nb, coef, dmin, dmax):
-    """Rows v0.. of an upright frame drawn with markers (see :func:`render_columns`), in place.
+# --------------------------------------------------------------------------------------------
+# the RGBD camera, row-major: layers per column, then one pass per image row
+# --------------------------------------------------------------------------------------------
+LMAX = 2 * (KMAX + 8)  # layers a column may hold: a front face and a top face per hit, balls
+NO_ROW = 1 << 30  # an empty layer's top row
 
-    ``color`` (n, W) uint32 and ``depth`` (n, W) float32: where nothing was drawn (colour 0; the
-    depth there is whatever the buffer held) the background ``bg`` with no depth (0) above row
-    ``r0``, the floor below it: colour from ``floor`` (uint32, (H - r0, W), upright, row 0 =
-    image row r0) and depth ``row_depth[v]`` (float32 (H,): a level pinhole sees the floor at
-    one z-depth along each row). Then, if ``finish``, the depth as the D435 reports it, as
-    :func:`finish_depth` (noise window rows from ``na + v0``, columns from ``nb``). Row by row,
-    each row finished while in cache; each loop tests the array it writes, the form LLVM
-    vectorises.
+
+@njit(**_JIT)
+def _word(b, g, r):
+    """Channel values (floats, clipped to 0..255) as one packed pixel B | G << 8 | R << 16 | 255 << 24
+    (an integer: the same on any byte order; as bytes on a little-endian machine, BGRA)."""
+    ib = int(min(max(b, 0.0), 255.0))
+    ig = int(min(max(g, 0.0), 255.0))
+    ir = int(min(max(r, 0.0), 255.0))
+    return np.uint32(ib | (ig << 8) | (ir << 16) | (255 << 24))
+
+
+CMAX = 32  # edge crossings a column may hold in the vector path (more: the frame is marched instead)
+NEAR = 1e-3  # m: crossings nearer than this to the camera are not seen
+TIE = 1e-9  # m: hits this close are at the same distance (coinciding faces)
+
+
+def edge_table(kinds: np.ndarray, pstart: np.ndarray, pcount: np.ndarray, verts: np.ndarray) -> np.ndarray:
+    """Every polygon edge of a raster's shape tables as one row (ax, ay, bx, by, label) for
+    :func:`vector_crossings` (float64 (E, 5))."""
+    rows = []
+    for lab in range(len(kinds)):
+        if kinds[lab] != 1:
+            continue
+        p0, n = int(pstart[lab]), int(pcount[lab])
+        for j in range(n):
+            a = verts[p0 + j]
+            b = verts[p0 + (j + 1) % n]
+            rows.append((a[0], a[1], b[0], b[1], float(lab)))
+    return np.array(rows, np.float64).reshape(-1, 5)
+
+
+@njit(**_JIT)
+def vector_crossings(cr_t, cr_e, ncr, ox, oy, yaw, cos_c, sin_c, fx, cx, edges, kinds, circles):
+    """Where every column's ray (a level pinhole's: column u looks along body azimuth (cos_c[u],
+    sin_c[u]), u = cx - fx tan(azimuth)) crosses the shapes' outlines, found per *edge*: each
+    polygon edge in front of the camera is projected to the columns it spans and intersected
+    with just those rays (a circle likewise). ``cr_t[u, i]`` (m along the ray) and ``cr_e[u, i]``
+    (the edge's row in ``edges``, or -1 - label for a circle), ``ncr[u]`` crossings, unordered.
+    An edge's points are a + s (b - a) with s in [0, 1), so a ray through a shared vertex
+    crosses once. Returns False when a column has more than CMAX crossings."""
+    W = cos_c.shape[0]
+    cyaw = math.cos(yaw)
+    syaw = math.sin(yaw)
+    for u in range(W):
+        ncr[u] = 0
+    for e in range(edges.shape[0]):
+        ax = edges[e, 0] - ox
+        ay = edges[e, 1] - oy
+        bx = edges[e, 2] - ox
+        by = edges[e, 3] - oy
+        fa = ax * cyaw + ay * syaw  # forward and left of the camera
+        la = -ax * syaw + ay * cyaw
+        fb = bx * cyaw + by * syaw
+        lb = -bx * syaw + by * cyaw
+        if fa < NEAR and fb < NEAR:
+            continue
+        if fa < NEAR:
+            q = (NEAR - fa) / (fb - fa)
+            la = la + q * (lb - la)
+            fa = NEAR
+        elif fb < NEAR:
+            q = (NEAR - fb) / (fa - fb)
+            lb = lb + q * (la - lb)
+            fb = NEAR
+        ua = cx - fx * la / fa
+        ub = cx - fx * lb / fb
+        u0 = max(int(math.floor(min(ua, ub))), 0)
+        u1 = min(int(math.ceil(max(ua, ub))), W - 1)
+        ex = bx - ax
+        ey = by - ay
+        for u in range(u0, u1 + 1):
+            dx = cos_c[u] * cyaw - sin_c[u] * syaw
+            dy = sin_c[u] * cyaw + cos_c[u] * syaw
+            den = dx * ey - dy * ex
+            if den == 0.0:
+                continue
+            sn = ax * dy - ay * dx  # the crossing's place along the edge: s = sn / den
+            if den > 0.0:
+                if sn < 0.0 or sn >= den:
+                    continue
+            elif sn > 0.0 or sn <= den:
+                continue
+            tt = (ax * ey - ay * ex) / den
+            if tt < NEAR:
+                continue
+            c = ncr[u]
+            if c >= CMAX:
+                return False
+            cr_t[u, c] = tt
+            cr_e[u, c] = e
+            ncr[u] = c + 1
+    for lab in range(kinds.shape[0]):
+        if kinds[lab] != 2:
+            continue
+        qx = circles[lab, 0] - ox
+        qy = circles[lab, 1] - oy
+        r = circles[lab, 2]
+        fc = qx * cyaw + qy * syaw
+        lc = -qx * syaw + qy * cyaw
+        dist = math.sqrt(fc * fc + lc * lc)
+        if fc + r < NEAR:
+            continue
+        if dist <= r * 1.000001 or fc - r < NEAR:  # around or beside the camera: every column
+            u0 = 0
+            u1 = W - 1
+        else:
+            th = math.atan2(lc, fc)
+            al = math.asin(r / dist)
+            u0 = max(int(math.floor(cx - fx * math.tan(min(th + al, 1.5707)))), 0)
+            u1 = min(int(math.ceil(cx - fx * math.tan(max(th - al, -1.5707)))), W - 1)
+        for u in range(u0, u1 + 1):
+            dx = cos_c[u] * cyaw - sin_c[u] * syaw
+            dy = sin_c[u] * cyaw + cos_c[u] * syaw
+            b = -(qx * dx + qy * dy)
+            cc = qx * qx + qy * qy - r * r
+            disc = b * b - cc
+            if disc < 0.0:
+                continue
+            sq = math.sqrt(disc)
+            for tt in (-b - sq, -b + sq):
+                if tt < NEAR:
+                    continue
+                c = ncr[u]
+                if c >= CMAX:
+                    return False
+                cr_t[u, c] = tt
+                cr_e[u, c] = -1 - lab
+                ncr[u] = c + 1
+    return True
+
+
+@njit(**_JIT)
+def _vector_hits(u, dx, dy, ox, oy, cr_t, cr_e, ncr, edges, circles, hd, ho, hl, hnx, hny):
+    """The crossings of column u (:func:`vector_crossings`) as hits, nearest first: per shape,
+    its crossings in order pair up as (entry, exit); an odd count means the camera is inside
+    (the first crossing is its exit, the entry at NEAR). Returns how many (at most KMAX + 8)."""
+    m = ncr[u]
+    ts = cr_t[u]
+    es = cr_e[u]
+    # order by (label, distance): insertion sort of a few entries
+    for a in range(1, m):
+        b = a
+        while b > 0:
+            la = es[b] if es[b] < 0 else -1 - int(edges[es[b], 4])
+            lb = es[b - 1] if es[b - 1] < 0 else -1 - int(edges[es[b - 1], 4])
+            if lb < la or (lb == la and ts[b - 1] <= ts[b]):
+                break
+            ts[b], ts[b - 1] = ts[b - 1], ts[b]
+            es[b], es[b - 1] = es[b - 1], es[b]
+            b -= 1
+    n = 0
+    i = 0
+    while i < m:
+        e0 = es[i]
+        lab = -1 - e0 if e0 < 0 else int(edges[e0, 4])
+        j = i
+        while j < m and (-1 - es[j] if es[j] < 0 else int(edges[es[j], 4])) == lab:
+            j += 1
+        k = i
+        if (j - i) % 2 == 1:  # inside the shape
+            if n < KMAX + 8:
+                hd[n] = NEAR
+                ho[n] = ts[k]
+                hl[n] = lab
+                hnx[n] = -dx
+                hny[n] = -dy
+                n += 1
+            k += 1
+        while k + 1 < j:
+            if n >= KMAX + 8:
+                break
+            tin = ts[k]
+            e = es[k]
+            if e >= 0:
+                ex = edges[e, 2] - edges[e, 0]
+                ey = edges[e, 3] - edges[e, 1]
+                ln = math.sqrt(ex * ex + ey * ey)
+                nxv = ey / ln
+                nyv = -ex / ln
+            else:
+                r = circles[lab, 2]
+                nxv = (ox + tin * dx - circles[lab, 0]) / r
+                nyv = (oy + tin * dy - circles[lab, 1]) / r
+            if nxv * dx + nyv * dy > 0.0:
+                nxv = -nxv
+                nyv = -nyv
+            hd[n] = tin
+            ho[n] = ts[k + 1]
+            hl[n] = lab
+            hnx[n] = nxv
+            hny[n] = nyv
+            n += 1
+            k += 2
+        i = j
+    # nearest first; of two shapes entered at the same distance (faces that coincide) the one
+    # drawn later into the raster (the higher label) first, as the raster's cells tell
+    for a in range(1, n):
+        b = a
+        while b > 0 and (hd[b] < hd[b - 1] - TIE or (hd[b] <= hd[b - 1] + TIE and hl[b] > hl[b - 1])):
+            hd[b], hd[b - 1] = hd[b - 1], hd[b]
+            ho[b], ho[b - 1] = ho[b - 1], ho[b]
+            hl[b], hl[b - 1] = hl[b - 1], hl[b]
+            hnx[b], hnx[b - 1] = hnx[b - 1], hnx[b]
+            hny[b], hny[b - 1] = hny[b - 1], hny[b]
+            b -= 1
+    return n
+
+
+@njit(**_JIT)
+def column_layers(
+    ltop, lbot, lcol, lza, lzb, lball, lbd, lbe, lbg, lrange, flo,
+    r0, H, ox, oy, cam_z, yaw, cos_c, sin_c, kcol, fx, cx, fy, cy, max_dist,
+    x0, y0, res, cells, kinds, heights, colors, pstart, pcount, verts, circles,
+    gain, gx0, gy0, gres, balls, light_x, light_y, vector, edges, cr_t, cr_e, ncr,
+):
+    """What each column of a level pinhole sees, as *layers* for :func:`compose_rows`; returns
+    how many layers the busiest column has (L).
+
+    Column u looks along body azimuth (cos_c[u], sin_c[u]) (u = cx - fx tan(azimuth)); a point
+    at horizontal distance d and height z along it is at row cy - (z - cam_z) * kcol[u] * fy / d,
+    z-depth d / kcol[u]. Its walls and obstacles are found, nearest first, up to the first that
+    covers the column or KMAX of them: with ``vector`` (a world of polygons and circles alone)
+    analytically from its polygon edges (``edges``, see :func:`edge_table`) by
+    :func:`vector_crossings` (scratch ``cr_t``, ``cr_e``, ``ncr``), else (a ROS map's grid; or
+    when a column has more than CMAX crossings) by marching the raster (:func:`march`, hits
+    refined by :func:`exact`, as :func:`render_columns`); then the balls cut by the column's
+    plane. Each becomes layer l = 0, 1, ... of the column, far to near (painter's order): arrays
+    (LMAX, W) ``ltop``/``lbot`` (the rows it covers, inclusive; an empty layer has ltop =
+    NO_ROW), ``lcol`` (its packed colour, :func:`_word`), depth ``lza + lzb * fy / (v - cy)`` at
+    row v (a front face: lza = d / k, lzb = 0; a top face, a horizontal plane at height h:
+    lza = 0, lzb = cam_z - h), and for a ball ``lball`` = its index (else -1) with its distance
+    ``lbd``, offset ``lbe`` from the column's plane and light gain ``lbg`` (shaded per pixel).
+    ``lrange`` (LMAX, 4): each layer's first and last row and first and past-last column over
+    all columns. ``flo`` (W,): the first row at or below ``r0`` (the first row below the
+    horizon) that no layer covers: the floor is seen only from there down.
     """
-    n, W = color.shape
-    noisy = noise.shape[0] > 0
+    W = cos_c.shape[0]
+    inv = 1.0 / res
+    px = (ox - x0) * inv
+    py = (oy - y0) * inv
+    cyaw = math.cos(yaw)
+    syaw = math.sin(yaw)
+    tmax = max_dist * inv
+    tol = 2.5 * res
+    gny, gnx = gain.shape
+    ginv = 1.0 / gres
+    nb = balls.shape[0]
+    hd = np.empty(KMAX + 8)  # entry distance (m)
+    ho = np.empty(KMAX + 8)  # exit distance (m)
+    hl = np.empty(KMAX + 8, np.int64)  # label, or -2 - ball index
+    hnx = np.empty(KMAX + 8)
+    hny = np.empty(KMAX + 8)
+    nlay = np.zeros(W, np.int64)
+    if vector:
+        vector = vector_crossings(cr_t, cr_e, ncr, ox, oy, yaw, cos_c, sin_c, fx, cx, edges, kinds, circles)
+    # the raster march's first look, from the camera's own cell, is the same for every column
+    t0 = 0.0
+    ny_, nx_ = cells.shape
+    if not vector and 0.0 <= px < nx_ and 0.0 <= py < ny_:
+        c0 = int(cells[int(math.floor(py)), int(math.floor(px))])
+        if c0 < OCC and c0 > SKIP_FROM:
+            t0 = c0 * DT_UNIT - 1.4143
+    for u in range(W):
+        dx = cos_c[u] * cyaw - sin_c[u] * syaw
+        dy = sin_c[u] * cyaw + cos_c[u] * syaw
+        k = kcol[u]
+        kf = k * fy  # a point at distance d, height z is at row cy - (z - cam_z) kf / d
+        n = 0
+        vcover = float(H)
+        if vector:
+            nv = _vector_hits(u, dx, dy, ox, oy, cr_t, cr_e, ncr, edges, circles, hd, ho, hl, hnx, hny)
+            # keep them up to the first that covers the column (and at most KMAX), leaving out
+            # those hidden behind nearer ones: a shape standing on the floor covers its rows from
+            # its top (vtop) down to where it meets the floor, and a farther one meets the floor
+            # higher up, so one whose top is no higher than the nearer ones' is hidden
+            i = 0
+            while i < nv and n < KMAX:
+                din = hd[i]
+                if din > max_dist:
+                    break
+                h = heights[hl[i]]
+                vtop = cy - (h - cam_z) * kf / (din if h >= cam_z else max(ho[i], din))
+                if vtop < vcover:
+                    hd[n] = hd[i]
+                    ho[n] = ho[i]
+                    hl[n] = hl[i]
+                    hnx[n] = hnx[i]
+                    hny[n] = hny[i]
+                    n += 1
+                    vcover = vtop
+                    if vcover <= 0.0:
+                        break
+                i += 1
+        else:
+            t = t0
+            while n < KMAX:
+                t, lab, side, _ = march(px, py, dx, dy, t, tmax, cells)
+                if lab < 0:
+                    break
+                din = t * res
+                nxv = -dx  # grid walls: shade as if facing the ray
+                nyv = -dy
+                ts = t
+                te = -1.0
+                to = 0.0
+                ex_ = 0.0
+                ey_ = 0.0
+                if kinds[lab] != 0:
+                    te, to, ex_, ey_ = exact(lab, ox, oy, dx, dy, din, tol, kinds, pstart, pcount, verts, circles)
+                    if te >= 0.0:
+                        ts = max(t, to * inv - 2.0)
+                t2, nextlab = skip(px, py, dx, dy, ts, tmax, cells, lab)
+                dout = t2 * res
+                if te >= 0.0:
+                    din = te
+                    nxv = ex_
+                    nyv = ey_
+                    if abs(to - dout) < tol:
+                        dout = to
+                if din < 1e-3:
+                    din = 1e-3
+                h = heights[lab]
+                vtop = cy - (h - cam_z) * kf / (din if h >= cam_z else max(dout, din))
+                if vtop < vcover:  # (else hidden behind the nearer ones, see above)
+                    hd[n] = din
+                    ho[n] = max(dout, din)
+                    hl[n] = lab
+                    hnx[n] = nxv
+                    hny[n] = nyv
+                    n += 1
+                    vcover = vtop
+                    if vcover <= 0.0:
+                        break
+                t = t2 + 1e-4
+        for j in range(nb):
+            if n >= KMAX + 8:
+                break
+            fx_ = balls[j, 0] - ox
+            fy_ = balls[j, 1] - oy
+            dc = fx_ * dx + fy_ * dy
+            e = abs(fx_ * dy - fy_ * dx)
+            r = balls[j, 2]
+            if dc <= 0.0 or e >= r:
+                continue
+            if n > 0 and dc - r > hd[n - 1] and vcover <= 0.0:
+                continue
+            hd[n] = dc
+            ho[n] = dc
+            hl[n] = -2 - j
+            hnx[n] = e
+            hny[n] = 0.0
+            n += 1
+        for a in range(1, n):  # far to near (of equally far shapes the higher label last, on top)
+            b = a
+            while b > 0 and (hd[b] > hd[b - 1] + TIE or (hd[b] >= hd[b - 1] - TIE and hl[b] < hl[b - 1])):
+                hd[b], hd[b - 1] = hd[b - 1], hd[b]
+                ho[b], ho[b - 1] = ho[b - 1], ho[b]
+                hl[b], hl[b - 1] = hl[b - 1], hl[b]
+                hnx[b], hnx[b - 1] = hnx[b - 1], hnx[b]
+                hny[b], hny[b - 1] = hny[b - 1], hny[b]
+                b -= 1
+        m = 0  # layers of this column
+        for a in range(n):
+            lab = hl[a]
+            din = hd[a]
+            hx = ox + dx * din
+            hy = oy + dy * din
+            gi = int((hy - gy0) * ginv)
+            gj = int((hx - gx0) * ginv)
+            g = gain[gi, gj] if 0 <= gi < gny and 0 <= gj < gnx else 1.0
+            if lab <= -2:  # a ball
+                j = -2 - lab
+                r = balls[j, 2]
+                e = hnx[a]
+                rs = math.sqrt(r * r - e * e)
+                q = kf / din
+                top = max(int(math.ceil(cy - (r + rs - cam_z) * q)), 0)
+                bot = min(int(math.floor(cy - (r - rs - cam_z) * q)), H - 1)
+                if top <= bot:
+                    ltop[m, u] = top
+                    lbot[m, u] = bot
+                    lcol[m, u] = 0
+                    lza[m, u] = max((din - rs) / k, 1e-6)  # > 0 even from inside the ball
+                    lzb[m, u] = 0.0
+                    lball[m, u] = j
+                    lbd[m, u] = din
+                    lbe[m, u] = e
+                    lbg[m, u] = g
+                    m += 1
+                continue
+            h = heights[lab]
+            dout = ho[a]
+            lam = abs(hnx[a] * light_x + hny[a] * light_y)
+            sh = (0.72 + 0.28 * lam) * g
+            q = kf / din
+            vt = cy - (h - cam_z) * q
+            top = max(int(math.ceil(vt)), 0)
+            bot = min(int(math.floor(cy + cam_z * q)), H - 1)
+            if top <= bot:
+                ltop[m, u] = top
+                lbot[m, u] = bot
+                lcol[m, u] = _word(colors[lab, 0] * sh, colors[lab, 1] * sh, colors[lab, 2] * sh)
+                lza[m, u] = din / k
+                lzb[m, u] = 0.0
+                lball[m, u] = -1
+                m += 1
+            if h < cam_z and dout > din:  # the top face, seen from above
+                top = max(int(math.ceil(cy - (h - cam_z) * kf / dout)), 0)
+                bot = min(int(math.ceil(vt)) - 1, H - 1)
+                if top <= bot:
+                    ltop[m, u] = top
+                    lbot[m, u] = bot
+                    lcol[m, u] = _word(colors[lab, 0] * 1.12 * g, colors[lab, 1] * 1.12 * g, colors[lab, 2] * 1.12 * g)
+                    lza[m, u] = 0.0
+                    lzb[m, u] = cam_z - h
+                    lball[m, u] = -1
+                    m += 1
+        nlay[u] = m
+        # the first row below the horizon no layer covers
+        v = r0
+        moved = True
+        while moved:
+            moved = False
+            for l in range(m):
+                if ltop[l, u] <= v <= lbot[l, u]:
+                    v = lbot[l, u] + 1
+                    moved = True
+        flo[u] = v
+    L = 0
+    for u in range(W):
+        L = max(L, nlay[u])
+    for l in range(L):
+        lrange[l, 0] = NO_ROW
+        lrange[l, 1] = -1
+        lrange[l, 2] = W
+        lrange[l, 3] = 0
+    for u in range(W):
+        for l in range(L):
+            if l >= nlay[u]:
+                ltop[l, u] = NO_ROW
+                lbot[l, u] = -1
+                lball[l, u] = -1
+                lcol[l, u] = 0
+                lza[l, u] = 0.0
+                lzb[l, u] = 0.0
+            else:
+                lrange[l, 0] = min(lrange[l, 0], ltop[l, u])
+                lrange[l, 1] = max(lrange[l, 1], lbot[l, u])
+                lrange[l, 2] = min(lrange[l, 2], u)
+                lrange[l, 3] = max(lrange[l, 3], u + 1)
+    return L
+
+
+@njit(**_JIT)
+def _texel(tex, off, tw, th, ix, iy, bg):
+    if ix < 0 or iy < 0 or ix >= tw or iy >= th:
+        return bg
+    return int(tex[off + iy * tw + ix])
+
+
+@njit(**_JIT)
+def _lerp2(a, b, w):
+    """Two 8-bit lanes (bits 0-7 and 16-23 of a and b) blended as a + (b - a) w / 256, rounded."""
+    return ((a * (256 - w) + b * w + 0x00800080) >> 8) & 0x00FF00FF
+
+
+@njit(**_JIT)
+def _bilinear(p00, p01, p10, p11, wx, wy):
+    """Bilinear blend of four packed pixels (weights wx, wy in 0..256 for the second column / row)."""
+    m = 0x00FF00FF
+    rb = _lerp2(_lerp2(p00 & m, p01 & m, wx), _lerp2(p10 & m, p11 & m, wx), wy)
+    ga = _lerp2(_lerp2((p00 >> 8) & m, (p01 >> 8) & m, wx), _lerp2((p10 >> 8) & m, (p11 >> 8) & m, wx), wy)
+    return (rb | (ga << 8)) | 0xFF000000
+
+
+@njit(**_JIT)
+def _floor_row(crow, v, flo, tex, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy):
+    """Row v of the floor into ``crow`` where ``flo[u] <= v``: bilinear samples of a texture level
+    (``tex[off:]``, tw x th packed texels whose top byte is the run radius, see
+    ``raster.floor_runs``) at texel (X0 + u dX, Y0 + u dY) / 65536 (16.16 fixed point; texel
+    centres at integers); ``bg`` outside the texture.
+
+    A sample whose block (the 2 x 2 texels it reads) has run radius R >= 1 reads texel
+    (ix, iy) exactly, and so does every sample whose block is within R - 1 of it: x in
+    [ix - R + 1, ix + R), y likewise. The samples of a row lie on a line, so the pixels up to
+    the first that leaves that square are filled at once (the same numbers as blending each).
+    The other samples are gathered (scratch ``bu``, ``b00``.., ``bwx``, ``bwy``) and blended in
+    one vectorised pass."""
+    W = crow.shape[0]
+    inv_x = 1.0 / abs(dX) if dX != 0 else 0.0
+    inv_y = 1.0 / abs(dY) if dY != 0 else 0.0
+    n = 0
+    u = 0
+    while u < W:
+        if flo[u] > v:
+            u += 1
+            continue
+        X = X0 + u * dX
+        Y = Y0 + u * dY
+        ix = X >> 16
+        iy = Y >> 16
+        if ix >= 0 and iy >= 0 and ix + 1 < tw and iy + 1 < th:
+            k = off + iy * tw + ix
+            p = int(tex[k])
+            R = p >> 24
+            if R > 0:
+                # how many more pixels stay in the square (exact: the quotients are small)
+                m = W - 1 - u
+                fx = X & 0xFFFF
+                fy = Y & 0xFFFF
+                if dX > 0:
+                    m = min(m, int(((R << 16) - fx - 1) * inv_x))
+                elif dX < 0:
+                    m = min(m, int((((R - 1) << 16) + fx) * inv_x))
+                if dY > 0:
+                    m = min(m, int(((R << 16) - fy - 1) * inv_y))
+                elif dY < 0:
+                    m = min(m, int((((R - 1) << 16) + fy) * inv_y))
+                w = np.uint32(p | 0xFF000000)
+                seg = crow[u : u + m + 1]  # (a loop from 0: vectorised)
+                for i in range(m + 1):
+                    seg[i] = w
+                u += m + 1
+                continue
+            b00[n] = p
+            b01[n] = int(tex[k + 1])
+            b10[n] = int(tex[k + tw])
+            b11[n] = int(tex[k + tw + 1])
+        else:
+            b00[n] = _texel(tex, off, tw, th, ix, iy, bg)
+            b01[n] = _texel(tex, off, tw, th, ix + 1, iy, bg)
+            b10[n] = _texel(tex, off, tw, th, ix, iy + 1, bg)
+            b11[n] = _texel(tex, off, tw, th, ix + 1, iy + 1, bg)
+        bwx[n] = (X >> 8) & 255
+        bwy[n] = (Y >> 8) & 255
+        bu[n] = u
+        n += 1
+        u += 1
+    for i in range(n):
+        b00[i] = _bilinear(b00[i], b01[i], b10[i], b11[i], bwx[i], bwy[i])
+    for i in range(n):
+        crow[bu[i]] = np.uint32(b00[i])
+
+
+@njit(**_JIT)
+def compose_rows(
+    color, depth, va, vb, r0, sky, row_depth, rowf,
+    ftex, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
+    L, ltop, lbot, lcol, lza, lzb, lrange, lball, lbd, lbe, lbg, balls, kcol, cam_z, fy, cy,
+    sg_tab, sg_d, sg_pix,
+    finish, dnoise, na, nb, coef, dmin, dmax, bgr,
+):
+    """Rows va..vb-1 of a level pinhole's frame, upright, in place: ``color`` (H, W) packed pixels
+    (:func:`_word`), ``depth`` (H, W) float32 z-depth (inf = nothing). Each row, in cache:
+
+    1. above row ``r0`` (the horizon) the background ``sky``, depth inf; below it the floor's
+       depth ``row_depth[v]`` (a level pinhole sees the floor at one z-depth along a row) and,
+       where ``flo[u] <= v``, its colour (:func:`_floor_row`): the floor point of pixel (u, v)
+       is at forward distance ``row_dist[v]`` and left offset -(u - cx) row_dist[v] / fx of the
+       camera at (ox, oy) heading ``yaw``; the texture level ``row_lev[v]`` (``ftab``: offset,
+       width, height in ``ftex``) whose texels match the pixel's footprint;
+    2. the L layers of :func:`column_layers`, far to near (depth ``lza + lzb rowf[v]``,
+       ``rowf[v]`` = fy / (v - cy) below the horizon; balls shaded per pixel);
+    3. the stop-sign sprites: ``sg_tab`` (n, 5) rows v0..v1-1, columns u0..u1-1, offset into
+       ``sg_pix`` (packed pixels, alpha > 127 = the plate), drawn where nearer than the depth so
+       far (``sg_d``);
+    4. with ``finish``: the depth as the D435 reports it (see :func:`finish_depth`, noise window
+       from row na, column nb).
+
+    With ``bgr`` ((H, 3 W) uint8, not empty) each row's colour goes there as B, G, R bytes
+    instead (``color`` is then not written: a row at a time in cache, no second pass).
+    """
+    W = color.shape[1]
+    nballs = balls.shape[0]
+    noisy = dnoise.shape[0] > 0
     c = np.float32(coef)
     lo = np.float32(dmin)
     hi = np.float32(dmax)
-    zero = np.float32(0.0)
-    for i in range(n):
-        v = v0 + i
-        crow = color[i]
-        drow = depth[i]
+    inf = np.float32(np.inf)
+    cyaw = math.cos(yaw)
+    syaw = math.sin(yaw)
+    bu = np.empty(W, np.int64)  # the floor's blended samples of a row (see _floor_row)
+    b00 = np.empty(W, np.int64)
+    b01 = np.empty(W, np.int64)
+    b10 = np.empty(W, np.int64)
+    b11 = np.empty(W, np.int64)
+    bwx = np.empty(W, np.int64)
+    bwy = np.empty(W, np.int64)
+    to_bgr = bgr.shape[0] > 0
+    scratch = np.empty(W, np.uint32)
+    for v in range(va, vb):
+        crow = scratch if to_bgr else color[v]
+        drow = depth[v]
         if v < r0:
             for u in range(W):
-                drow[u] = zero if crow[u] == 0 else drow[u]
+                crow[u] = sky
             for u in range(W):
-                x = crow[u]
-                crow[u] = bg if x == 0 else x
+                drow[u] = inf
         else:
             fz = row_depth[v]
-            frow = floor[v - r0]
             for u in range(W):
-                drow[u] = fz if crow[u] == 0 else drow[u]
-            for u in range(W):
-                x = crow[u]
-                crow[u] = frow[u] if x == 0 else x
+                drow[u] = fz
+            lev = row_lev[v]
+            off = ftab[lev, 0]
+            tw = ftab[lev, 1]
+            th = ftab[lev, 2]
+            sc = ppm / (1 << lev)
+            d = row_dist[v]
+            lat0 = cx * d / fx  # left offset of column 0
+            wx0 = ox + d * cyaw - lat0 * syaw
+            wy0 = oy + d * syaw + lat0 * cyaw
+            ddx = (d / fx) * syaw  # world step per column: -(d / fx) * (-sin, cos)
+            ddy = -(d / fx) * cyaw
+            i0 = ((wx0 - tx0) * ppm - 0.5) / (1 << lev)
+            j0 = ((ty1 - wy0) * ppm - 0.5) / (1 << lev)
+            X0 = int(math.floor(i0 * 65536.0 + 0.5))
+            Y0 = int(math.floor(j0 * 65536.0 + 0.5))
+            dX = int(math.floor(ddx * sc * 65536.0 + 0.5))
+            dY = int(math.floor(-ddy * sc * 65536.0 + 0.5))
+            _floor_row(crow, v, flo, ftex, off, tw, th, X0, dX, Y0, dY, int(sky), bu, b00, b01, b10, b11, bwx, bwy)
+        rf = np.float32(rowf[v])
+        for l in range(L):
+            if v < lrange[l, 0] or v > lrange[l, 1]:
+                continue
+            ua = lrange[l, 2]
+            ub = lrange[l, 3]
+            # slices from 0: a loop from an index numba cannot prove >= 0 is not vectorised
+            tops = ltop[l, ua:ub]
+            bots = lbot[l, ua:ub]
+            cols = lcol[l, ua:ub]
+            za = lza[l, ua:ub]
+            zb = lzb[l, ua:ub]
+            cs = crow[ua:ub]
+            ds = drow[ua:ub]
+            for i in range(ub - ua):
+                hit = (tops[i] <= v) & (v <= bots[i])
+                cs[i] = cols[i] if hit else cs[i]
+                ds[i] = (za[i] + zb[i] * rf) if hit else ds[i]
+            if nballs == 0:
+                continue
+            for u in range(ua, ub):
+                j = lball[l, u]
+                if j < 0 or ltop[l, u] > v or v > lbot[l, u]:
+                    continue
+                din = lbd[l, u]
+                r = balls[j, 2]
+                z = cam_z - (v - cy) * din / (kcol[u] * fy)
+                qq = (z - r) / r
+                lat = lbe[l, u] / r
+                s2 = 1.0 - qq * qq - lat * lat
+                sh = (0.35 + 0.65 * math.sqrt(s2) if s2 > 0.0 else 0.35) * lbg[l, u]
+                crow[u] = _word(balls[j, 3] * sh, balls[j, 4] * sh, balls[j, 5] * sh)
+        for s in range(sg_tab.shape[0]):
+            v0 = sg_tab[s, 0]
+            if v < v0 or v >= sg_tab[s, 1]:
+                continue
+            u0 = sg_tab[s, 2]
+            u1 = sg_tab[s, 3]
+            base = sg_tab[s, 4] + (v - v0) * (u1 - u0) - u0
+            zs = np.float32(sg_d[s])
+            for u in range(u0, u1):
+                p = sg_pix[base + u]
+                if (p >> 24) > 127 and drow[u] > zs:
+                    crow[u] = p | np.uint32(0xFF000000)
+                    drow[u] = zs
         if finish:
-            _finish_depth_row(drow, noise, na + v, nb, noisy, c, lo, hi)
+            _finish_depth_row(drow, dnoise, na + v, nb, noisy, c, lo, hi)
+        if to_bgr:
+            src = crow.view(np.uint8)  # (B, G, R, A bytes on a little-endian machine)
+            dst = bgr[v]
+            if LITTLE_ENDIAN:
+                for u in range(W):
+                    dst[3 * u] = src[4 * u]
+                    dst[3 * u + 1] = src[4 * u + 1]
+                    dst[3 * u + 2] = src[4 * u + 2]
+            else:  # pragma: no cover - big-endian machines
+                for u in range(W):
+                    dst[3 * u] = src[4 * u + 3]
+                    dst[3 * u + 1] = src[4 * u + 2]
+                    dst[3 * u + 2] = src[4 * u + 1]

@@ -26,21 +26,31 @@ ahead of the car's centre reads ``2 - rgbd_x`` = 1.92 m in the middle of the ima
 ``csi_front_x``/``csi_rear_x`` on the axis and ``csi_side_y`` to the sides, facing front, rear, left
 and right, ``csi_z`` above the floor.
 
-How it is drawn: the floor is a top-down texture (markings, brightness regions) warped into the
-image (a homography per texture level for the pinhole; a precomputed per-pixel ray map for the
-wide-angle views), then every image column casts a ray through the world's raster and paints the
-walls, obstacles and balls it meets far to near (their front faces, and the tops of those lower
-than the camera), then stop-sign plates are drawn as projected sprites with a depth test.
-Vertical shapes are exact for a level camera; with a pitch the level image is rendered and
-rotated (a homography).
+How it is drawn. The RGBD camera (a level pinhole, rendered upright, row-major):
 
-Speed (an RGBD pair in under a millisecond on two cores): images are drawn as packed BGRA words
-(OpenCV's 4-channel warps are some 2.5x its 3-channel ones; the numba kernel writes a pixel at
-once), transposed while the columns are painted, with colour and depth 0 where nothing stands.
-The pinhole's floor is warped upright on its own, its nearest rows in a helper thread
-(:data:`SPLIT_FRAMES`) while this thread paints the columns; then one numba pass per row puts
-the floor and the background under the rest and finishes the depth (noise, range limits), the
-two halves of the rows in the two threads. Noise comes from precomputed tiles at random offsets.
+1. each image column is a vertical plane; what it meets is found per *edge* in a world of
+   polygons and circles (each edge in front of the camera projected to the columns it spans and
+   intersected exactly with just those rays; ``vector_walls``), or by marching the world's raster
+   for a ROS map's grid; the walls, obstacles and balls it sees, up to the first that covers the
+   column, become *layers* of the column (rows, colour, depth = a + b / (v - cy)), far to near
+   (:func:`~qcarlab.sim._kernels.column_layers`);
+2. one pass per image row (:func:`~qcarlab.sim._kernels.compose_rows`), each row in cache: the
+   floor, a top-down texture (markings, brightness regions) at the level of its mipmap whose
+   texels match the row's footprint: a row of a level camera is a straight line through the
+   texture, so where a texel's *run radius* (``raster.floor_runs``) says the next pixels all
+   read one colour they are filled at once (the same numbers as blending each), the rest are
+   blended bilinearly in one vectorised batch; the floor's depth is one number per row; then
+   the layers, the stop-sign sprites (depth-tested), the depth's noise and range limits, the
+   row's BGR bytes;
+3. the colour noise (two saturating OpenCV passes over the frame).
+
+A camera pitched down renders the level view so, then rotates it (a homography). The CSI views
+are drawn per column in a transposed buffer (:func:`~qcarlab.sim._kernels.render_columns`,
+the floor by a precomputed per-pixel ray map) and remapped to the fisheye.
+
+Speed (one core, ``benchmarks/bench_sensors.py``): no transposes, no per-frame warps of the
+floor, each output byte written once. With two free cores the rows are split with a helper
+thread (:data:`SPLIT_FRAMES`). Noise comes from precomputed tiles at random offsets.
 """
 
 from __future__ import annotations
@@ -57,7 +67,8 @@ import numpy as np
 from qcarlab.constants import csi_mounts, DEFAULT_PARAMS, QCarParams
 from qcarlab.sensors import CameraIntrinsics, CSIFrames, RGBDFrame
 from qcarlab.sim import _kernels
-from qcarlab.sim.raster import brightness_grid, build_raster, floor_pyramid
+from qcarlab.sim import raster as raster_kinds
+from qcarlab.sim.raster import brightness_grid, build_raster, floor_pyramid, floor_runs
 from qcarlab.sim.world import Sign, World, load_world
 
 __all__ = [
@@ -72,22 +83,24 @@ __all__ = [
 RGBD_MIN_DEPTH = 0.1  # m: the D435 reads 0 nearer than this
 DEPTH_NOISE = 0.004  # depth noise sigma = DEPTH_NOISE * z^2 (m): 4 mm at 1 m, 16 mm at 2 m
 COLOR_NOISE_SD = 2.5  # colour noise, levels of 255 per channel
+DEPTH_TILE_STEP = 1.0 / 32.0  # the depth noise tile's unit (standard deviations): +-3.97 sigma in int8
 FLOOR_PX_PER_M = 200.0  # floor texture resolution (5 mm texels)
 MAX_VIEW_DIST = 30.0  # m, how far the cameras look for walls
 LIGHT_DIR = (0.6, 0.8)  # horizontal direction of the light that shades vertical faces
 CSI_OVERSAMPLE = 0.8  # cylinder pixels per fisheye pixel at the centre of a CSI view
 _NOISE_PAD = 48
 _SPRITE = 128
-_NO_NOISE = np.zeros((0, 0), np.float32)
+_NO_NOISE = np.zeros((0, 0), np.int8)
+_NO_BGR = np.zeros((0, 0), np.uint8)
+_NO_SIGNS = (np.zeros((0, 5), np.int64), np.zeros(0, np.float64), np.zeros(0, np.uint32))
 
 
-#: Share an RGBD frame with a helper thread (one per process): the near floor while the calling
-#: thread paints the walls and objects, then half the rows of the finishing passes. OpenCV and
-#: the numba kernels release the GIL, so on two free cores a frame takes about 0.7 of the time
-#: (no gain when the other core is busy); the result is the same pixel for pixel. Off without
-#: numba (the pure-Python kernels hold the GIL) or when the process may run on one core only
-#: (``os.sched_getaffinity``, checked at each frame: a benchmark or a grader pinned to a core);
-#: set to False to draw every frame in the calling thread.
+#: Share an RGBD frame with a helper thread (one per process): after the column pass, the
+#: second half of the rows (their composition and colour noise) while the calling thread does
+#: the first. OpenCV and the numba kernels release the GIL; the result is the same pixel for
+#: pixel. Off without numba (the pure-Python kernels hold the GIL) or when the process may run
+#: on one core only (``os.sched_getaffinity``, checked at each frame: a benchmark or a grader
+#: pinned to a core); set to False to draw every frame in the calling thread.
 SPLIT_FRAMES = _kernels.HAVE_NUMBA
 
 
@@ -206,10 +219,13 @@ class _Noise:
         n = rng.normal(0.0, color_sd, shape + (3,))
         self.pos = np.clip(np.rint(n), 0, 255).astype(np.uint8)
         self.neg = np.clip(np.rint(-n), 0, 255).astype(np.uint8)
-        self.depth = rng.standard_normal(shape, dtype=np.float32) if depth else None
+        # depth: standard normal in int8 steps of DEPTH_TILE_STEP (a quarter of the float32
+        # tile's bytes: the tile stays in the cache beside the frame)
+        self.depth = (np.clip(np.rint(rng.standard_normal(shape, dtype=np.float32) / DEPTH_TILE_STEP), -127, 127)
+                      .astype(np.int8) if depth else None)
 
     def windows(self) -> list[int]:
-        """This frame's window offsets: (row, col) for the colour's + and - tiles, then depth's.
+        """This frame's window offsets: (row, col) for the colour's tiles, (unused), then depth's.
 
         Six 10-bit fields of one raw 64-bit draw, each scaled to 0 .. _NOISE_PAD - 1
         (``Generator.integers`` costs some 20 us a call, a noticeable part of a frame)."""
@@ -217,24 +233,25 @@ class _Noise:
         return [(((x >> (10 * i)) & 1023) * _NOISE_PAD) >> 10 for i in range(6)]
 
     def color(self, img: np.ndarray, o: list[int], v0: int = 0) -> None:
-        """Noise on ``img``, rows v0.. of a frame (all of it by default), windows ``o`` (from
-        :meth:`windows`)."""
+        """Noise on ``img``, rows v0.. of a frame (all of it by default), window ``o[0:2]`` (from
+        :meth:`windows`): the + and - parts of one tile at the same place, so the pixel gets
+        clip(c + rint(n)), n ~ N(0, color_sd) (two windows gave a spread of 0.83 color_sd)."""
         n, w = img.shape[0], img.shape[1]
         a, b = o[0] + v0, o[1]
         cv2.add(img, self.pos[a : a + n, b : b + w], dst=img)
-        a, b = o[2] + v0, o[3]
         cv2.subtract(img, self.neg[a : a + n, b : b + w], dst=img)
 
 
 class _ColumnView:
     """A level camera whose columns are vertical planes: a pinhole or a cylindrical panorama.
 
-    Images are kept *transposed* (one row per image column) while drawing, so each column's
-    pixels are contiguous; colour as BGRA (``color4`` (W, H, 4) uint8, the same memory as
-    ``color_t`` (W, H) uint32 packed pixels, which the numba kernel writes one word at a time).
     Column u looks along azimuth ``az[u]`` (rad, left positive) from the camera's forward
     direction; a point at horizontal distance d and height z is at row
-    ``cy - (z - cam_z) * k[u] * fy / d``.
+    ``cy - (z - cam_z) * k[u] * fy / d``. A cylindrical view (the CSI cameras) is drawn
+    *transposed* (one row per image column, so each column's pixels are contiguous): colour as
+    BGRA (``color4`` (W, H, 4) uint8, the same memory as ``color_t`` (W, H) uint32 packed
+    pixels, which the numba kernel writes one word at a time). A pinhole (the RGBD camera) is
+    drawn upright by :class:`RGBDCamera`, from the per-row tables planned here.
     """
 
     def __init__(
@@ -270,69 +287,32 @@ class _ColumnView:
         dist = np.full(self.H, np.inf)
         dist[below] = self.cam_z * self.fy / (h_rows[below] - self.cy)
         self.row_dist = dist
-        # the floor's depth (transposed, one row per column): a pinhole's z-depth is the same
-        # along an image row (the horizontal distance along column u's ray is dist * k[u]); a
-        # cylinder view (k = 1) records the horizontal distance, the same numbers
+        # the floor's depth: a pinhole's z-depth is the same along an image row (the horizontal
+        # distance along column u's ray is dist * k[u]); a cylinder view (k = 1) records the
+        # horizontal distance, the same numbers
         self.row_depth = dist.astype(np.float32)
-        self.floor_depth = np.ascontiguousarray(np.broadcast_to(self.row_depth, (self.W, self.H)))
-        self.color4 = np.empty((self.W, self.H, 4), np.uint8)
-        self.color_t = self.color4.view(np.uint32).reshape(self.W, self.H)
-        self.depth_t = np.empty((self.W, self.H), np.float32)
         self._no_balls = np.zeros((0, 6), np.float64)
         if pinhole is not None:
-            self.floor_rm = np.empty((self.H - self.r0, self.W, 4), np.uint8)  # the floor, upright
-            self.floor_rm_u32 = self.floor_rm.view(np.uint32).reshape(self.H - self.r0, self.W)
             self._plan_levels()
         else:
+            self.floor_depth = np.ascontiguousarray(np.broadcast_to(self.row_depth, (self.W, self.H)))
+            self.color4 = np.empty((self.W, self.H, 4), np.uint8)
+            self.color_t = self.color4.view(np.uint32).reshape(self.W, self.H)
+            self.depth_t = np.empty((self.W, self.H), np.float32)
             self._plan_rays(tex_level)
 
-    # --- floor: pinhole by homographies, one per texture level --------------------------------
+    # --- floor: pinhole, a texture level per row ----------------------------------------------
     def _plan_levels(self) -> None:
+        """``row_lev``: the floor texture's level for each image row (0 above the horizon)."""
         assert self.pinhole is not None
         texel = 1.0 / self.ppm
-        rows = np.arange(self.r0, self.H)
         z = self.row_dist[self.r0 :]
         # footprint of a pixel on the floor: geometric mean of its across (z/fx) and along
         # (z^2/(h fy)) extents; choose the texture level whose texels match it
         foot = np.sqrt((z / self.pinhole.fx) * (z * z / (self.cam_z * self.fy)))
-        lev = np.clip(np.floor(np.log2(np.maximum(foot / texel, 1.0))), 0, len(self.levels) - 1).astype(int)
-        self.spans: list[tuple[int, int, int]] = []  # (level, row_from, row_to)
-        start = 0
-        for i in range(1, len(rows) + 1):
-            if i == len(rows) or lev[i] != lev[start]:
-                self.spans.append((int(lev[start]), int(rows[start]), int(rows[i - 1]) + 1))
-                start = i
-        # what the pose does not change: per span, image rows -> K, and level texel -> floor (m)
-        K = self.pinhole.matrix
-        h0 = 0.5 / self.ppm  # pyrDown keeps level-L pixel i centred on level-0 pixel i * 2^L
-        self._span_plan = []
-        for lev, ra, rb in self.spans:
-            sc = (2**lev) / self.ppm
-            T = np.array([[sc, 0.0, self.tex_x0 + h0], [0.0, -sc, self.tex_y1 - h0], [0.0, 0.0, 1.0]])
-            P = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -ra], [0.0, 0.0, 1.0]])
-            dst = self.floor_rm[ra - self.r0 : rb - self.r0]
-            self._span_plan.append((self.levels[lev], P @ K, T, dst))
-
-    def _floor_pinhole(self, cx_w: float, cy_w: float, yaw: float, near: bool = True, far: bool = True) -> None:
-        """The floor below the horizon into ``floor_rm``: upright (row-major; OpenCV's warp is
-        faster so), at the texture level that matches each row's footprint; ``near``: the
-        nearest span of rows (the finest level, most of the pixels), ``far``: the others."""
-        s, c = math.sin(yaw), math.cos(yaw)
-        M = np.array(
-            [
-                [s, -c, -cx_w * s + cy_w * c],
-                [0.0, 0.0, self.cam_z],
-                [c, s, -cx_w * c - cy_w * s],
-            ]
-        )
-        W = self.W
-        plan = self._span_plan  # the nearest span last
-        spans = plan if near and far else plan[-1:] if near else plan[:-1] if far else []
-        for tex, PK, T, dst in spans:
-            cv2.warpPerspective(
-                tex, PK @ M @ T, (W, dst.shape[0]), dst=dst,
-                flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=self.bg,
-            )
+        lev = np.clip(np.floor(np.log2(np.maximum(foot / texel, 1.0))), 0, len(self.levels) - 1).astype(np.int64)
+        self.row_lev = np.zeros(self.H, np.int64)
+        self.row_lev[self.r0 :] = lev
 
     # --- floor: any projection by a per-pixel ray map ------------------------------------------
     def _plan_rays(self, tex_level: int) -> None:
@@ -366,24 +346,27 @@ class _ColumnView:
         return (x + c * self.mx - s * self.my, y + s * self.mx + c * self.my, yaw + self.myaw)
 
     def draw(self, pose: tuple[float, float, float], t: float) -> None:
-        """Draw the view into ``color_t``/``depth_t`` (transposed; depth = inf where nothing): the
-        floor, then the walls, obstacles, balls and signs. Not for a pinhole view, whose floor
-        is drawn apart (``floor_rm``) and composited under the rest by :class:`RGBDCamera`."""
+        """Draw a cylindrical view into ``color_t``/``depth_t`` (transposed; depth = inf where
+        nothing): the floor, then the walls, obstacles, balls and signs. (A pinhole view is
+        drawn upright by :class:`RGBDCamera`.)"""
         assert self.pinhole is None
         cx_w, cy_w, yaw = self.camera_pose(pose)
         self._floor_rays(cx_w, cy_w, yaw)
         self.draw_objects(cx_w, cy_w, yaw, t)
 
-    def draw_objects(self, cx_w: float, cy_w: float, yaw: float, t: float) -> None:
-        """The numba kernel: the background above the horizon and the floor's depth (for a
-        pinhole view instead colour 0, "nothing drawn", everywhere: see
-        :func:`~qcarlab.sim._kernels.finish_frame`), then the walls, obstacles and balls far to
-        near; then the signs."""
+    def balls_at(self, t: float) -> np.ndarray:
+        """The moving balls at time ``t`` as the kernels take them: (m, 6) x, y, radius, B, G, R."""
         balls = self.world.obstacles_at(t) if self.world.balls else ()
-        b = np.array([(c.x, c.y, c.radius, *c.color) for c in balls], np.float64).reshape(-1, 6) if balls else self._no_balls
+        return np.array([(c.x, c.y, c.radius, *c.color) for c in balls], np.float64).reshape(-1, 6) if balls else self._no_balls
+
+    def draw_objects(self, cx_w: float, cy_w: float, yaw: float, t: float) -> None:
+        """The numba kernel over the floor drawn in a cylindrical view: the background above the
+        horizon and the floor's depth, then the walls, obstacles and balls far to near; then the
+        signs."""
+        b = self.balls_at(t)
         r, g = self.raster, self.gain
         _kernels.render_columns(
-            self.color_t, self.depth_t, self.floor_depth, self.bg_packed, self.r0, self.pinhole is not None,
+            self.color_t, self.depth_t, self.floor_depth, self.bg_packed, self.r0, False,
             cx_w, cy_w, self.cam_z, yaw, self.cos_c, self.sin_c, self.k, self.fy, self.cy, MAX_VIEW_DIST,
             r.x0, r.y0, r.res, r.cells, r.kinds, r.heights, r.colors, r.poly_start, r.poly_count,
             r.verts, r.circles, g.gain, g.x0, g.y0, g.res, b, LIGHT_DIR[0], LIGHT_DIR[1],
@@ -417,7 +400,11 @@ class _ColumnView:
             raise TypeError(f"{type(self).__name__} has no pinhole intrinsics: it must define col_of_az")
         return p.cx - p.fx * np.tan(az)
 
-    def _draw_sign(self, sign: Sign, cx_w: float, cy_w: float, yaw: float) -> None:
+    def _sign_quad(self, sign: Sign, cx_w: float, cy_w: float, yaw: float):
+        """A sign's plate seen from the camera: (its corners in transposed pixel coordinates (4, 2:
+        v, u; top-left, top-right, bottom-right, bottom-left as the viewer sees them), the depth
+        of its centre, True when its front faces the camera, its light gain), or None when it is
+        behind or too near the camera."""
         px, py, pz = sign.plate_center
         to_cam = (cx_w - px) * math.cos(sign.facing) + (cy_w - py) * math.sin(sign.facing)
         front = to_cam > 0.0
@@ -425,7 +412,6 @@ class _ColumnView:
         rx, ry = math.cos(sign.facing + math.pi / 2.0), math.sin(sign.facing + math.pi / 2.0)
         if not front:  # seen from behind, the viewer's right is the other way
             rx, ry = -rx, -ry
-        # sprite corners (top-left, top-right, bottom-right, bottom-left) as the viewer sees them
         sq = np.array(
             [
                 [px - rx * half, py - ry * half, pz + half],
@@ -436,40 +422,78 @@ class _ColumnView:
         )
         pix, dep = self.project(sq, cx_w, cy_w, yaw)
         if np.any(dep < 0.05):
-            return
+            return None
         _, dcen = self.project(np.array([[px, py, pz]]), cx_w, cy_w, yaw)
+        g = self.gain
+        gi = int((py - g.y0) / g.res)
+        gj = int((px - g.x0) / g.res)
+        gain = float(g.gain[gi, gj]) if 0 <= gi < g.gain.shape[0] and 0 <= gj < g.gain.shape[1] else 1.0
+        return pix, float(dcen[0]), front, gain
+
+    @staticmethod
+    def _sprite_patch(pix: np.ndarray, front: bool, gain: float, rows: int, cols: int):
+        """The sprite warped onto the quad ``pix`` ((4, 2) x, y in the patch's own image): a
+        BGRA patch of rows x cols, its colour scaled by ``gain``."""
+        s = _SPRITE
+        # sprite pixel centres: corners of the octagon's square are at -0.5 and s - 0.5
+        src = np.array([[-0.5, -0.5], [s - 0.5, -0.5], [s - 0.5, s - 0.5], [-0.5, s - 0.5]], np.float32)
+        Hs = cv2.getPerspectiveTransform(src, pix.astype(np.float32))
+        sprite = _sprites()[0 if front else 1]
+        patch = cv2.warpPerspective(sprite, Hs, (cols, rows), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        if gain != 1.0:
+            patch[:, :, :3] = cv2.convertScaleAbs(patch[:, :, :3], alpha=gain)
+        return patch
+
+    def _draw_sign(self, sign: Sign, cx_w: float, cy_w: float, yaw: float) -> None:
+        """A sign into the transposed buffers of a cylindrical view, depth-tested."""
+        q = self._sign_quad(sign, cx_w, cy_w, yaw)
+        if q is None:
+            return
+        pix, d, front, gain = q
         x0 = max(int(math.floor(pix[:, 0].min())), 0)
         x1 = min(int(math.ceil(pix[:, 0].max())) + 1, self.H)
         y0 = max(int(math.floor(pix[:, 1].min())), 0)
         y1 = min(int(math.ceil(pix[:, 1].max())) + 1, self.W)
         if x0 >= x1 or y0 >= y1:
             return
-        s = _SPRITE
-        # sprite pixel centres: corners of the octagon's square are at -0.5 and s - 0.5
-        src = np.array([[-0.5, -0.5], [s - 0.5, -0.5], [s - 0.5, s - 0.5], [-0.5, s - 0.5]], np.float32)
-        # transposed image coords: x = v (image row), y = u (image column)
-        dst = (pix - [x0, y0]).astype(np.float32)
-        Hs = cv2.getPerspectiveTransform(src, dst)
-        sprite = _sprites()[0 if front else 1]
-        patch = cv2.warpPerspective(sprite, Hs, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        # patch is (rows = image columns y, cols = image rows x) like the transposed buffers
+        # transposed image coords: x = v (image row), y = u (image column); the patch has rows =
+        # image columns, like the transposed buffers
+        patch = self._sprite_patch(pix - [x0, y0], front, gain, y1 - y0, x1 - x0)
         zroi = self.depth_t[y0:y1, x0:x1]
-        d = float(dcen[0])
-        drawn = self.color_t[y0:y1, x0:x1] != 0  # (a pinhole view: the rest is floor or background)
-        mask = (patch[:, :, 3] > 127) & (np.where(drawn, zroi, self.floor_depth[y0:y1, x0:x1]) > d)
+        mask = (patch[:, :, 3] > 127) & (zroi > d)
         if not mask.any():
             return
-        g = self.gain
-        gi = int((py - g.y0) / g.res)
-        gj = int((px - g.x0) / g.res)
-        gain = float(g.gain[gi, gj]) if 0 <= gi < g.gain.shape[0] and 0 <= gj < g.gain.shape[1] else 1.0
-        rgb = patch[:, :, :3]
-        if gain != 1.0:
-            rgb = cv2.convertScaleAbs(rgb, alpha=gain)
         roi = self.color4[y0:y1, x0:x1]
-        roi[:, :, :3][mask] = rgb[mask]
-        roi[:, :, 3][mask] = 255  # opaque: not floor
+        roi[:, :, :3][mask] = patch[:, :, :3][mask]
+        roi[:, :, 3][mask] = 255
         zroi[mask] = d
+
+    def sign_patches(self, cx_w: float, cy_w: float, yaw: float):
+        """The signs of an upright pinhole view as :func:`~qcarlab.sim._kernels.compose_rows`
+        draws them: (table (n, 5) int64 of rows v0..v1, columns u0..u1 and offset into the
+        pixels, depths (n,), packed pixels uint32)."""
+        tabs, deps, pixs, off = [], [], [], 0
+        for sign in self.world.signs:
+            q = self._sign_quad(sign, cx_w, cy_w, yaw)
+            if q is None:
+                continue
+            pix, d, front, gain = q
+            uv = pix[:, ::-1]  # (u, v)
+            u0 = max(int(math.floor(uv[:, 0].min())), 0)
+            u1 = min(int(math.ceil(uv[:, 0].max())) + 1, self.W)
+            v0 = max(int(math.floor(uv[:, 1].min())), 0)
+            v1 = min(int(math.ceil(uv[:, 1].max())) + 1, self.H)
+            if u0 >= u1 or v0 >= v1:
+                continue
+            patch = self._sprite_patch(uv - [u0, v0], front, gain, v1 - v0, u1 - u0).astype(np.uint32)
+            words = patch[:, :, 0] | (patch[:, :, 1] << 8) | (patch[:, :, 2] << 16) | (patch[:, :, 3] << 24)
+            tabs.append((v0, v1, u0, u1, off))
+            deps.append(d)
+            pixs.append(words.reshape(-1))
+            off += words.size
+        if not tabs:
+            return _NO_SIGNS
+        return np.array(tabs, np.int64), np.array(deps, np.float64), np.ascontiguousarray(np.concatenate(pixs))
 
 
 def _level_view_size(W: int, H: int, fx: float, fy: float, cx: float, cy: float, pitch: float):
@@ -525,6 +549,26 @@ class RGBDCamera:
         self._noise = _Noise(rng, H, W, COLOR_NOISE_SD, True) if rng is not None else None
         self._color4 = np.empty((level.height, level.width, 4), np.uint8)  # the level view, upright
         self._color4_u32 = self._color4.view(np.uint32).reshape(level.height, level.width)
+        # what compose_rows reads that the pose does not change
+        lw, lh = level.width, level.height
+        rows = np.arange(lh, dtype=np.float64)
+        self._rowf = np.where(rows > level.cy, level.fy / np.maximum(rows - level.cy, 1e-9), 0.0)
+        self._floor = floor_runs(self.world, FLOOR_PX_PER_M)
+        # the layers column_layers writes (see there), and the first floor row of each column
+        n = _kernels.LMAX
+        self._ltop, self._lbot, self._lball = (np.empty((n, lw), np.int32) for _ in range(3))
+        self._lcol = np.empty((n, lw), np.uint32)
+        self._lza, self._lzb, self._lbd, self._lbe, self._lbg = (np.empty((n, lw), np.float32) for _ in range(5))
+        self._lrange = np.empty((n, 4), np.int64)
+        self._flo = np.empty(lw, np.int32)
+        r = self._view.raster
+        #: find walls and obstacles per polygon edge (True: no ROS grid among the shapes) or by
+        #: marching the raster (see _kernels.column_layers)
+        self.vector_walls = not bool(len(r.kinds) and r.kinds[0] == raster_kinds.KIND_GRID)
+        self._edges = _kernels.edge_table(r.kinds, r.poly_start, r.poly_count, r.verts)
+        self._cr_t = np.empty((lw, _kernels.CMAX), np.float64)  # scratch of vector_crossings
+        self._cr_e = np.empty((lw, _kernels.CMAX), np.int64)
+        self._ncr = np.empty(lw, np.int64)
 
     @property
     def rate(self) -> float:
@@ -540,28 +584,26 @@ class RGBDCamera:
         cx_w, cy_w, yaw = v.camera_pose(pose)
         W, H = self.intrinsics.width, self.intrinsics.height
         o = self._noise.windows() if self._noise is not None else None
-        helper = _helper()
-        # the near floor (the finest texture level, most of the floor's pixels) in the helper
-        # thread; the walls and objects (transposed), the far floor and the depth image here
-        done = helper.submit(v._floor_pinhole, cx_w, cy_w, yaw, True, False) if helper is not None else None
-        try:
-            v.draw_objects(cx_w, cy_w, yaw, t)
-            v._floor_pinhole(cx_w, cy_w, yaw, done is None, True)
-            depth = cv2.transpose(v.depth_t)
-        finally:
-            _wait(done)
+        # what each column sees (this thread), then the rows: floor, layers, signs, noise
+        balls = v.balls_at(t)
+        layers = (self._columns(cx_w, cy_w, yaw, balls), balls)
+        signs = v.sign_patches(cx_w, cy_w, yaw)
+        lv = self._level
+        depth = np.empty((lv.height, lv.width), np.float32)
         if self._rot is None:
-            # then the frame by halves of its rows, the second half in the helper thread
+            # the frame by halves of its rows, the second half in the helper thread
             color = np.empty((H, W, 3), np.uint8)
+            helper = _helper()
             mid = H // 2 if helper is not None else H
-            done = helper.submit(self._finish_rows, color, depth, o, mid, H) if helper is not None else None
+            args = (color, depth, (cx_w, cy_w, yaw), layers, signs, o)
+            done = helper.submit(self._rows, *args, mid, H) if helper is not None and mid < H else None
             try:
-                self._finish_rows(color, depth, o, 0, mid)
+                self._rows(*args, 0, mid)
             finally:
                 _wait(done)
             return RGBDFrame(t=float(t), color=color, depth=depth)
         # pitched: the level view upright, then rotated
-        self._upright_rows(depth, None, 0, v.H)
+        self._compose(depth, (cx_w, cy_w, yaw), layers, signs, None, 0, lv.height)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
         c4 = cv2.warpPerspective(self._color4, self._rot, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
         color = cv2.cvtColor(c4, cv2.COLOR_BGRA2BGR)
@@ -574,22 +616,43 @@ class RGBDCamera:
         self._finish_depth(depth, o)
         return RGBDFrame(t=float(t), color=color, depth=depth)
 
-    def _upright_rows(self, depth: np.ndarray, o: list[int] | None, a: int, b: int, finish: bool = False) -> None:
-        """Rows a..b of the level view: the colour upright into ``_color4``, the background and
-        the floor where nothing else was drawn (colour and ``depth``); with ``finish`` the depth
-        noise and range limits too (noise windows ``o``)."""
+    def _columns(self, cx_w: float, cy_w: float, yaw: float, balls: np.ndarray) -> int:
+        """The layers of every column (:func:`~qcarlab.sim._kernels.column_layers`); returns how many."""
         v = self._view
-        cv2.transpose(v.color4[:, a:b], dst=self._color4[a:b])
-        tile, na, nb = self._depth_noise(o)
-        _kernels.finish_frame(
-            self._color4_u32[a:b], depth[a:b], a, v.r0, v.bg_packed, v.floor_rm_u32, v.row_depth, finish,
-            tile, na, nb, DEPTH_NOISE, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth),
+        r, g = v.raster, v.gain
+        return _kernels.column_layers(
+            self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lball, self._lbd, self._lbe, self._lbg,
+            self._lrange, self._flo, v.r0, v.H, cx_w, cy_w, v.cam_z, yaw, v.cos_c, v.sin_c, v.k,
+            self._level.fx, self._level.cx, v.fy, v.cy, MAX_VIEW_DIST, r.x0, r.y0, r.res, r.cells, r.kinds, r.heights,
+            r.colors, r.poly_start, r.poly_count, r.verts, r.circles, g.gain, g.x0, g.y0, g.res, balls,
+            LIGHT_DIR[0], LIGHT_DIR[1], self.vector_walls, self._edges, self._cr_t, self._cr_e, self._ncr,
         )
 
-    def _finish_rows(self, color: np.ndarray, depth: np.ndarray, o: list[int] | None, a: int, b: int) -> None:
-        """Rows a..b of an unpitched frame, done: colour upright, BGR, noise; depth finished."""
-        self._upright_rows(depth, o, a, b, True)
-        cv2.cvtColor(self._color4[a:b], cv2.COLOR_BGRA2BGR, dst=color[a:b])
+    def _compose(self, depth, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None, a: int, b: int,
+                 bgr: np.ndarray = _NO_BGR) -> None:
+        """Rows a..b of the level view into ``_color4`` and ``depth``
+        (:func:`~qcarlab.sim._kernels.compose_rows`); unpitched, the depth finished too (range
+        limits, and noise in the windows ``o`` unless None). A pitched view's depth is finished
+        after the rotation. With ``bgr`` (the frame's colour as (H, 3 W) bytes) the colour goes
+        there instead of ``_color4``."""
+        v, fl, lv = self._view, self._floor, self._level
+        finish = self._rot is None
+        dn, na, nb = self._depth_noise(o if finish else None)
+        cx_w, cy_w, yaw = cam
+        n_layers, balls = layers
+        _kernels.compose_rows(
+            self._color4_u32, depth, a, b, v.r0, v.bg_packed, v.row_depth, self._rowf,
+            fl.texels, fl.levels, v.row_lev, v.row_dist, cx_w, cy_w, yaw, lv.fx, lv.cx, fl.x0, fl.y1, fl.ppm, self._flo,
+            n_layers, self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lrange, self._lball, self._lbd,
+            self._lbe, self._lbg, balls, v.k, v.cam_z, v.fy, v.cy, signs[0], signs[1], signs[2],
+            finish, dn, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth), bgr,
+        )
+
+    def _rows(self, color: np.ndarray, depth: np.ndarray, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None,
+              a: int, b: int) -> None:
+        """Rows a..b of an unpitched frame, done: composed and finished into ``color`` (BGR) and
+        ``depth``, then the colour noise."""
+        self._compose(depth, cam, layers, signs, o, a, b, color.reshape(color.shape[0], -1))
         if o is not None:
             assert self._noise is not None
             self._noise.color(color[a:b], o, a)
@@ -604,7 +667,8 @@ class RGBDCamera:
         """The depth image as the D435 reports it: inf -> 0 (no data), noise sigma
         DEPTH_NOISE z^2 (windows ``o``, None = no noise), 0 beyond the range and too near."""
         tile, na, nb = self._depth_noise(o)
-        _kernels.finish_depth(depth, tile, na, nb, DEPTH_NOISE, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth))
+        _kernels.finish_depth(depth, tile, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH,
+                              float(self.params.rgbd_max_depth))
 
 
 # --------------------------------------------------------------------------------------------

@@ -22,12 +22,16 @@ drawn from the ``rng`` given, the LIDAR's own: it draws the noise of 16 scans at
 nothing is within the maximum range and also when the object is closer than the minimum range
 (the RPLidar reports no valid distance then; set :data:`CLOSE_READS_MIN` to clamp instead).
 
-Speed: the static world is drawn once into a raster with a distance transform (see
-:mod:`qcarlab.sim.raster`, one uint16 a cell; a ROS map's walls also as 8 x 8-cell tiles of one
-byte a cell, which stay in the cache between scans); a scan marches every beam through it with
-precomputed sin/cos tables (compiled with numba when available) and intersects the few moving
-balls analytically. ``last_cell_steps`` tells how many cells the last scan looked at: about 3
-per cell of a beam's length at most, whatever the pose (a beam along a cell boundary included).
+Speed: a world of polygons and circles alone (every built-in world) is scanned per *edge*: each
+polygon edge is intersected with just the beams whose angles it spans (circles likewise), exact
+to rounding, a few microseconds a scan (``vector_walls``). A ROS map's grid is drawn once into a
+raster with a distance transform (see :mod:`qcarlab.sim.raster`, one uint16 a cell; its walls
+also as 8 x 8-cell tiles of one byte a cell, which stay in the cache between scans); a scan
+marches every beam through it, two beams at a time, with precomputed sin/cos tables (compiled
+with numba when available). The few moving balls are intersected analytically. For a marched
+scan ``last_cell_steps`` tells how many cells it looked at: about 3 per cell of a beam's length
+at most, whatever the pose (a beam along a cell boundary included); set ``vector_walls = False``
+to march a vector world's raster too.
 """
 
 from __future__ import annotations
@@ -40,7 +44,7 @@ from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import InputError
 from qcarlab.sensors import LidarScan
 from qcarlab.sim import _kernels
-from qcarlab.sim.raster import build_raster
+from qcarlab.sim.raster import KIND_GRID, build_raster
 from qcarlab.sim.world import World, load_world
 
 __all__ = ["CLOSE_READS_MIN", "Lidar"]
@@ -77,10 +81,16 @@ class Lidar:
         self.angles.setflags(write=False)
         self._cos = np.cos(self.angles)
         self._sin = np.sin(self.angles)
-        self._raster = build_raster(self.world, z=params.lidar_z)
+        self._raster = r = build_raster(self.world, z=params.lidar_z)
         self._no_balls = np.zeros((0, 3), np.float64)
         self._no_noise = np.zeros(0, np.float64)
-        self.last_cell_steps = 0  # cells the last scan looked at (all beams): the work it took
+        #: scan per polygon edge (True: a world of polygons and circles alone) or march the raster
+        self.vector_walls = not bool(len(r.kinds) and r.kinds[0] == KIND_GRID)
+        self._edges = _kernels.edge_table(r.kinds, r.poly_start, r.poly_count, r.verts)
+        self._full = fov is None or fov >= 2.0 * math.pi
+        self._a0 = float(self.angles[0])
+        self._da = (2.0 * math.pi / self.beams) if self._full else float(self.angles[1] - self.angles[0])
+        self.last_cell_steps = 0  # cells the last marched scan looked at (all beams): the work it took
         self._noise_rows = np.zeros((0, self.beams))
         self._noise_i = 0
 
@@ -110,6 +120,13 @@ class Lidar:
         sx, sy, syaw = self.sensor_pose(pose)
         r, p = self._raster, self.params
         out = np.empty(self.beams, np.float64)
+        if self.vector_walls:
+            _kernels.lidar_scan_edges(
+                sx, sy, syaw, self._cos, self._sin, self._a0, self._da, self._full, float(p.lidar_max_range),
+                self._edges, r.kinds, r.circles, self._balls(t), noise, float(p.lidar_min_range), near_mode, out,
+            )
+            self.last_cell_steps = 0
+            return out
         self.last_cell_steps = _kernels.lidar_scan(
             sx, sy, syaw, self._cos, self._sin, float(p.lidar_max_range),
             r.x0, r.y0, r.res, r.cells, r.tiles, r.tiles_x, r.kinds, r.poly_start, r.poly_count, r.verts, r.circles,

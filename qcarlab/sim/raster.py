@@ -127,6 +127,70 @@ def floor_pyramid(world: World, px_per_m: float, levels: int = 6) -> tuple[list[
 
 
 @dataclass(frozen=True)
+class FloorRuns:
+    """The floor pyramid as the RGBD kernel samples it (see :func:`floor_runs`)."""
+
+    texels: np.ndarray  # uint32, every level's packed BGR texels one after the other, row-major
+    levels: np.ndarray  # int64 (L, 3): offset into texels, width, height of each level
+    x0: float  # level 0's frame, as floor_texture's: texel (col, row) centred on
+    y1: float  # x = x0 + (col + 0.5) / ppm, y = y1 - (row + 0.5) / ppm
+    ppm: float
+
+
+def run_radii(tex: np.ndarray) -> np.ndarray:
+    """How far a bilinear sample may move and still read one colour: R[j, i] (uint8, <= 255).
+
+    Block (i, j) is the 2 x 2 texels (i..i+1, j..j+1) a bilinear sample with floor(x) = i,
+    floor(y) = j reads; it is *uniform* when its four texels are equal (the sample is then that
+    colour exactly, whatever its weights). R is the Chebyshev distance (in blocks) from block
+    (i, j) to the nearest block that is not uniform; blocks on the texture's edge rows and
+    columns count as not uniform (their samples read the border), so R = 0 there. Every block
+    within R - 1 of a block with R >= 1 is uniform, and overlapping uniform blocks share texels:
+    all samples whose block is within R - 1 of (i, j) read the colour of texel (i, j).
+    """
+    h, w = tex.shape[:2]
+    p = tex.view(np.uint32).reshape(h, w) if tex.ndim == 3 else tex
+    uni = np.zeros((h, w), np.uint8)
+    if h >= 2 and w >= 2:
+        a = p[:-1, :-1]
+        same = (a == p[:-1, 1:]) & (a == p[1:, :-1]) & (a == p[1:, 1:])
+        uni[:-1, :-1] = same
+    uni[0, :] = 0
+    uni[:, 0] = 0
+    uni[-1, :] = 0
+    uni[:, -1] = 0
+    if not uni.any():
+        return uni
+    dist = cv2.distanceTransform(uni, cv2.DIST_C, 3)
+    return np.minimum(dist, 255).astype(np.uint8)
+
+
+def floor_runs(world: World, px_per_m: float, levels: int = 6) -> FloorRuns:
+    """The floor pyramid (:func:`floor_pyramid`) packed for the RGBD kernel (cached on the world):
+    each texel one uint32 whose low three bytes are B, G, R and whose top byte is the run radius
+    of its block (:func:`run_radii`), all levels in one array. A row of a level camera's floor is
+    a straight line through the texture, so where the radius allows the kernel fills a run of
+    pixels with one colour instead of blending each (the same result as blending them)."""
+    key = ("floor_runs", float(px_per_m), int(levels))
+    if key in world._cache:
+        return world._cache[key]
+    pyr, (x0, y1, ppm) = floor_pyramid(world, px_per_m, levels)
+    parts, table, off = [], [], 0
+    for lev in pyr:
+        h, w = lev.shape[:2]
+        b = lev.astype(np.uint32)  # as integers (B | G << 8 | R << 16), whatever the byte order
+        words = b[:, :, 0] | (b[:, :, 1] << 8) | (b[:, :, 2] << 16)
+        r = run_radii(words)
+        parts.append((words | (r.astype(np.uint32) << 24)).reshape(-1))
+        table.append((off, w, h))
+        off += w * h
+    out = FloorRuns(np.ascontiguousarray(np.concatenate(parts)), np.array(table, np.int64).reshape(-1, 3),
+                    float(x0), float(y1), float(ppm))
+    world._cache[key] = out
+    return out
+
+
+@dataclass(frozen=True)
 class Brightness:
     """Per-cell brightness gain (rows from the bottom, y up); 1.0 outside every region."""
 

@@ -261,26 +261,23 @@ class CameraEffects:
 
     def __init__(self, realism: Realism, rng: np.random.Generator):
         self.t_exp = realism.motion_blur_exposure
-        self.gain = (KnotProcess(rng, realism.exposure_sd, self.KNOT, "ou", realism.exposure_tau)
-                     if realism.exposure_sd > 0.0 else None)
-        self._ramp = np.arange(256, dtype=np.float64)
+        self._gain = (KnotProcess(rng, realism.exposure_sd, self.KNOT, "ou", realism.exposure_tau)
+                      if realism.exposure_sd > 0.0 else None)
 
-    def lut(self, t: float) -> np.ndarray | None:
-        """The exposure's look-up table at time ``t`` (None when the gain is 1)."""
-        if self.gain is None:
-            return None
-        g = 1.0 + float(self.gain.at(t)[0])
-        return np.clip(self._ramp * g + 0.5, 0.0, 255.0).astype(np.uint8)
+    def gain(self, t: float) -> float:
+        """The auto-exposure's gain at time ``t`` (1 = the ideal frame's brightness)."""
+        return 1.0 if self._gain is None else max(0.0, 1.0 + float(self._gain.at(t)[0]))
 
     def blur_px(self, yaw_rate: float, focal_px: float) -> int:
         """Horizontal smear in pixels while turning at ``yaw_rate`` (rad/s): |psi'| t_exp f."""
         return int(round(abs(yaw_rate) * self.t_exp * focal_px))
 
-    def apply(self, img: np.ndarray, lut: np.ndarray | None, blur: int) -> np.ndarray:
+    def apply(self, img: np.ndarray, gain: float, blur: int) -> np.ndarray:
+        """img = saturate(round(gain img)), then a 1 x ``blur`` box filter (``blur`` >= 2), in place."""
         import cv2
 
-        if lut is not None:
-            cv2.LUT(img, lut, dst=img)
+        if gain != 1.0:
+            cv2.convertScaleAbs(img, dst=img, alpha=gain)
         if blur >= 2:
             cv2.blur(img, (blur, 1), dst=img)
         return img
