@@ -379,8 +379,8 @@ class LidarAvoid:
 
     def _dodge(self, threats: list[Obstacle], static: np.ndarray, speed: float) -> tuple[float, float] | None:
         """Out of a moving obstacle's way (:mod:`qcarlab.control.dodge`): the manoeuvres tried on
-        the model, the best one's command for this scan; None when going on as the windows say is
-        safe (wheels straight clears it by 15 cm, or 25 cm once dodging)."""
+        the model, the best one's command for this scan; None when not dodging yet and going on
+        with the wheels straight clears it by 15 cm (the windows keep driving)."""
         first = min(threats, key=lambda ob: math.hypot(ob.x, ob.y))
         frame = line_frame(first)
         y_car = float(frame.lateral(0.0, 0.0))

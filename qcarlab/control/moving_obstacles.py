@@ -183,6 +183,8 @@ def scan_clusters(ranges, angles, lidar_x: float = 0.0, jump: float = 0.10, jump
     a = np.asarray(angles, dtype=float)
     ok = np.isfinite(r) & (r > 0.0)
     idx_valid = np.flatnonzero(ok)  # scan order: the order scan_points keeps
+    if not np.isfinite(a[ok]).all():
+        return []  # angles that are not numbers: nothing to cluster (scan_points would misplace them)
     if len(idx_valid) < min_points:
         return []
     rv, av = r[ok], np.remainder(a[ok] + math.pi, 2.0 * math.pi) - math.pi
