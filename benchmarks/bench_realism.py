@@ -52,18 +52,34 @@ def main() -> int:
                 print(f"{name:<20}{realism:<8}{pose:<9}{100 * med('pose_drift_per_m'):>11.2f}"
                       f"{100 * med('rms_cross_track_m'):>8.1f}{100 * med('rms_cross_track_estimate_m'):>11.1f}"
                       f"{100 * med('final_distance_to_goal_m'):>12.1f}{sum(m['goal_reached'] for m in ms):>4}/{len(ms)}")
+    looks = (0.02, 0.05, 0.1, 0.2, 0.3)
     print()
-    print("p1, true pose: steering standard deviation (rad) after the first quarter, by look-ahead")
-    print(f"{'realism':<8}" + "".join(f"{la:>9.2f} m" for la in (0.02, 0.05, 0.1, 0.3)))
+    print("p1, true pose: the weave after the first third, by look-ahead: max |cross-track| cm / steering sd rad")
+    print(f"{'realism':<8}" + "".join(f"{la:>14.2f} m" for la in looks))
     for realism in ("ideal", "lab"):
         row = []
-        for la in (0.02, 0.05, 0.1, 0.3):
-            sds = []
+        for la in looks:
+            amps, sds = [], []
             for s in range(args.seeds):
-                st = np.asarray(run(paths.line(3, 4), realism, s, lookahead=la, pose="truth").logs["log.csv"]["steering"])
-                sds.append(float(st[len(st) // 4:].std()))
-            row.append(statistics.median(sds))
-        print(f"{realism:<8}" + "".join(f"{v:>11.4f}" for v in row))
+                log = run(paths.line(3, 4), realism, s, lookahead=la, pose="truth").logs["log.csv"]
+                x, st = np.asarray(log["true_x"]), np.asarray(log["steering"])
+                amps.append(float(np.abs(x[len(x) // 3:]).max()))
+                sds.append(float(st[len(st) // 3:].std()))
+            row.append(f"{100 * statistics.median(amps):>9.1f} / {statistics.median(sds):.2f}")
+        print(f"{realism:<8}" + "".join(f"{v:>16}" for v in row))
+    print()
+    print("p4 butterfly 2 m, lab, the sheet's bicycle estimate: RMS cross-track as the car sees it / true, cm")
+    sweep = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7)
+    print("".join(f"{la:>14.2f} m" for la in sweep))
+    row = []
+    for la in sweep:
+        ms = [run(paths.butterfly(2, 2), "lab", s, lookahead=la).metrics for s in range(args.seeds)]
+        est = statistics.median(m["rms_cross_track_estimate_m"] for m in ms)
+        true = statistics.median(m["rms_cross_track_m"] for m in ms)
+        goal = sum(m["goal_reached"] for m in ms)
+        row.append(f"{100 * est:.1f} / {100 * true:.1f}{'' if goal == len(ms) else ' !'}")
+    print("".join(f"{v:>16}" for v in row))
+    print("(! = not every run reached the goal)")
     return 0
 
 

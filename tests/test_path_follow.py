@@ -30,6 +30,21 @@ def test_line_stops_at_the_goal():
     assert m["completion"] >= 0.99
 
 
+def test_pure_pursuit_aims_one_lookahead_from_the_rear_axle():
+    """The sheet's delta = atan(2 L sin(alpha) / l_d) holds with l_d the look-ahead distance: the
+    target is searched l_d from the rear axle, where the pursuit arc starts (not from the centre,
+    which made the chord l_d + L/2 and hid the short look-ahead's oscillation)."""
+    with qcarlab.open_car("sim", seed=0) as car:
+        res = follow_path(car, paths.circle(1.5, 0.1), FollowConfig(lookahead=0.3, pose="truth"))
+    log = res.logs["log.csv"]
+    x, y, yaw = (np.asarray(log[k]) for k in ("true_x", "true_y", "true_yaw"))
+    half = 0.256 / 2
+    chord = np.hypot(np.asarray(log["target_x"]) - (x - half * np.cos(yaw)),
+                     np.asarray(log["target_y"]) - (y - half * np.sin(yaw)))
+    middle = chord[len(chord) // 10: -len(chord) // 5]  # away from the start and the end of the path
+    assert np.all(np.abs(middle - 0.3) < 0.01)
+
+
 def test_four_metre_butterfly_p3():
     m = follow(paths.butterfly(4, 4))
     assert m["rms_cross_track_m"] <= 0.04 and m["completion"] >= 0.99

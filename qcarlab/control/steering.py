@@ -10,8 +10,9 @@ it to ``[-max_steering, max_steering]``, otherwise it is returned unclipped (the
 A tick of the sheet's PathFollowing model::
 
     search = LookaheadTarget(path, lookahead=0.5)
-    target, index, progress = search(pose[:2])
-    delta = pure_pursuit(rear_axle(pose), target, 0.5, wheelbase=0.256, max_steering=0.5)
+    axle = rear_axle(pose)
+    target, index, progress = search(axle[:2])      # l_d measured from the rear axle
+    delta = pure_pursuit(axle, target, 0.5, wheelbase=0.256, max_steering=0.5)
 """
 
 from __future__ import annotations

@@ -4,8 +4,10 @@ The model, :class:`PathFollowingLab`, is the sheet's diagram; each tick (``--rat
 
     v      = basic_speed_estimation(tach)                          # encoder -> m/s
     pose   = pose_estimator(pose, v, last steering, dt, gyro z)    # bicycle model (or truth)
-    target = LookaheadTarget(path)(pose)                           # forward-only look-ahead point
-    delta  = pure_pursuit(rear_axle(pose), target, lookahead, L)   # or follow_the_carrot, stanley
+    axle   = rear_axle(pose)                                       # pure pursuit's arc starts there
+    target = LookaheadTarget(path, lookahead)(axle)                # the point l_d ahead of the axle
+    delta  = pure_pursuit(axle, target, lookahead, L)              # or follow_the_carrot, stanley
+                                                                   # (their targets: from the centre)
     v_ref  = turn_speed_handling(v_desired, delta)                 # (when --turn-speed)
     v_ref  = min(v_ref, sqrt(2 a_stop s_remaining))                # slows down to stop at the goal
     u      = speed_controller(v_ref, v, dt)                        # feed-forward PI -> throttle
@@ -151,6 +153,8 @@ class PathFollowingLab(LabModel):
         self.first = True
         # the tick's constants, looked up once (the step runs 100 times a simulated second)
         self._gyro, self._true_pose = cfg.pose == "gyro", cfg.pose == "truth"
+        self._pursuit = cfg.controller == "pure-pursuit"
+        self._half_wheelbase = 0.5 * params.wheelbase
         self._length, self._max_steering, self._wheelbase = self.poly.length, params.max_steering, params.wheelbase
         self._stop_margin = 0.5 * cfg.goal_tolerance
         self._two_a_stop = 2.0 * A_STOP
@@ -188,8 +192,14 @@ class PathFollowingLab(LabModel):
             pose = (tr.x, tr.y, tr.yaw)
         else:
             pose = est
-        tx, ty, index, progress = self.search.locate(float(pose[0]), float(pose[1]))
-        remaining = self._length - progress
+        pursuit = self._pursuit
+        if pursuit:  # pure pursuit's look-ahead is measured from the rear axle (its arc starts there)
+            axle = rear_axle(pose, self._wheelbase)
+            tx, ty, index, progress = self.search.locate(axle[0], axle[1])
+        else:
+            tx, ty, index, progress = self.search.locate(float(pose[0]), float(pose[1]))
+        # the path left ahead of the car's centre (pure pursuit's search runs L/2 behind it)
+        remaining = self._length - progress - (self._half_wheelbase if pursuit else 0.0)
         if not self.arrived and (
             remaining <= 0.0 or (progress >= self.end_zone and math.dist(pose[:2], self.goal) <= c.goal_tolerance)
         ):
@@ -201,9 +211,8 @@ class PathFollowingLab(LabModel):
         else:
             controller = c.controller
             target = np.array((tx, ty)) if self._array_target else (tx, ty)
-            if controller == "pure-pursuit":
-                L = self._wheelbase
-                delta = self.pure_pursuit(rear_axle(pose, L), target, c.lookahead, L)
+            if pursuit:
+                delta = self.pure_pursuit(axle, target, c.lookahead, self._wheelbase)
             elif controller == "carrot":
                 delta = self.follow_the_carrot(pose, target, c.k_carrot)
             else:
