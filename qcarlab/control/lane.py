@@ -26,15 +26,21 @@ LANE_HALF_WIDTH = 0.2  # m: lane centre to its lines (0.4 m lanes)
 CRAWL_SPEED = 0.05  # m/s: the slowest automated_driving asks for before the stop distance
 
 
+def rgbd_focal_px(p: QCarParams = DEFAULT_PARAMS) -> float:
+    """The RGBD colour camera's focal length in pixels, f = (H / 2) / tan(vfov / 2): about 617 px
+    at 480 rows and 42.5 deg, what the simulator renders with."""
+    return (p.rgbd_height / 2.0) / math.tan(p.rgbd_vfov / 2.0)
+
+
 @dataclass(frozen=True)
 class LaneCamera:
     """What the steering needs of the RGBD camera: focal length ``f`` and principal point
     (``cx``, ``cy``) in pixels, height ``h`` above the floor (m, level camera), distance
     ``to_rear_axle`` from the rear axle forward to the camera (m) and the wheelbase (m)."""
 
-    f: float = 616.0
-    cx: float = 320.0
-    cy: float = 240.0
+    f: float = rgbd_focal_px()
+    cx: float = DEFAULT_PARAMS.rgbd_width / 2.0
+    cy: float = DEFAULT_PARAMS.rgbd_height / 2.0
     h: float = DEFAULT_PARAMS.rgbd_z
     to_rear_axle: float = DEFAULT_PARAMS.rgbd_x + DEFAULT_PARAMS.wheelbase / 2.0
     wheelbase: float = DEFAULT_PARAMS.wheelbase
@@ -42,8 +48,7 @@ class LaneCamera:
 
     @classmethod
     def from_params(cls, p: QCarParams) -> LaneCamera:
-        f = (p.rgbd_height / 2.0) / math.tan(p.rgbd_vfov / 2.0)
-        return cls(f, p.rgbd_width / 2.0, p.rgbd_height / 2.0, p.rgbd_z, p.rgbd_x + p.wheelbase / 2.0,
+        return cls(rgbd_focal_px(p), p.rgbd_width / 2.0, p.rgbd_height / 2.0, p.rgbd_z, p.rgbd_x + p.wheelbase / 2.0,
                    p.wheelbase, p.max_steering)
 
 
