@@ -5,10 +5,11 @@ steps), and while it does no other thread of the server can run: not the control
 watchdog's. A real-time served simulator (``qcarlab serve``) therefore draws its frames here:
 
     worker = RenderWorker(car.sensor_recipe(), kinds=("lidar", "rgbd"))
-    arrays = worker.draw("rgbd", pose, t)      # the frame's arrays, in FRAME_FIELDS order
+    arrays = worker.draw("rgbd", pose, t, yaw_rate)   # the frame's arrays, in FRAME_FIELDS order
 
 The worker process builds the same world and sensors as the served car (``SimCar(**recipe)``:
-same seed, so the noise streams are the ones the car would have drawn) and draws each frame it is
+same seed and realism profile, so the noise streams and the profile's effects are the ones the
+car would have drawn) and draws each frame it is
 asked for, one thread and one pipe per sensor, so that a slow camera set does not hold up the
 LIDAR. The server fixes every frame's time and pose under its drive lock as before; only the
 drawing moves. If the worker dies the server draws in its own process again (one log line).
@@ -41,9 +42,9 @@ def _serve_kind(conn: Any, car: Any, kind: str) -> None:
             return
         if msg is None:
             return
-        pose, t = msg
+        pose, t, yaw_rate = msg
         try:
-            frame = car.draw_frame(kind, pose, t)
+            frame = car.draw_frame(kind, pose, t, yaw_rate)
             conn.send(("ok", [np.ascontiguousarray(getattr(frame, f)) for f in FIELDS[kind]]))
         except Exception as exc:  # reported to the requester, who turns it into an error frame
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
@@ -64,7 +65,8 @@ def _main(recipe: dict[str, Any], conns: dict[str, Any], ready: Any, build: bool
         from qcarlab.car.sim import SimCar
 
         beams = recipe.pop("lidar_beams", None)
-        car = SimCar(recipe["params"], seed=recipe["seed"], world=recipe["world"], realtime=True)
+        car = SimCar(recipe["params"], seed=recipe["seed"], world=recipe["world"], realtime=True,
+                     realism=recipe.get("realism"))
         car.lidar_beams = beams
         if build:  # now, so that the first frame is as quick as the others
             for kind in conns:
@@ -117,15 +119,16 @@ class RenderWorker:
     def draws(self, kind: str) -> bool:
         return self.alive and kind in self._conns
 
-    def draw(self, kind: str, pose: Any, t: float) -> list[np.ndarray]:
-        """The arrays of sensor ``kind``'s frame at ``t`` from ``pose``; WorkerGone if the process died,
-        RuntimeError if drawing failed there."""
+    def draw(self, kind: str, pose: Any, t: float, yaw_rate: float = 0.0) -> list[np.ndarray]:
+        """The arrays of sensor ``kind``'s frame at ``t`` from ``pose``, turning at ``yaw_rate`` (rad/s,
+        the realism profile's motion blur); WorkerGone if the process died, RuntimeError if drawing
+        failed there."""
         conn = self._conns[kind]
         with self._locks[kind]:
             if not self.alive:
                 raise WorkerGone("the render process is gone")
             try:
-                conn.send((tuple(float(v) for v in pose), float(t)))
+                conn.send((tuple(float(v) for v in pose), float(t), float(yaw_rate)))
                 status, value = conn.recv()
             except (EOFError, OSError, BrokenPipeError) as exc:
                 self.alive = False

@@ -102,7 +102,7 @@ class SensorHub:
         worker = self.worker
         if worker is not None and worker.draws(kind) and getattr(job, "pose", None) is not None:
             try:
-                arrays = worker.draw(kind, job.pose, job.t)
+                arrays = worker.draw(kind, job.pose, job.t, getattr(job, "yaw_rate", 0.0))
                 t = job.t
                 drawn = getattr(job, "drawn", None)
                 if drawn is not None:  # a recording car records the frame the worker drew
