@@ -5,6 +5,7 @@ car). Loopback, raw protocol frames, bounded in time; the bounds are loose enoug
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
@@ -125,8 +126,24 @@ def test_a_controller_that_keeps_talking_keeps_control(server):
         while time.monotonic() < end:  # no command (the watchdog trips), but alive
             assert ctl.request(M.PING, b"").type == M.PONG
             time.sleep(0.05)
-        with RawClient(s.address) as other:
-            assert error_of(other.hello("control"))["code"] == "busy"
+        # it keeps talking while the other client connects (the hello's handling may take longer
+        # than controller_timeout on a loaded machine: a silent controller would rightly lose)
+        done, pongs = threading.Event(), []
+
+        def keep_talking():
+            while not done.is_set():
+                pongs.append(ctl.request(M.PING, b"").type == M.PONG)
+                time.sleep(0.05)
+
+        talker = threading.Thread(target=keep_talking)
+        talker.start()
+        try:
+            with RawClient(s.address) as other:
+                assert error_of(other.hello("control"))["code"] == "busy"
+        finally:
+            done.set()
+            talker.join()
+        assert pongs and all(pongs)
         assert ctl.request(M.COMMAND, P.pack_command(0.1, 0.0, OFF)).type == M.APPLIED
 
 
