@@ -65,6 +65,7 @@ class SimCar(Car):
         self.start = tuple(float(v) for v in start)
         self.vehicle = Vehicle(params, on_stand=on_stand, pose=self.start, realism=realism)
         self._g = self.vehicle._g  # m of travel per rad of the motor shaft (truth's wheel speed)
+        self._state_array = self.vehicle.state._a  # the state's numbers (VehicleState.values() reads them)
         seq = np.random.SeedSequence(seed)
         imu_seq, analog_seq, lidar_seq, rgbd_seq, csi_seq = seq.spawn(5)
         # one noise stream per sensor, fixed by the seed whatever order the sensors are first read in
@@ -120,7 +121,7 @@ class SimCar(Car):
     def _remember_pose(self) -> None:
         """After every step: the state's values, once (read and truth take theirs from it), and
         into the pose history (t, x, y, yaw are its first four)."""
-        self._vals = vals = self.vehicle.state.values()
+        self._vals = vals = self._state_array.tolist()  # as VehicleState.values()
         self._history.append(vals)
 
     def pose_at(self, t: float) -> tuple[float, float, float]:
@@ -145,7 +146,8 @@ class SimCar(Car):
             self._sync()
         else:
             self.vehicle.step(dt)
-            self._remember_pose()
+            self._vals = vals = self._state_array.tolist()  # _remember_pose(), written out
+            self._history.append(vals)
 
     # --- I/O ------------------------------------------------------------------------------------
     def _apply(self, cmd: Command) -> None:

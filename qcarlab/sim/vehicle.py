@@ -142,6 +142,7 @@ for _i, (_name, _doc) in enumerate(zip(_FIELDS, (
 #: False = always plain Python. Both are the same code on the same numbers: the same results.
 COMPILED: bool | None = None
 _compiled_advance = None
+_MODULES = sys.modules
 
 
 def _advance(s, p, duty, delta_cmd, dt):
@@ -388,7 +389,10 @@ class Vehicle:
         if dt != self._dt:
             self._dt, self._dt_ns = dt, round(dt * 1e9)
         t_ns = self._t_ns + self._dt_ns
-        kernel = _compiled()
+        use = COMPILED  # (_compiled(), written out: this runs every step)
+        if use is None:
+            use = "numba" in _MODULES
+        kernel = (_compiled_advance or _compiled()) if use else None
         if kernel is not None:
             kernel(state.buffer, self._k, float(self.duty), float(self.delta_cmd), float(dt))
         else:
