@@ -76,6 +76,7 @@ class SimCar(Car):
         # the realism profile's generators: spawned after the five above, so they never move them
         gyro_seq, lidar_fx_seq, camera_fx_seq = seq.spawn(3)
         self._gyro_walk = None
+        self._walk_seg: tuple = (-1,)  # the gyro walk's knot interval read last: (k, knot k, knot k+1 - knot k)
         self._effects: dict[str, Any] = {}
         if not realism.ideal:
             gyro_rng = np.random.default_rng(gyro_seq)
@@ -165,6 +166,8 @@ class SimCar(Car):
         p, n = self.params, NOISE_BLOCK
         imu = self._imu_rng.normal(0.0, 1.0, (n, 6))
         self._gyro_rows = self._gyro_bias + p.gyro_noise * imu[:, :3]
+        if self._gyro_walk is not None:
+            self._gyro_list = self._gyro_rows.tolist()
         self._accel_rows = p.accel_noise * imu[:, 3:]
         self._accel_rows[:, 2] += p.gravity  # the same sums as noise + g per read
         an = self._analog_rng.normal(0.0, 1.0, (n, 2))
@@ -182,10 +185,22 @@ class SimCar(Car):
         self._noise_i = i + 1
         (t, _, _, _, v, yaw_rate, accel_x, _, omega, motor_angle, current, vbat, _, _, _, _) = self._vals
         cpr = self._counts_per_rad
-        gyro = self._gyro_rows[i]  # a row of the block: used by this read only
-        gyro[2] += yaw_rate
-        if self._gyro_walk is not None:  # the bias wanders (realism profile)
-            gyro += self._gyro_walk.at(t)
+        walk = self._gyro_walk
+        if walk is None:
+            gyro = self._gyro_rows[i]  # a row of the block: used by this read only
+            gyro[2] += yaw_rate
+        else:  # the bias wanders (realism profile): the row + yaw rate + walk.at(t), in floats
+            q = max(t, 0.0) / walk.h  # KnotProcess.at(t), written out on the knots' floats
+            k = int(q)
+            seg = self._walk_seg
+            if seg[0] != k:
+                walk.at(t)  # (draws the knots as far as t)
+                a = walk.knots[k]
+                seg = self._walk_seg = (k, *a.tolist(), *(walk.knots[k + 1] - a).tolist())
+            _, a0, a1, a2, d0, d1, d2 = seg
+            u = q - k
+            g0, g1, g2 = self._gyro_list[i]
+            gyro = np.array((g0 + (a0 + u * d0), g1 + (a1 + u * d1), (g2 + yaw_rate) + (a2 + u * d2)))
         accel = self._accel_rows[i]
         accel[0] += accel_x
         accel[1] += v * yaw_rate  # centripetal (accel[2] holds g already)

@@ -353,7 +353,8 @@ class Vehicle:
         delta = m if delta > m else (-m if delta < -m else delta)
         target = delta if self._servo is None else self._servo(delta)
         if self._delay_ns:
-            self._pending.append((round(self.state._a[_T] * 1e9) + self._delay_ns, target))
+            t = self.state._a[_T]  # the time in ns: the step's count while t is as it left it
+            self._pending.append(((self._t_ns if t == self._t_s else round(t * 1e9)) + self._delay_ns, target))
         else:
             self.delta_cmd = target
 
@@ -364,8 +365,9 @@ class Vehicle:
             return
         pending = self._pending
         if pending:
-            t_ns = round(self.state._a[_T] * 1e9)
-            end_ns = t_ns + round(dt * 1e9)
+            t = self.state._a[_T]  # (the counts in ns as _advance keeps them)
+            t_ns = self._t_ns if t == self._t_s else round(t * 1e9)
+            end_ns = t_ns + (self._dt_ns if dt == self._dt else round(dt * 1e9))
             while pending and pending[0][0] < end_ns:
                 due, target = pending.popleft()
                 if due > t_ns:
