@@ -44,6 +44,9 @@ CASES = {
     "circle_student": (lambda: paths.circle(), {},
                        {"pure_pursuit": student_pure_pursuit, "speed_controller": SpeedController}, None, 0),
     "circle_track": (lambda: paths.circle(), {}, None, "track", 0),  # with the world's collision watch
+    # the lab car (--realism lab: the servo's play and delay, the tyres, the gyro's wandering bias)
+    "circle_laps3_lab": (lambda: paths.circle(), {"laps": 3, "max_time": 30.0}, None, None, 0, "lab"),
+    "butterfly2_gyro_lab": (lambda: paths.butterfly(2, 2), {"pose": "gyro"}, None, None, 3, "lab"),
 }
 
 # name: ((the METRICS..., ticks), SHA-256 of the log's columns)
@@ -68,12 +71,17 @@ PINNED = {
         "7d4a08dab882f5845c5d0bc07d16ea9996877bbc29f08f407c49c0fe561088f6"),
     "circle_track": ((0.16356009846494568, 0.7690260169735214, 1.0, 0.024946039169442318, 0.05451488000281287, 0.4929888031767172, 17.28, 0.0005168992546138648, 1728),
         "743a47caefd5d170a3772bc3a723ede71654e1c9912e28c28e849f185bef7e82"),
+    # printed by main at 8c4a8cb, before the tick's second round of speed work (issue 12)
+    "circle_laps3_lab": ((0.0295703549828737, 0.04734576728070403, 0.5187915539539684, 2.966097047614685, 0.040071045129754033, 0.4938352257358954, 30.0, 0.35011227233070785, 3000),
+        "e379395f035f801cf63fd520f3923df6d40f86ae15e7e6149d212fdd8882144c"),
+    "butterfly2_gyro_lab": ((0.094088376139842, 0.3411351230621174, 1.0, 0.02355113581693813, 0.03577116952563042, 0.4910182545347684, 39.589999999999996, 0.023457380105511964, 3959),
+        "e3b241a70e2c9c596d884005ba007df6cf14984c3ad78a5b61ecaf7c844a0b6c"),
 }
 
 
 def run(name):
-    make, cfg, blocks, world, seed = CASES[name]
-    with qcarlab.open_car("sim", seed=seed, world=world) as car:
+    make, cfg, blocks, world, seed, *realism = CASES[name]
+    with qcarlab.open_car("sim", seed=seed, world=world, realism=realism[0] if realism else None) as car:
         res = follow_path(car, make(), FollowConfig(**cfg), blocks=blocks)
     m = res.metrics
     log = res.logs["log.csv"]

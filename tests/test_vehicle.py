@@ -151,12 +151,15 @@ def test_noise_drawn_in_blocks_is_the_per_read_noise():
 
 @pytest.mark.skipif(not __import__("qcarlab.sim._kernels", fromlist=["HAVE_NUMBA"]).HAVE_NUMBA,
                     reason="numba not installed: there is only the Python path")
-def test_compiled_and_python_physics_agree_to_the_last_bit(monkeypatch):
-    """The sub-steps run as plain Python or compiled (vehicle.COMPILED): the same numbers."""
+@pytest.mark.parametrize("realism", ["ideal", "lab"])
+def test_compiled_and_python_physics_agree_to_the_last_bit(monkeypatch, realism):
+    """The sub-steps run as plain Python or compiled (vehicle.COMPILED): the same numbers, also
+    with the lab car's servo play and delay and its tyres."""
     from qcarlab.sim import vehicle as V
+    from qcarlab.sim.realism import load_realism
 
     def run() -> list[float]:
-        veh = Vehicle(on_stand=False)
+        veh = Vehicle(on_stand=False, realism=load_realism(realism))
         for k in range(400):
             veh.command(0.3 * math.sin(k / 30.0), 0.5 * math.sin(k / 17.0))
             veh.step(0.01 if k % 3 else 0.013)
@@ -168,3 +171,29 @@ def test_compiled_and_python_physics_agree_to_the_last_bit(monkeypatch):
     compiled = run()
     assert V._compiled() is not None
     assert compiled == python
+
+
+def test_time_set_from_outside_is_where_the_next_step_counts_from():
+    """The step keeps its time in whole nanoseconds beside the state's t: a t set from outside
+    is recounted, and 100 steps of 10 ms still make exactly one second from there."""
+    veh = Vehicle()
+    veh.step(0.01)
+    veh.state.t = 5.0
+    for _ in range(100):
+        veh.step(0.01)
+    assert veh.state.t == 6.0
+
+
+def test_pose_at_interpolates_the_true_pose_between_steps():
+    """A sensor frame due between two steps is taken from the pose interpolated there."""
+    with qcarlab.open_car("sim", seed=0) as car:
+        car.write(0.2, 0.3)
+        truths = []
+        for _ in range(30):
+            car.advance(0.01)
+            truths.append(car.truth())
+        a, b = truths[-2], truths[-1]
+        x, y, yaw = car.pose_at(0.5 * (a.t + b.t))
+        assert (x, y, yaw) == pytest.approx((0.5 * (a.x + b.x), 0.5 * (a.y + b.y), 0.5 * (a.yaw + b.yaw)), abs=1e-12)
+        assert car.pose_at(b.t + 1.0) == (b.x, b.y, b.yaw)  # the latest: the present pose
+        assert car.pose_at(a.t) == pytest.approx((a.x, a.y, a.yaw), abs=1e-15)

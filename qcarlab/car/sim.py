@@ -32,6 +32,8 @@ from qcarlab.sim.realism import CameraEffects, KnotProcess, LidarEffects, Realis
 from qcarlab.sim.vehicle import Vehicle
 
 START_POSE = (0.0, 0.0, -math.pi / 2.0)  # the lab sheet's start: origin, heading -Y
+_INF = math.inf
+_new_tuple = tuple.__new__  # a named tuple made without its Python-level __new__ (every tick)
 NOISE_BLOCK = 256  # reads whose IMU and analog noise are drawn in one go
 GYRO_KNOT = 0.5  # s of simulated time between the knots of the gyro bias's random walk (realism)
 
@@ -62,6 +64,8 @@ class SimCar(Car):
             start = getattr(world, "start", None) or START_POSE
         self.start = tuple(float(v) for v in start)
         self.vehicle = Vehicle(params, on_stand=on_stand, pose=self.start, realism=realism)
+        self._g = self.vehicle._g  # m of travel per rad of the motor shaft (truth's wheel speed)
+        self._state_array = self.vehicle.state._a  # the state's numbers (VehicleState.values() reads them)
         seq = np.random.SeedSequence(seed)
         imu_seq, analog_seq, lidar_seq, rgbd_seq, csi_seq = seq.spawn(5)
         # one noise stream per sensor, fixed by the seed whatever order the sensors are first read in
@@ -72,6 +76,7 @@ class SimCar(Car):
         # the realism profile's generators: spawned after the five above, so they never move them
         gyro_seq, lidar_fx_seq, camera_fx_seq = seq.spawn(3)
         self._gyro_walk = None
+        self._walk_seg: tuple = (-1,)  # the gyro walk's knot interval read last: (k, knot k, knot k+1 - knot k)
         self._effects: dict[str, Any] = {}
         if not realism.ideal:
             gyro_rng = np.random.default_rng(gyro_seq)
@@ -86,11 +91,12 @@ class SimCar(Car):
         self._noise_i = NOISE_BLOCK  # the first read draws the first block
         self._counts_per_rad = params.encoder_cpr / (2.0 * math.pi)
         self._cmd = Command()
+        self._cmd_fields = (0.0, 0.0, ALL_OFF)  # the last command's steering, throttle, lamps: read() reports them
         self._realtime = bool(realtime)
         self._t0_wall = time.monotonic()
         self._sensors: dict[str, Any] = {}  # built on first read: rasters cost time and memory
         self._frames: dict[str, tuple[int, Any]] = {}  # sensor -> (frame index, frame)
-        self._history: deque[tuple[float, float, float, float]] = deque(maxlen=256)
+        self._history: deque[list[float]] = deque(maxlen=256)  # the state's values after each step
         self._remember_pose()
         if self._realtime:  # a real-time car must not stall on the compiled physics' first step later
             self.warm_physics()
@@ -114,38 +120,44 @@ class SimCar(Car):
                 self._remember_pose()
 
     def _remember_pose(self) -> None:
-        self._history.append(tuple(self.vehicle.state.values()[:4]))  # t, x, y, yaw
+        """After every step: the state's values, once (read and truth take theirs from it), and
+        into the pose history (t, x, y, yaw are its first four)."""
+        self._vals = vals = self._state_array.tolist()  # as VehicleState.values()
+        self._history.append(vals)
 
     def pose_at(self, t: float) -> tuple[float, float, float]:
         """The true pose at a recent time ``t``, interpolated between the steps around it."""
         hist = self._history
         if t >= hist[-1][0]:
-            return hist[-1][1:]
+            return tuple(hist[-1][1:4])
         for i in range(len(hist) - 1, 0, -1):
-            t0, x0, y0, a0 = hist[i - 1]
-            t1, x1, y1, a1 = hist[i]
+            t0, x0, y0, a0 = hist[i - 1][:4]
+            t1, x1, y1, a1 = hist[i][:4]
             if t0 <= t:
                 u = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
                 da = (a1 - a0 + math.pi) % (2.0 * math.pi) - math.pi
                 return (x0 + u * (x1 - x0), y0 + u * (y1 - y0), a0 + u * da)
-        return hist[0][1:]
+        return tuple(hist[0][1:4])
 
     def advance(self, dt: float) -> None:
-        if not (dt >= 0.0 and math.isfinite(dt)):  # (NaN fails the first test)
+        if not 0.0 <= dt < _INF:  # (NaN fails it too)
             raise InputError(f"advance: dt must be a non-negative number of seconds, got {dt!r}")
         if self._realtime:
             time.sleep(dt)
             self._sync()
         else:
             self.vehicle.step(dt)
-            self._remember_pose()
+            self._vals = vals = self._state_array.tolist()  # _remember_pose(), written out
+            self._history.append(vals)
 
     # --- I/O ------------------------------------------------------------------------------------
     def _apply(self, cmd: Command) -> None:
         if self._realtime:
             self._sync()
         self._cmd = cmd
-        self.vehicle.command(cmd.throttle, cmd.steering)
+        throttle, steering, leds = cmd
+        self._cmd_fields = (steering, throttle, leds)  # what read() reports
+        self.vehicle.command(throttle, steering)
 
     def _noise_block(self) -> None:
         """The next NOISE_BLOCK reads' sensor noise, drawn at once: a generator's draws come out
@@ -154,6 +166,8 @@ class SimCar(Car):
         p, n = self.params, NOISE_BLOCK
         imu = self._imu_rng.normal(0.0, 1.0, (n, 6))
         self._gyro_rows = self._gyro_bias + p.gyro_noise * imu[:, :3]
+        if self._gyro_walk is not None:
+            self._gyro_list = self._gyro_rows.tolist()
         self._accel_rows = p.accel_noise * imu[:, 3:]
         self._accel_rows[:, 2] += p.gravity  # the same sums as noise + g per read
         an = self._analog_rng.normal(0.0, 1.0, (n, 2))
@@ -169,34 +183,37 @@ class SimCar(Car):
             self._noise_block()
             i = 0
         self._noise_i = i + 1
-        (t, _, _, _, v, yaw_rate, accel_x, _, omega, motor_angle, current, vbat, *_) = self.vehicle.state.values()
+        (t, _, _, _, v, yaw_rate, accel_x, _, omega, motor_angle, current, vbat, _, _, _, _) = self._vals
         cpr = self._counts_per_rad
-        gyro = self._gyro_rows[i]  # a row of the block: used by this read only
-        gyro[2] += yaw_rate
-        if self._gyro_walk is not None:  # the bias wanders (realism profile)
-            gyro += self._gyro_walk.at(t)
+        walk = self._gyro_walk
+        if walk is None:
+            gyro = self._gyro_rows[i]  # a row of the block: used by this read only
+            gyro[2] += yaw_rate
+        else:  # the bias wanders (realism profile): the row + yaw rate + walk.at(t), in floats
+            q = max(t, 0.0) / walk.h  # KnotProcess.at(t), written out on the knots' floats
+            k = int(q)
+            seg = self._walk_seg
+            if seg[0] != k:
+                walk.at(t)  # (draws the knots as far as t)
+                a = walk.knots[k]
+                seg = self._walk_seg = (k, *a.tolist(), *(walk.knots[k + 1] - a).tolist())
+            _, a0, a1, a2, d0, d1, d2 = seg
+            u = q - k
+            g0, g1, g2 = self._gyro_list[i]
+            gyro = np.array((g0 + (a0 + u * d0), g1 + (a1 + u * d1), (g2 + yaw_rate) + (a2 + u * d2)))
         accel = self._accel_rows[i]
         accel[0] += accel_x
         accel[1] += v * yaw_rate  # centripetal (accel[2] holds g already)
-        cmd = self._cmd
-        return Readout(
-            t,
-            math.floor(motor_angle * cpr),
-            omega * cpr,
-            current + self._current_noise[i],
-            vbat + self._voltage_noise[i],
-            gyro,
-            accel,
-            cmd.steering,
-            cmd.throttle,
-            cmd.leds,
-        )
+        steering, throttle, leds = self._cmd_fields
+        # Readout(...) without its Python-level __new__ (a named tuple; every field given)
+        return _new_tuple(Readout, (t, math.floor(motor_angle * cpr), omega * cpr, current + self._current_noise[i],
+                                    vbat + self._voltage_noise[i], gyro, accel, steering, throttle, leds))
 
     def truth(self) -> Truth:
         if self._realtime:
             self._sync()
-        (t, x, y, yaw, v, _, _, delta, omega, _, _, _, _, dist, wdist, _) = self.vehicle.state.values()
-        return Truth(t, x, y, yaw, v, omega * self.vehicle._g, delta, dist, wdist)
+        (t, x, y, yaw, v, _, _, delta, omega, _, _, _, _, dist, wdist, _) = self._vals
+        return _new_tuple(Truth, (t, x, y, yaw, v, omega * self._g, delta, dist, wdist))  # Truth(...)
 
     # --- exteroceptive sensors ------------------------------------------------------------------
     def _world(self) -> Any:

@@ -35,7 +35,7 @@ from qcarlab.car.lamps import ALL_OFF, parse_lamps
 from qcarlab.constants import QCarParams
 from qcarlab.control.pose import BicyclePoseEstimator
 from qcarlab.control.speed import KFF, KI, KP, SpeedController, speed_estimation, turn_speed_handling
-from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pursuit, rear_axle, stanley
+from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pursuit, stanley
 from qcarlab.control.tracking import Polyline, cross_track_errors, progress_along
 from qcarlab.errors import InputError
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
@@ -151,17 +151,14 @@ class PathFollowingLab(LabModel):
         self.steer = 0.0
         self.arrived = False
         self.first = True
-        # the tick's constants, looked up once (the step runs 100 times a simulated second)
-        self._gyro, self._true_pose = cfg.pose == "gyro", cfg.pose == "truth"
-        self._pursuit = cfg.controller == "pure-pursuit"
-        self._half_wheelbase = 0.5 * params.wheelbase
-        self._length, self._max_steering, self._wheelbase = self.poly.length, params.max_steering, params.wheelbase
-        self._stop_margin = 0.5 * cfg.goal_tolerance
-        self._two_a_stop = 2.0 * A_STOP
         # a student's steering block gets the target as an array (as the sheet's template says
         # and as it always has); the reference functions take the two floats as they are
-        self._array_target = isinstance(self.pure_pursuit, StudentBlock) or isinstance(self.follow_the_carrot,
-                                                                                         StudentBlock)
+        array_target = isinstance(self.pure_pursuit, StudentBlock) or isinstance(self.follow_the_carrot, StudentBlock)
+        # the tick's constants, looked up once (the step runs 100 times a simulated second); the
+        # half wheelbase is rear_axle's wheelbase / 2 (the same number)
+        self._tick = (self.poly.length, params.wheelbase / 2.0, params.wheelbase, params.max_steering,
+                      0.5 * cfg.goal_tolerance, 2.0 * A_STOP, cfg.lookahead, cfg.speed, cfg.turn_speed, self.end_zone,
+                      cfg.controller == "pure-pursuit", cfg.pose == "gyro", cfg.pose == "truth", array_target)
 
     def reference_blocks(self) -> dict[str, Any]:
         c, p = self.cfg, self.p
@@ -179,57 +176,59 @@ class PathFollowingLab(LabModel):
         }
 
     def step(self, t: float, r: Readout, dt: float) -> Step | object:
-        c = self.cfg
+        # the run's constants, unpacked at once (attribute by attribute costs more, every tick)
+        (length, half_wheelbase, wheelbase, m, stop_margin, two_a_stop, lookahead, speed, turn_speed, end_zone,
+         pursuit, gyro, true_pose, array_target) = self._tick
         v = self.basic_speed_estimation(r.tach)
         if self.first:
             self.first = False
         else:
-            yaw_rate = float(r.gyro[2]) if self._gyro else None  # (a student's may use it)
+            yaw_rate = float(r.gyro[2]) if gyro else None  # (a student's may use it)
             self.pose = self.pose_estimator(self.pose, v, self.steer, dt, yaw_rate)
         est = self.pose
-        if self._true_pose:
+        if true_pose:
             tr = self.truth()
             pose = (tr.x, tr.y, tr.yaw)
         else:
             pose = est
-        pursuit = self._pursuit
         if pursuit:  # pure pursuit's look-ahead is measured from the rear axle (its arc starts there)
-            axle = rear_axle(pose, self._wheelbase)
+            x, y, yaw = float(pose[0]), float(pose[1]), float(pose[2])  # rear_axle(pose), written out
+            axle = (x - half_wheelbase * math.cos(yaw), y - half_wheelbase * math.sin(yaw), yaw)
             tx, ty, index, progress = self.search.locate(axle[0], axle[1])
+            # the path left ahead of the car's centre (pure pursuit's search runs L/2 behind it)
+            remaining = length - progress - half_wheelbase
         else:
             tx, ty, index, progress = self.search.locate(float(pose[0]), float(pose[1]))
-        # the path left ahead of the car's centre (pure pursuit's search runs L/2 behind it)
-        remaining = self._length - progress - (self._half_wheelbase if pursuit else 0.0)
-        if not self.arrived and (
-            remaining <= 0.0 or (progress >= self.end_zone and math.dist(pose[:2], self.goal) <= c.goal_tolerance)
+            remaining = length - progress
+        arrived = self.arrived
+        if not arrived and (
+            remaining <= 0.0 or (progress >= end_zone and math.dist(pose[:2], self.goal) <= self.cfg.goal_tolerance)
         ):
-            self.arrived = True
-        if self.arrived:
+            arrived = self.arrived = True
+        if arrived:
             delta, v_ref = 0.0, 0.0
             if abs(v) < 0.01:
                 return STOP
         else:
-            controller = c.controller
-            target = np.array((tx, ty)) if self._array_target else (tx, ty)
+            target = np.array((tx, ty)) if array_target else (tx, ty)
             if pursuit:
-                delta = self.pure_pursuit(axle, target, c.lookahead, self._wheelbase)
-            elif controller == "carrot":
-                delta = self.follow_the_carrot(pose, target, c.k_carrot)
+                delta = self.pure_pursuit(axle, target, lookahead, wheelbase)
+            elif self.cfg.controller == "carrot":
+                delta = self.follow_the_carrot(pose, target, self.cfg.k_carrot)
             else:
-                delta = self.stanley(pose, self.poly, index, v, c.k_stanley, self._wheelbase)
-            m = self._max_steering
+                delta = self.stanley(pose, self.poly, index, v, self.cfg.k_stanley, wheelbase)
             if -m > delta:  # delta = min(max(delta, -m), m), written out (the builtins cost more)
                 delta = -m
             if m < delta:
                 delta = m
-            v_ref = self.turn_speed_handling(c.speed, delta) if c.turn_speed else c.speed
-            room = remaining - self._stop_margin
-            v_stop = math.sqrt(self._two_a_stop * (0.0 if 0.0 > room else room))
+            v_ref = self.turn_speed_handling(speed, delta) if turn_speed else speed
+            room = remaining - stop_margin
+            v_stop = math.sqrt(two_a_stop * (0.0 if 0.0 > room else room))
             if v_stop < v_ref:  # v_ref = min(v_ref, v_stop)
                 v_ref = v_stop
         throttle = self.speed_controller(v_ref, v, dt)
         self.steer = delta
-        return Step(_new_tuple(Command, (throttle, delta, _BRAKE if self.arrived else ALL_OFF)),  # Command(...)
+        return Step(_new_tuple(Command, (throttle, delta, _BRAKE if arrived else ALL_OFF)),  # Command(...)
                     {"est_x": est[0], "est_y": est[1], "est_yaw": est[2], "v_ref": v_ref, "v_meas": v,
                      "target_x": tx, "target_y": ty})
 

@@ -54,6 +54,8 @@ class Clearance:
         self.n_poly = len(self.pieces)
         self.circles = np.asarray(circles, dtype=float).reshape(-1, 3)
         self.world = world
+        self._first_edge = np.cumsum([0] + [len(p) for p in starts[:-1]]) if starts else np.zeros(0, int)
+        self._corners = np.array([[self.a, self.b], [-self.a, self.b], [-self.a, -self.b], [self.a, -self.b]])
 
     def _to_body(self, pts: np.ndarray, x: float, y: float, c: float, s: float) -> np.ndarray:
         dx, dy = pts[:, 0] - x, pts[:, 1] - y
@@ -73,20 +75,20 @@ class Clearance:
             sep = (np.abs(m[:, 0]) > self.a + np.abs(h[:, 0])) | (np.abs(m[:, 1]) > self.b + np.abs(h[:, 1])) \
                 | (np.abs(h[:, 0] * m[:, 1] - h[:, 1] * m[:, 0]) > self.a * np.abs(h[:, 1]) + self.b * np.abs(h[:, 0]))
             d = np.minimum(self._point_rect(A), self._point_rect(B))
-            corners = np.array([[self.a, self.b], [-self.a, self.b], [-self.a, -self.b], [self.a, -self.b]])
             ab = B - A
             L2 = np.maximum((ab * ab).sum(axis=1), 1e-18)
-            for q in corners:
-                u = np.clip(((q - A) * ab).sum(axis=1) / L2, 0.0, 1.0)
-                d = np.minimum(d, np.hypot(A[:, 0] + u * ab[:, 0] - q[0], A[:, 1] + u * ab[:, 1] - q[1]))
+            # each corner of the footprint against each edge, the four corners at once
+            rel = (self._corners[:, None, :] - A) * ab
+            u = np.clip(rel.sum(axis=2) / L2, 0.0, 1.0)
+            d = np.minimum(d, np.hypot(A[:, 0] + u * ab[:, 0] - self._corners[:, 0:1],
+                                       A[:, 1] + u * ab[:, 1] - self._corners[:, 1:2]).min(axis=0))
             d = np.where(sep, d, 0.0)
             # the car's centre inside a polygon (no edge crossing it): even-odd rule per polygon
             crosses = ((A[:, 1] > 0.0) != (B[:, 1] > 0.0))
             with np.errstate(divide="ignore", invalid="ignore"):
                 xint = A[:, 0] + (0.0 - A[:, 1]) * ab[:, 0] / ab[:, 1]
             hits = np.bincount(self.owner[crosses & (xint > 0.0)], minlength=self.n_poly)
-            per_poly = np.full(self.n_poly, math.inf)
-            np.minimum.at(per_poly, self.owner, d)
+            per_poly = np.minimum.reduceat(d, self._first_edge)  # each polygon's edges are consecutive
             per_poly[hits % 2 == 1] = 0.0
             k = int(np.argmin(per_poly))
             best, where = float(per_poly[k]), self.pieces[k]

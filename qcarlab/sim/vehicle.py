@@ -133,8 +133,8 @@ for _i, (_name, _doc) in enumerate(zip(_FIELDS, (
 # the step's constants, one float64 array (indices below), so that the compiled step takes arrays
 (_P_DT, _P_TAU, _P_RBAT, _P_IDLE, _P_VCUT, _P_KTR, _P_J, _P_K, _P_C, _P_KB, _P_R, _P_G, _P_CAP, _P_L,
  _P_STAND, _P_CELLS, _P_SLIP, _P_SCRUB, _P_KUS) = range(19)
-_SOC_TABLE = np.array(_SOC_POINTS)
-_VOLT_TABLE = np.array(_CELL_VOLTS)
+# (the LiPo table is read by the step as the module's tuples: compiled, numba bakes them in as
+# constants, so a call passes two arrays and three floats, not four arrays)
 
 #: Which implementation of the sub-steps runs: None (default) = the numba-compiled one when numba
 #: is already loaded in the process (the sensors load it), else plain Python; True = always
@@ -142,9 +142,10 @@ _VOLT_TABLE = np.array(_CELL_VOLTS)
 #: False = always plain Python. Both are the same code on the same numbers: the same results.
 COMPILED: bool | None = None
 _compiled_advance = None
+_MODULES = sys.modules
 
 
-def _advance(s, p, duty, delta_cmd, dt, socs, volts):
+def _advance(s, p, duty, delta_cmd, dt):
     """``dt`` seconds of the body in ceil(dt / physics_dt) equal sub-steps, in place on the
     state buffer ``s`` (see :class:`VehicleState`); the equations are the module docstring's.
     Plain Python on an ``array('d')`` and the constants as a list, or compiled with numba on the
@@ -170,6 +171,7 @@ def _advance(s, p, duty, delta_cmd, dt, socs, volts):
     shutdown = s[_SHUTDOWN] != 0.0
     # the open-circuit voltage moves by microvolts within a control step: evaluate it once
     # (a LiPo cell's discharge curve, piecewise linear, as cell_voltage)
+    socs, volts = _SOC_POINTS, _CELL_VOLTS
     q = min(max(soc, 0.0), 1.0)
     cell = volts[len(volts) - 1]
     for i in range(1, len(socs)):
@@ -271,7 +273,9 @@ def _advance(s, p, duty, delta_cmd, dt, socs, volts):
 def _compiled():
     """The numba-compiled :func:`_advance` when :data:`COMPILED` asks for it, else None."""
     global _compiled_advance
-    use = COMPILED if COMPILED is not None else "numba" in sys.modules
+    use = COMPILED
+    if use is None:
+        use = "numba" in sys.modules
     if not use:
         return None
     if _compiled_advance is None:
@@ -331,6 +335,9 @@ class Vehicle:
         k[_P_KUS] = realism.understeer_gradient
         self._k = k
         self._kl = k.tolist()  # the same constants for the plain-Python step (faster to index)
+        self._max_steering = p.max_steering
+        self._t_s, self._t_ns = math.nan, 0  # the state's t as last written by the step, and in ns
+        self._dt, self._dt_ns = math.nan, 0  # the last step's dt, and in ns
 
     @property
     def shutdown(self) -> bool:
@@ -342,11 +349,12 @@ class Vehicle:
         a realism profile's servo adds its dead-band, backlash and trim, and its delay: the wheels'
         target changes ``steering_delay`` s after the command)."""
         self.duty = duty
-        m = self.p.max_steering
+        m = self._max_steering
         delta = m if delta > m else (-m if delta < -m else delta)
         target = delta if self._servo is None else self._servo(delta)
         if self._delay_ns:
-            self._pending.append((round(self.state._a[_T] * 1e9) + self._delay_ns, target))
+            t = self.state._a[_T]  # the time in ns: the step's count while t is as it left it
+            self._pending.append(((self._t_ns if t == self._t_s else round(t * 1e9)) + self._delay_ns, target))
         else:
             self.delta_cmd = target
 
@@ -357,8 +365,9 @@ class Vehicle:
             return
         pending = self._pending
         if pending:
-            t_ns = round(self.state._a[_T] * 1e9)
-            end_ns = t_ns + round(dt * 1e9)
+            t = self.state._a[_T]  # (the counts in ns as _advance keeps them)
+            t_ns = self._t_ns if t == self._t_s else round(t * 1e9)
+            end_ns = t_ns + (self._dt_ns if dt == self._dt else round(dt * 1e9))
             while pending and pending[0][0] < end_ns:
                 due, target = pending.popleft()
                 if due > t_ns:
@@ -372,15 +381,26 @@ class Vehicle:
 
     def _advance(self, dt: float) -> None:
         # simulated time moves by dt rounded to the nanosecond, so that 100 steps of 10 ms make
-        # exactly 1 s (the sub-steps' own sum drifts in the last bits)
-        a = self.state._a
-        t_ns = round(a[_T] * 1e9) + round(dt * 1e9)
-        kernel = _compiled()
+        # exactly 1 s (the sub-steps' own sum drifts in the last bits); the count in ns is kept
+        # beside the state's t (recounted when t was set from outside) and dt's for the last dt
+        state = self.state
+        a = state._a
+        t = a[_T]
+        if t != self._t_s:
+            self._t_ns = round(t * 1e9)
+        if dt != self._dt:
+            self._dt, self._dt_ns = dt, round(dt * 1e9)
+        t_ns = self._t_ns + self._dt_ns
+        use = COMPILED  # (_compiled(), written out: this runs every step)
+        if use is None:
+            use = "numba" in _MODULES
+        kernel = (_compiled_advance or _compiled()) if use else None
         if kernel is not None:
-            kernel(self.state.buffer, self._k, float(self.duty), float(self.delta_cmd), float(dt), _SOC_TABLE, _VOLT_TABLE)
+            kernel(state.buffer, self._k, float(self.duty), float(self.delta_cmd), float(dt))
         else:
-            _advance(a, self._kl, self.duty, self.delta_cmd, dt, _SOC_POINTS, _CELL_VOLTS)
-        a[_T] = t_ns / 1e9
+            _advance(a, self._kl, self.duty, self.delta_cmd, dt)
+        self._t_ns = t_ns
+        a[_T] = self._t_s = t_ns / 1e9
 
     @property
     def wheel_speed(self) -> float:
