@@ -91,9 +91,9 @@ def client(srv, role="control", token=None, timeout=3.0):
 
 # --- the watchdog ---------------------------------------------------------------------------------
 def test_the_watchdog_trips_on_time_while_monitors_pull_frames_from_a_slow_camera(make_server):
-    # a camera read that takes 1 s, ten watchdog periods: a watchdog that waited for the sensors
-    # would be 0.5 s late on average; the exact figure (+20 ms) is benchmarks/bench_onboard.py's
-    car = RecordingCar(sensor_delay=1.0)
+    # a camera read that takes 2 s, twenty watchdog periods: a watchdog that waited for the sensors
+    # would be 1 s late on average; the exact figure (+20 ms) is benchmarks/bench_onboard.py's
+    car = RecordingCar(sensor_delay=2.0)
     srv = make_server(car, watchdog=0.1, controller_timeout=30.0, monitor_rate=1000.0)
     stop = threading.Event()
 
@@ -117,7 +117,8 @@ def test_the_watchdog_trips_on_time_while_monitors_pull_frames_from_a_slow_camer
                 after = car.tripped_after(last)
                 assert after is not None, "the watchdog did not stop the car"
                 lateness.append(after)
-        assert 0.05 < min(lateness) and max(lateness) < 0.1 + 0.3, lateness  # (from the reply: a round trip late)
+        # from the reply (a round trip late), with room for a loaded machine's scheduling
+        assert 0.05 < min(lateness) and max(lateness) < 0.1 + 0.5, lateness
     finally:
         stop.set()
         for t in pullers:
@@ -199,14 +200,14 @@ def test_monitors_cannot_take_the_controllers_slot(make_server):
 
 
 def test_a_silent_controller_loses_control_to_the_next_client_that_asks(make_server, carlog):
-    srv = make_server(watchdog=0.1, controller_timeout=0.3)
+    srv = make_server(watchdog=0.1, controller_timeout=0.6)
     old = client(srv)
     old.request(M.COMMAND, P.pack_command(0.2, 0.0, OFF))
     last = time.monotonic()
     time.sleep(0.15)  # tripped, but not silent for the controller timeout yet: still the controller
     with RawClient(srv.bound) as early:
         err = error_of(early.hello("control"))
-        assert err["code"] == "busy" and "silent for 0.3 s" in err["message"]
+        assert err["code"] == "busy" and "silent for 0.6 s" in err["message"]
     while True:
         with RawClient(srv.bound) as new:
             frame = new.hello("control")
@@ -216,7 +217,7 @@ def test_a_silent_controller_loses_control_to_the_next_client_that_asks(make_ser
                 break
         assert time.monotonic() - last < 2.0, "control was never released"
         time.sleep(0.02)
-    assert 0.28 <= takeover < 1.5, takeover  # max(watchdog, controller timeout), plus a loaded machine's delays
+    assert 0.58 <= takeover < 1.8, takeover  # max(watchdog, controller timeout), plus a loaded machine's delays
     err = error_of(old.recv())
     assert err["code"] == "control_lost" and err["fatal"] and "control passed to" in err["message"]
     assert old.closed_by_peer()
