@@ -17,8 +17,9 @@ The recorder encodes JPEG colour (and millimetre depth) on a thread of its own, 
 draws half of each frame on a helper thread: on two cores, the wall-clock figure is what recording
 costs with the second core free to take that encoding; the CPU figure counts it all the same
 (every thread's time), so it is the cost in work done, whichever core does it. A third pass
-(``--one-core``, on by default for lane-follow) pins the process to one core, where the helper
-and the encoder both run in the calling thread: its wall clock is the one-core figure.
+(``--one-core``, on by default for lane-follow) pins every thread of the process to one core,
+where the camera's helper and the encoder both run in the calling thread: its wall clock is the
+one-core figure.
 """
 
 from __future__ import annotations
@@ -34,7 +35,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import one_core  # noqa: E402
 from qcarlab.car import open_car  # noqa: E402
 from qcarlab.experiments.avoid import AvoidConfig, avoid  # noqa: E402
 from qcarlab.experiments.lane_follow import LaneFollowConfig, run_lane_follow  # noqa: E402
@@ -69,6 +69,17 @@ def run_once(lab: str, seconds: float, record: Path | None, profile: str = "comp
     if cpu is not None:
         cpu.append(time.process_time() - c)
     return wall, (record.stat().st_size if record is not None else 0)
+
+
+def pin(cores: set[int]) -> None:
+    """Every thread of this process (the camera's helper, OpenCV's and numba's pools, started
+    before) and the ones started after, on ``cores``: os.sched_setaffinity(0) alone moves only the
+    calling thread."""
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setaffinity(int(tid), cores)
+        except OSError:  # a thread that ended meanwhile
+            pass
 
 
 def report(lab: str, speed_s: float, batches: int, note: str, plain: list[float], rec: list[float],
@@ -117,7 +128,9 @@ def main() -> None:
                   "minute; for exact replays of camera labs)")
         passes = [(lab, False) for lab in labs] + [(lab, True) for lab in labs if lab in pinned]
         for lab, one in passes:
-            note = one_core() if one else "both cores"
+            if one:
+                pin({max(cores)})
+            note = f"every thread pinned to core {max(cores)}" if one else "both cores"
             try:
                 plain, rec, cpu_p, cpu_r = [], [], [], []
                 for b in range(args.batches):
@@ -125,7 +138,7 @@ def main() -> None:
                     rec.append(run_once(lab, speed_s, Path(tmp) / f"{lab}{b}.mcap", cpu=cpu_r)[0])
             finally:
                 if one:
-                    os.sched_setaffinity(0, cores)
+                    pin(cores)
             report(lab, speed_s, args.batches, note, plain, rec, cpu_p, cpu_r)
     print(f"load average {os.getloadavg()[0]:.2f} at the end")
 
