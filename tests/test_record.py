@@ -241,17 +241,38 @@ def test_a_frame_the_lab_draws_on_is_recorded_as_it_was_read(tmp_path):
     from qcarlab.recording.car import RecordingCar
     from qcarlab.recording.writer import Recorder
 
+    from qcarlab.recording import writer
+
     f = tmp_path / "d.mcap"
     seen = []
-    with RecordingCar(open_car("sim", world="track", seed=0), Recorder(f)) as car:
-        for _ in range(10):
-            frame = car.read_rgbd()
-            seen.append((frame.color.copy(), frame.depth.copy()))
-            frame.color[:] = 0  # painted over at once
-            frame.depth[:] = 0
-            car.advance(0.034)
+    old, writer._Frames.THREADED = writer._Frames.THREADED, True  # (whatever the machine's load)
+    try:
+        with RecordingCar(open_car("sim", world="track", seed=0), Recorder(f)) as car:
+            for _ in range(10):
+                frame = car.read_rgbd()
+                seen.append((frame.color.copy(), frame.depth.copy()))
+                frame.color[:] = 0  # painted over at once
+                frame.depth[:] = 0
+                car.advance(0.034)
+    finally:
+        writer._Frames.THREADED = old
     got = [load() for _, load in Recording(f).tape().rgbd()]
     assert len(got) == 10
     for g, (color, depth) in zip(got, seen):
         assert np.abs(g.color.astype(int) - color).mean() < 3.0
     assert np.abs(got[0].depth - seen[0][1]).max() <= 0.0005 + 1e-6
+
+
+@pytest.mark.parametrize("cores, load, threaded", [(2, 1.2, True), (2, 2.5, False), (1, 0.1, False), (4, 3.5, True)])
+def test_images_go_to_the_encoder_thread_only_with_a_core_to_spare(cores, load, threaded, monkeypatch):
+    from qcarlab.recording import writer
+
+    monkeypatch.setattr(writer, "_cores", lambda: cores)
+    monkeypatch.setattr(writer.os, "getloadavg", lambda: (load, load, load))
+    frames = writer._Frames()
+    try:
+        assert frames._threaded() is threaded
+        job = frames.color(None, C.COLOR, np.zeros((48, 64, 3), np.uint8), 0, C.CAMERA_FRAME, False)
+        assert (job.future is not None) is threaded and job.result() is not None
+    finally:
+        frames.close()

@@ -495,11 +495,12 @@ class _Frames:
     interpreter lock), from a copy of the frame (into a reused buffer: the lab may draw on its
     own frame), while the lab goes on with the frame; the recorder writes each message in its
     place in the queue once encoded. In the caller's thread instead: the exact profile's raw
-    bytes (a copy, nothing to encode), and every image when the process may run on one core only
-    (``os.sched_getaffinity``, checked at each image: a thread would only take turns with the
-    caller) or ``THREADED`` is False. Whichever thread encodes, the file is the same byte for byte."""
+    bytes (a copy, nothing to encode), and every image when no core is to spare (one core for
+    this process, or a machine busy with other jobs: :meth:`_threaded`). ``THREADED``: None
+    (that choice), True (always the thread), False (never). Whichever thread encodes, the file
+    is the same byte for byte."""
 
-    THREADED = True
+    THREADED: bool | None = None
     WAITING = 4  # images queued and not yet written, at most: then the caller waits for the oldest
 
     def __init__(self) -> None:
@@ -508,9 +509,27 @@ class _Frames:
         self._M = messages
         self._pool: Any = None  # the encoder's thread (a one-worker executor), started on first use
         self._free: dict[tuple, list[np.ndarray]] = {}  # reusable copy buffers by (shape, dtype)
+        self._asked_at = -math.inf  # when _threaded last looked at the cores and the load
+        self._use_thread = False
 
     def _threaded(self) -> bool:
-        return self.THREADED and _cores() >= 2
+        """Encode on the thread now? Only with a core to spare: two or more cores this process may
+        use, and a load average (all the machine's runnable threads, this run's included) below
+        their number. On a machine whose cores other jobs keep busy, the thread only takes turns
+        with the lab and costs more CPU than it saves (measured, bench_record.py). Asked at most
+        once a second."""
+        if self.THREADED is not None:
+            return self.THREADED
+        now = time.monotonic()
+        if now >= self._asked_at + 1.0:
+            self._asked_at = now
+            cores = _cores()
+            try:
+                load = os.getloadavg()[0]
+            except OSError:  # pragma: no cover - no load average here
+                load = 0.0
+            self._use_thread = cores >= 2 and load < cores
+        return self._use_thread
 
     def color(self, channel: Any, topic: str, image: Any, ns: int, frame_id: str, exact: bool) -> _Job:
         img = np.asarray(image)
