@@ -182,3 +182,97 @@ def test_open_recording_refuses_a_folder_that_is_not_a_bag(tmp_path):
 
     with pytest.raises(InputError, match="not a rosbag2"):
         open_recording(tmp_path)
+
+
+def _messages(path):
+    """Every message of a recording in file order: (topic, log time from the first, data)."""
+    with open(path, "rb") as f:
+        msgs = [(ch.topic, m.log_time, m.data) for _, ch, m in make_reader(f).iter_messages(log_time_order=False)]
+    t0 = msgs[0][1]
+    return [(topic, t - t0, data) for topic, t, data in msgs]
+
+
+def _record_camera_drive(path, **frames_opts):
+    from qcarlab.car import open_car
+    from qcarlab.recording import writer
+    from qcarlab.recording.car import RecordingCar
+    from qcarlab.recording.writer import Recorder
+
+    old = writer._Frames.THREADED
+    writer._Frames.THREADED = frames_opts.get("threaded", old)
+    try:
+        with RecordingCar(open_car("sim", world="track", seed=0), Recorder(path)) as car:
+            for k in range(100):  # 1 s: 100 ticks, 30 RGBD frames, a CSI set every 10th tick
+                car.write(0.1, 0.02)
+                car.read()
+                car.truth()
+                car.read_rgbd()
+                if k % 10 == 0:
+                    car.read_csi()
+                car.recorder.log_values(car.time, {"k": k})
+                car.advance(0.01)
+    finally:
+        writer._Frames.THREADED = old
+
+
+def test_images_encoded_on_the_encoder_thread_make_the_same_file_as_in_the_callers(tmp_path):
+    """JPEG colour and millimetre depth encoded meanwhile on a thread of their own: the same
+    messages, in the same order, at the same times, as encoding them in the caller's thread."""
+    _record_camera_drive(tmp_path / "t.mcap", threaded=True)
+    _record_camera_drive(tmp_path / "i.mcap", threaded=False)
+    threaded, inline = _messages(tmp_path / "t.mcap"), _messages(tmp_path / "i.mcap")
+    topics = {t for t, _, _ in threaded}
+    assert {C.COLOR, C.DEPTH, C.CSI["front"], C.READOUT, C.LAB} <= topics
+    assert [(t, lt) for t, lt, _ in threaded] == [(t, lt) for t, lt, _ in inline]
+    images = {C.COLOR, C.DEPTH, *C.CSI.values()}
+
+    def same(msgs):  # the images past their timestamp (field 1: the two recordings' clocks differ), the ticks
+        return [d[2 + d[1]:] if t in images else d for t, _, d in msgs
+                if t in images or t in (C.READOUT, C.COMMAND, C.TRUTH, C.LAB)]
+
+    assert same(threaded) == same(inline)
+    assert sum(t == C.COLOR for t, _, _ in threaded) == 30 and sum(t == C.DEPTH for t, _, _ in threaded) == 2
+
+
+def test_a_frame_the_lab_draws_on_is_recorded_as_it_was_read(tmp_path):
+    """The encoder works from a copy: a lab that paints over its frame right after reading it
+    (while the JPEG is still being encoded) does not change what was recorded."""
+    from qcarlab.car import open_car
+    from qcarlab.recording.car import RecordingCar
+    from qcarlab.recording.writer import Recorder
+
+    from qcarlab.recording import writer
+
+    f = tmp_path / "d.mcap"
+    seen = []
+    old, writer._Frames.THREADED = writer._Frames.THREADED, True  # (whatever the machine's load)
+    try:
+        with RecordingCar(open_car("sim", world="track", seed=0), Recorder(f)) as car:
+            for _ in range(10):
+                frame = car.read_rgbd()
+                seen.append((frame.color.copy(), frame.depth.copy()))
+                frame.color[:] = 0  # painted over at once
+                frame.depth[:] = 0
+                car.advance(0.034)
+    finally:
+        writer._Frames.THREADED = old
+    got = [load() for _, load in Recording(f).tape().rgbd()]
+    assert len(got) == 10
+    for g, (color, depth) in zip(got, seen):
+        assert np.abs(g.color.astype(int) - color).mean() < 3.0
+    assert np.abs(got[0].depth - seen[0][1]).max() <= 0.0005 + 1e-6
+
+
+@pytest.mark.parametrize("cores, load, threaded", [(2, 1.2, True), (2, 2.5, False), (1, 0.1, False), (4, 3.5, True)])
+def test_images_go_to_the_encoder_thread_only_with_a_core_to_spare(cores, load, threaded, monkeypatch):
+    from qcarlab.recording import writer
+
+    monkeypatch.setattr(writer, "_cores", lambda: cores)
+    monkeypatch.setattr(writer.os, "getloadavg", lambda: (load, load, load))
+    frames = writer._Frames()
+    try:
+        assert frames._threaded() is threaded
+        job = frames.color(None, C.COLOR, np.zeros((48, 64, 3), np.uint8), 0, C.CAMERA_FRAME, False)
+        assert (job.future is not None) is threaded and job.result() is not None
+    finally:
+        frames.close()

@@ -67,7 +67,7 @@ def laser_scan(scan: Any, ns: int) -> LaserScan:
 
 
 def color_image(image: np.ndarray, ns: int, frame_id: str, exact: bool) -> CompressedImage | RawImage:
-    """A BGR uint8 image: JPEG (quality 90) or, ``exact``, raw ``bgr8`` (lossless)."""
+    """A BGR uint8 image: JPEG (quality C.JPEG_QUALITY, 4:2:0) or, ``exact``, raw ``bgr8`` (lossless)."""
     img = np.ascontiguousarray(image)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise InputError(f"recording: expected a BGR uint8 image, got {img.dtype} {img.shape}")
@@ -90,7 +90,13 @@ def depth_image(depth: np.ndarray, ns: int, exact: bool) -> RawImage:
         data = np.ascontiguousarray(d, dtype="<f4").tobytes()
         return RawImage(timestamp=timestamp(ns), frame_id=C.CAMERA_FRAME, width=w, height=h, encoding="32FC1",
                         step=w * 4, data=data)
-    mm = np.clip(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0) * 1000.0 + 0.5, 0, 65535).astype("<u2")
+    mm = np.multiply(d, np.float32(1000.0), dtype=np.float32)  # (in place from here on: one array, no copies)
+    mm += np.float32(0.5)
+    bad = ~np.isfinite(mm)  # NaN, inf: no data (0)
+    if bad.any():
+        mm[bad] = 0.0
+    np.clip(mm, 0.0, 65535.0, out=mm)
+    mm = mm.astype("<u2")
     return RawImage(timestamp=timestamp(ns), frame_id=C.CAMERA_FRAME, width=w, height=h, encoding="16UC1",
                     step=w * 2, data=mm.tobytes())
 

@@ -5,26 +5,27 @@
     rec.close()                                 # writes the summary (index, statistics)
 
 Written with foxglove-sdk's MCAP writer: messages go into zstd-compressed chunks of about 1 MB as
-they come, so a run stopped by Ctrl-C or SIGTERM (the CLI turns SIGTERM into Ctrl-C) closes the
+they come (COMPRESSION_LEVEL), so a run stopped by Ctrl-C or SIGTERM (the CLI turns SIGTERM into Ctrl-C) closes the
 file with its summary, and a run killed outright (SIGKILL) loses at most the chunk being filled
 (and the last few milliseconds of messages, below); :mod:`qcarlab.recording.reader` reads such a
 file without its summary.
 
 The per-tick messages (readouts, commands, the truth, the lab's values, LIDAR scans, and the poses
 and transforms they give) are queued as they come and written in batches, at the latest
-FLUSH_PERIOD_S (20 ms) after they came and before any camera frame: a run pays the encoding in one
-tight loop rather than a little of it at every tick, where the simulator's own work has pushed the
-recorder's code and data out of the caches (their order is kept). Camera frames are encoded in the
-caller's thread: on a thread of their own (OpenCV's encoder lets go of the interpreter lock) they
-cost as much CPU and, on a machine whose cores are busy, more time (measured, bench_record.py).
-What a recording holds is unchanged: every readout, command, truth and value, in full, each with
-its exact time.
+FLUSH_PERIOD_S (20 ms) after they came: a run pays the encoding in one tight loop rather than a
+little of it at every tick, where the simulator's own work has pushed the recorder's code and data
+out of the caches. Camera frames join the same queue, in their place: a compact frame's JPEG
+colour and millimetre depth are encoded meanwhile on a thread of their own (:class:`_Frames`;
+OpenCV's encoder and NumPy let go of the interpreter lock), from a copy, while the lab goes on with
+the frame, and written when encoded (at most _Frames.WAITING images wait; then the caller does).
+Every message keeps its place and its exact time: the file is the same whichever thread encoded.
+A run killed outright (SIGKILL) also loses the images still being encoded (a few frames at most).
 
 Two profiles for the cameras (the rest is always lossless):
 
-- ``compact`` (default): colour as JPEG (quality 90) every frame, depth as 16-bit millimetres
-  (the D435's own z16 format) every 15th frame (2 Hz at 30 fps). A 60 s lane-follow is about
-  80 MB. Replays of camera labs see the JPEG colour and the held depth, so their decisions can
+- ``compact`` (default): colour as JPEG (quality 80, 4:2:0) every frame, depth as 16-bit
+  millimetres (the D435's own z16 format) every 15th frame (2 Hz at 30 fps). A 60 s lane-follow
+  is about 70 MB. Replays of camera labs see the JPEG colour and the held depth, so their decisions can
   differ slightly from the recorded ones (LIDAR labs replay exactly).
 - ``exact``: colour as raw bgr8 and depth as 32-bit float metres, every frame: a replay gives
   the lab the very pixels it had (about 1.3 MB per RGBD frame after compression).
@@ -34,6 +35,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import threading
 import time
@@ -50,6 +52,8 @@ from qcarlab.recording import require
 
 VERSION = 2  # 2: readouts, commands and truth as protobuf (1: JSON)
 COMPRESSION_THREADS = 1  # zstd compresses the chunks on a thread of its own, beside the run
+COMPRESSION_LEVEL = {"compact": 1,  # zstd's fastest: most of the file is JPEG, which no level shrinks (3: 2.5x the CPU, 7 % smaller)
+                     "exact": 3}  # zstd's default: raw images, which level 3 makes 11 % smaller than level 1
 CALIBRATION_EVERY = 30  # RGBD frames between two camera calibration messages
 BALLS_PERIOD = 0.1  # s between two updates of the moving balls in the scene
 MOUNTS_PERIOD_NS = 1_000_000_000  # the static sensor transforms are repeated once a second
@@ -101,13 +105,16 @@ class Recorder:
                 self.writer = foxglove.open_mcap(
                     self.path, allow_overwrite=True, context=self.ctx,
                     writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd, compression_threads=COMPRESSION_THREADS,
+                                                    compression_level=COMPRESSION_LEVEL[profile],
                                                     profile=""))
             except Exception as exc:  # the SDK's own error type: a path we cannot write
                 raise InputError(f"--record {self.path}: cannot write ({exc})") from None
         self._channels: dict[str, Any] = {}
         self._pb_schema: bytes | None = None
         self.counts: dict[str, int] = {}  # messages written per topic
-        self._pending: deque[tuple[Any, tuple]] = deque()  # the per-tick messages not written yet
+        self._pending: deque[tuple[Any, Any]] = deque()  # the messages not written yet: (fn, args) or (None, _Job)
+        self._jobs: deque[_Job] = deque()  # the images in the queue (encoded or being encoded), in order
+        self._frames = _Frames()
         self._flush_lock = threading.Lock()
         self._flushed_at = time.monotonic()
         self.live = live
@@ -226,7 +233,7 @@ class Recorder:
         if len(pending) >= FLUSH_EVENTS or time.monotonic() - self._flushed_at >= FLUSH_PERIOD_S:
             if self._flush_lock.acquire(blocking=False):  # another thread writing the queue: it goes on
                 try:
-                    self._drain()
+                    self._drain(block=False)
                 finally:
                     self._flush_lock.release()
 
@@ -235,12 +242,20 @@ class Recorder:
         with self._flush_lock:
             self._drain()
 
-    def _drain(self) -> None:
+    def _drain(self, block: bool = True) -> None:
+        """Write the queue in order (the flush lock held); ``block=False`` stops at the first image
+        still being encoded."""
         pending = self._pending
         self._flushed_at = time.monotonic()
         while pending:
-            fn, args = pending.popleft()
-            fn(*args)
+            fn, args = pending[0]
+            if fn is None and not block and not args.ready():
+                return
+            pending.popleft()
+            if fn is None:
+                self._write_job(args)
+            else:
+                fn(*args)
 
     # --- what the car says ---------------------------------------------------------------------
     def readout(self, r: Any) -> None:
@@ -343,39 +358,65 @@ class Recorder:
             self.counts[C.LIDAR] = self.counts.get(C.LIDAR, 0) + 1
 
     def rgbd(self, frame: Any) -> None:
-        self.flush()  # (then encoded outside the queue's lock: a JPEG never holds up another thread)
+        """An RGBD frame: its colour and (every DEPTH_EVERY-th, or every one when exact) depth,
+        queued in order with the per-tick messages; JPEG and millimetre depth encoded meanwhile on
+        the encoder's thread (see :class:`_Frames`)."""
         M = self._M
         ns = self.ns(frame.t)
         k = self._rgbd_count
         self._rgbd_count += 1
         with_depth = self.exact or k % C.DEPTH_EVERY == 0
-        if self.writer is not None:
-            self._log(C.FRAMES, None, {"sensor": "rgbd", "t": float(frame.t), "stamp": ns, "depth": with_depth}, ns)
-        if k % CALIBRATION_EVERY == 0:
-            self._log(C.CALIBRATION, "CameraCalibration", M.calibration(self.params, ns), ns)
+        jobs = []
         kind = "RawImage" if self.exact else "CompressedImage"
         ch = self._wanted(C.COLOR, kind)
         if ch is not None:
-            ch.log(M.color_image(frame.color, ns, C.CAMERA_FRAME, self.exact), log_time=ns)
-            self.counts[C.COLOR] = self.counts.get(C.COLOR, 0) + 1
+            jobs.append(self._frames.color(ch, C.COLOR, frame.color, ns, C.CAMERA_FRAME, self.exact))
         if with_depth:
             ch = self._wanted(C.DEPTH, "RawImage")
             if ch is not None:
-                ch.log(M.depth_image(frame.depth, ns, self.exact), log_time=ns)
-                self.counts[C.DEPTH] = self.counts.get(C.DEPTH, 0) + 1
+                jobs.append(self._frames.depth(ch, C.DEPTH, frame.depth, ns, self.exact))
+        with self._flush_lock:  # (the frame's messages stay together, in the order they came)
+            pending = self._pending
+            if self.writer is not None:
+                pending.append((self._log, (C.FRAMES, None, {"sensor": "rgbd", "t": float(frame.t), "stamp": ns,
+                                                             "depth": with_depth}, ns)))
+            if k % CALIBRATION_EVERY == 0:
+                pending.append((self._log, (C.CALIBRATION, "CameraCalibration", M.calibration(self.params, ns), ns)))
+            self._queue_jobs(jobs)
 
     def csi(self, frames: Any) -> None:
-        self.flush()
-        M = self._M
         ns = self.ns(frames.t)
-        if self.writer is not None:
-            self._log(C.FRAMES, None, {"sensor": "csi", "t": float(frames.t), "stamp": ns}, ns)
         kind = "RawImage" if self.exact else "CompressedImage"
+        jobs = []
         for view, image in zip(C.CSI_VIEWS, frames.as_list()):
             ch = self._wanted(C.CSI[view], kind)
             if ch is not None:
-                ch.log(M.color_image(image, ns, C.CSI_FRAMES[view], self.exact), log_time=ns)
-                self.counts[C.CSI[view]] = self.counts.get(C.CSI[view], 0) + 1
+                jobs.append(self._frames.color(ch, C.CSI[view], image, ns, C.CSI_FRAMES[view], self.exact))
+        with self._flush_lock:
+            if self.writer is not None:
+                self._pending.append((self._log, (C.FRAMES, None, {"sensor": "csi", "t": float(frames.t), "stamp": ns},
+                                                  ns)))
+            self._queue_jobs(jobs)
+
+    def _queue_jobs(self, jobs: list[_Job]) -> None:
+        """Queue encoded images (the flush lock held); write what is ready; wait when too many are
+        still being encoded (a recording never drops a frame)."""
+        pending, waiting = self._pending, self._jobs
+        for job in jobs:
+            pending.append((None, job))
+            waiting.append(job)
+        if waiting and waiting[0].ready():
+            self._drain(block=False)
+        while len(waiting) > _Frames.WAITING:
+            waiting[0].wait()
+            self._drain(block=False)
+
+    def _write_job(self, job: _Job) -> None:
+        self._jobs.popleft()
+        msg = job.result()
+        self._frames.release(job)
+        job.channel.log(msg, log_time=job.ns)
+        self.counts[job.topic] = self.counts.get(job.topic, 0) + 1
 
     # --- what the lab says ----------------------------------------------------------------------
     def log_values(self, t: float, values: dict[str, Any]) -> None:
@@ -408,7 +449,10 @@ class Recorder:
         self.closed = True
         try:
             try:
-                self.flush()
+                try:
+                    self.flush()
+                finally:
+                    self._frames.close()
             finally:
                 if self.writer is not None:
                     self.writer.close()
@@ -421,6 +465,117 @@ class Recorder:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class _Job:
+    """One image message of the queue: its channel, topic and log time, and the message, encoded
+    here (``value``) or still being encoded on the encoder's thread (``future``)."""
+
+    __slots__ = ("channel", "topic", "ns", "future", "value", "buffer")
+
+    def __init__(self, channel: Any, topic: str, ns: int, *, value: Any = None, future: Any = None,
+                 buffer: np.ndarray | None = None):
+        self.channel, self.topic, self.ns = channel, topic, ns
+        self.value, self.future, self.buffer = value, future, buffer
+
+    def ready(self) -> bool:
+        return self.future is None or self.future.done()
+
+    def wait(self) -> None:
+        if self.future is not None:
+            self.future.exception()  # (waits; the error itself is raised by result(), in order)
+
+    def result(self) -> Any:
+        return self.value if self.future is None else self.future.result()
+
+
+class _Frames:
+    """The camera images of a recording as messages. Compact ones (JPEG colour, millimetre depth)
+    are encoded on a thread of their own (OpenCV's encoder and NumPy's conversions let go of the
+    interpreter lock), from a copy of the frame (into a reused buffer: the lab may draw on its
+    own frame), while the lab goes on with the frame; the recorder writes each message in its
+    place in the queue once encoded. In the caller's thread instead: the exact profile's raw
+    bytes (a copy, nothing to encode), and every image when no core is to spare (one core for
+    this process, or a machine busy with other jobs: :meth:`_threaded`). ``THREADED``: None
+    (that choice), True (always the thread), False (never). Whichever thread encodes, the file
+    is the same byte for byte."""
+
+    THREADED: bool | None = None
+    WAITING = 4  # images queued and not yet written, at most: then the caller waits for the oldest
+
+    def __init__(self) -> None:
+        from qcarlab.recording import messages
+
+        self._M = messages
+        self._pool: Any = None  # the encoder's thread (a one-worker executor), started on first use
+        self._free: dict[tuple, list[np.ndarray]] = {}  # reusable copy buffers by (shape, dtype)
+        self._asked_at = -math.inf  # when _threaded last looked at the cores and the load
+        self._use_thread = False
+
+    def _threaded(self) -> bool:
+        """Encode on the thread now? Only with a core to spare: two or more cores this process may
+        use, and a load average (all the machine's runnable threads, this run's included) below
+        their number. On a machine whose cores other jobs keep busy, the thread only takes turns
+        with the lab and costs more CPU than it saves (measured, bench_record.py). Asked at most
+        once a second."""
+        if self.THREADED is not None:
+            return self.THREADED
+        now = time.monotonic()
+        if now >= self._asked_at + 1.0:
+            self._asked_at = now
+            cores = _cores()
+            try:
+                load = os.getloadavg()[0]
+            except OSError:  # pragma: no cover - no load average here
+                load = 0.0
+            self._use_thread = cores >= 2 and load < cores
+        return self._use_thread
+
+    def color(self, channel: Any, topic: str, image: Any, ns: int, frame_id: str, exact: bool) -> _Job:
+        img = np.asarray(image)
+        if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:  # refused here, in the caller's thread
+            raise InputError(f"recording: expected a BGR uint8 image, got {img.dtype} {img.shape}")
+        if exact or not self._threaded():
+            return _Job(channel, topic, ns, value=self._M.color_image(img, ns, frame_id, exact))
+        return self._submit(channel, topic, ns, img, self._M.color_image, frame_id, exact)
+
+    def depth(self, channel: Any, topic: str, depth: Any, ns: int, exact: bool) -> _Job:
+        d = np.asarray(depth)
+        if exact or not self._threaded():
+            return _Job(channel, topic, ns, value=self._M.depth_image(d, ns, exact))
+        return self._submit(channel, topic, ns, d, self._M.depth_image, exact)
+
+    def _submit(self, channel: Any, topic: str, ns: int, array: np.ndarray, encode, *args: Any) -> _Job:
+        key = (array.shape, array.dtype.str)
+        free = self._free.get(key)
+        buf = free.pop() if free else np.empty(array.shape, array.dtype)
+        np.copyto(buf, array)
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="qcarlab-record-encoder")
+        return _Job(channel, topic, ns, future=self._pool.submit(encode, buf, ns, *args), buffer=buf)
+
+    def release(self, job: _Job) -> None:
+        """``job`` is written: its copy buffer can take another frame."""
+        buf = job.buffer
+        if buf is not None:
+            job.buffer = None
+            self._free.setdefault((buf.shape, buf.dtype.str), []).append(buf)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+        self._free.clear()
+
+
+def _cores() -> int:
+    """How many cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
 
 
 def _params_dict(params: QCarParams) -> dict[str, str]:
