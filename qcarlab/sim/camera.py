@@ -42,7 +42,8 @@ How it is drawn. The RGBD camera (a level pinhole, rendered upright, row-major):
    blended bilinearly in one vectorised batch; the floor's depth is one number per row; then
    the layers, the stop-sign sprites (depth-tested), the depth's noise and range limits, the
    row's BGR bytes;
-3. the colour noise (two saturating OpenCV passes over the frame).
+3. with each row's BGR bytes, its colour noise (one int8 tile) and the realism profile's
+   exposure gain (``render(..., gain=)``), in the same pass.
 
 A camera pitched down renders the level view so, then rotates it (a homography). The CSI views
 are drawn per column in a transposed buffer (:func:`~qcarlab.sim._kernels.render_columns`,
@@ -91,6 +92,7 @@ CSI_OVERSAMPLE = 0.8  # cylinder pixels per fisheye pixel at the centre of a CSI
 _NOISE_PAD = 48
 _SPRITE = 128
 _NO_NOISE = np.zeros((0, 0), np.int8)
+_NO_CNOISE = np.zeros((1, 0), np.int8)
 _NO_BGR = np.zeros((0, 0), np.uint8)
 _NO_SIGNS = (np.zeros((0, 5), np.int64), np.zeros(0, np.float64), np.zeros(0, np.uint32))
 
@@ -217,8 +219,10 @@ class _Noise:
         self.w, self.h = w, h
         shape = (w + _NOISE_PAD, h + _NOISE_PAD)
         n = rng.normal(0.0, color_sd, shape + (3,))
-        self.pos = np.clip(np.rint(n), 0, 255).astype(np.uint8)
-        self.neg = np.clip(np.rint(-n), 0, 255).astype(np.uint8)
+        # rint(n) as int8, (rows, 3 columns) bytes: a pixel gets clip(c + rint(n)), what adding
+        # the tile's + part and subtracting its - part (two saturating passes) gave, in one pass
+        # of half the bytes (:func:`~qcarlab.sim._kernels.color_noise`)
+        self.tile = np.clip(np.rint(n), -127, 127).astype(np.int8).reshape(shape[0], -1)
         # depth: standard normal in int8 steps of DEPTH_TILE_STEP (a quarter of the float32
         # tile's bytes: the tile stays in the cache beside the frame)
         self.depth = (np.clip(np.rint(rng.standard_normal(shape, dtype=np.float32) / DEPTH_TILE_STEP), -127, 127)
@@ -232,14 +236,18 @@ class _Noise:
         x = int(self.rng.bit_generator.random_raw())
         return [(((x >> (10 * i)) & 1023) * _NOISE_PAD) >> 10 for i in range(6)]
 
-    def color(self, img: np.ndarray, o: list[int], v0: int = 0) -> None:
-        """Noise on ``img``, rows v0.. of a frame (all of it by default), window ``o[0:2]`` (from
-        :meth:`windows`): the + and - parts of one tile at the same place, so the pixel gets
-        clip(c + rint(n)), n ~ N(0, color_sd) (two windows gave a spread of 0.83 color_sd)."""
-        n, w = img.shape[0], img.shape[1]
-        a, b = o[0] + v0, o[1]
-        cv2.add(img, self.pos[a : a + n, b : b + w], dst=img)
-        cv2.subtract(img, self.neg[a : a + n, b : b + w], dst=img)
+    def color(self, img: np.ndarray, o: list[int], v0: int = 0, gain: float = 1.0) -> None:
+        """Noise on ``img`` (BGR uint8, in place), rows v0.. of a frame (all of it by default),
+        window ``o[0:2]`` (from :meth:`windows`): the pixel gets clip(c + rint(n)), n ~ N(0,
+        color_sd); then the exposure ``gain`` (see :func:`exposure`)."""
+        _kernels.color_noise(img.reshape(img.shape[0], -1), self.tile, o[0] + v0, o[1], float(gain))
+
+
+def exposure(img: np.ndarray, gain: float) -> None:
+    """``img`` (BGR uint8, in place) = saturate(rint(gain img)): ``cv2.convertScaleAbs(img,
+    alpha=gain)``'s numbers (:class:`~qcarlab.sim.realism.CameraEffects`), in the renderer's pass."""
+    if gain != 1.0:
+        _kernels.color_noise(img.reshape(img.shape[0], -1), _NO_CNOISE, 0, 0, float(gain))
 
 
 class _ColumnView:
@@ -578,8 +586,11 @@ class RGBDCamera:
         """The camera's (x, y, yaw) in the world for a car pose."""
         return self._view.camera_pose(pose)
 
-    def render(self, pose: tuple[float, float, float], t: float = 0.0) -> RGBDFrame:
-        """The colour image (BGR uint8) and aligned depth (float32 m, 0 = none) seen from ``pose``."""
+    def render(self, pose: tuple[float, float, float], t: float = 0.0, gain: float = 1.0) -> RGBDFrame:
+        """The colour image (BGR uint8) and aligned depth (float32 m, 0 = none) seen from ``pose``;
+        ``gain``: the exposure's (the colour saturate(rint(gain c)) after the noise, as
+        :class:`~qcarlab.sim.realism.CameraEffects` applies it, in the same pass)."""
+        gain = float(gain)
         v = self._view
         cx_w, cy_w, yaw = v.camera_pose(pose)
         W, H = self.intrinsics.width, self.intrinsics.height
@@ -595,7 +606,7 @@ class RGBDCamera:
             color = np.empty((H, W, 3), np.uint8)
             helper = _helper()
             mid = H // 2 if helper is not None else H
-            args = (color, depth, (cx_w, cy_w, yaw), layers, signs, o)
+            args = (color, depth, (cx_w, cy_w, yaw), layers, signs, o, gain)
             done = helper.submit(self._rows, *args, mid, H) if helper is not None and mid < H else None
             try:
                 self._rows(*args, 0, mid)
@@ -609,7 +620,9 @@ class RGBDCamera:
         color = cv2.cvtColor(c4, cv2.COLOR_BGRA2BGR)
         if o is not None:
             assert self._noise is not None
-            self._noise.color(color, o)
+            self._noise.color(color, o, gain=gain)
+        else:
+            exposure(color, gain)
         depth = cv2.warpPerspective(depth, self._rot, (W, H), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                     borderMode=cv2.BORDER_REPLICATE)
         depth = cv2.multiply(depth, self._depth_factor)
@@ -629,15 +642,16 @@ class RGBDCamera:
         )
 
     def _compose(self, depth, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None, a: int, b: int,
-                 bgr: np.ndarray = _NO_BGR) -> None:
+                 bgr: np.ndarray = _NO_BGR, gain: float = 1.0) -> None:
         """Rows a..b of the level view into ``_color4`` and ``depth``
         (:func:`~qcarlab.sim._kernels.compose_rows`); unpitched, the depth finished too (range
         limits, and noise in the windows ``o`` unless None). A pitched view's depth is finished
         after the rotation. With ``bgr`` (the frame's colour as (H, 3 W) bytes) the colour goes
-        there instead of ``_color4``."""
+        there instead of ``_color4``, noise (windows ``o``) and exposure ``gain`` on."""
         v, fl, lv = self._view, self._floor, self._level
         finish = self._rot is None
         dn, na, nb = self._depth_noise(o if finish else None)
+        cn, ca, cb = (self._noise.tile, o[0], o[1]) if o is not None and self._noise is not None else (_NO_CNOISE, 0, 0)
         cx_w, cy_w, yaw = cam
         n_layers, balls = layers
         _kernels.compose_rows(
@@ -646,16 +660,14 @@ class RGBDCamera:
             n_layers, self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lrange, self._lball, self._lbd,
             self._lbe, self._lbg, balls, v.k, v.cam_z, v.fy, v.cy, signs[0], signs[1], signs[2],
             finish, dn, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth), bgr,
+            cn, ca, cb, gain,
         )
 
     def _rows(self, color: np.ndarray, depth: np.ndarray, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None,
-              a: int, b: int) -> None:
-        """Rows a..b of an unpitched frame, done: composed and finished into ``color`` (BGR) and
-        ``depth``, then the colour noise."""
-        self._compose(depth, cam, layers, signs, o, a, b, color.reshape(color.shape[0], -1))
-        if o is not None:
-            assert self._noise is not None
-            self._noise.color(color[a:b], o, a)
+              gain: float, a: int, b: int) -> None:
+        """Rows a..b of an unpitched frame, done: composed and finished into ``color`` (BGR, the
+        colour noise and exposure on) and ``depth``."""
+        self._compose(depth, cam, layers, signs, o, a, b, color.reshape(color.shape[0], -1), gain)
 
     def _depth_noise(self, o: list[int] | None) -> tuple[np.ndarray, int, int]:
         if o is None:
