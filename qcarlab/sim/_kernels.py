@@ -1505,18 +1505,20 @@ def _bilinear(p00, p01, p10, p11, wx, wy):
 
 
 @njit(**_JIT)
-def _floor_row(crow, v, flo, tex, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy):
+def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy):
     """Row v of the floor into ``crow`` where ``flo[u] <= v``: bilinear samples of a texture level
-    (``tex[off:]``, tw x th packed texels whose top byte is the run radius, see
-    ``raster.floor_runs``) at texel (X0 + u dX, Y0 + u dY) / 65536 (16.16 fixed point; texel
-    centres at integers); ``bg`` outside the texture.
+    (``tex[off:]``, tw x th packed texels, see ``raster.floor_runs``) at texel (X0 + u dX,
+    Y0 + u dY) / 65536 (16.16 fixed point; texel centres at integers); ``bg`` outside the
+    texture.
 
-    A sample whose block (the 2 x 2 texels it reads) has run radius R >= 1 reads texel
-    (ix, iy) exactly, and so does every sample whose block is within R - 1 of it: x in
-    [ix - R + 1, ix + R), y likewise. The samples of a row lie on a line, so the pixels up to
-    the first that leaves that square are filled at once (the same numbers as blending each).
-    The other samples are gathered (scratch ``bu``, ``b00``.., ``bwx``, ``bwy``) and blended in
-    one vectorised pass."""
+    A sample whose block (the 2 x 2 texels it reads) is uniform reads texel (ix, iy) exactly,
+    and so does every sample whose block lies in the square of uniform blocks that has (ix, iy)
+    at its corner and extends the way the row moves (``sq[off:]``, its side S >= 1, the row's
+    quadrant of ``FloorRuns.squares``; 0: the block is not uniform): x in [ix, ix + S) when
+    dX > 0, (ix - S, ix] when dX < 0, y likewise. The samples of a row lie on a line, so the
+    pixels up to the first that leaves that square are filled at once (the same numbers as
+    blending each). The other samples are gathered (scratch ``bu``, ``b00``.., ``bwx``,
+    ``bwy``) and blended in one vectorised pass."""
     W = crow.shape[0]
     inv_x = 1.0 / abs(dX) if dX != 0 else 0.0
     inv_y = 1.0 / abs(dY) if dY != 0 else 0.0
@@ -1532,8 +1534,7 @@ def _floor_row(crow, v, flo, tex, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01,
         iy = Y >> 16
         if ix >= 0 and iy >= 0 and ix + 1 < tw and iy + 1 < th:
             k = off + iy * tw + ix
-            p = int(tex[k])
-            R = p >> 24
+            R = int(sq[k])
             if R > 0:
                 # how many more pixels stay in the square (exact: the quotients are small)
                 m = W - 1 - u
@@ -1547,13 +1548,13 @@ def _floor_row(crow, v, flo, tex, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01,
                     m = min(m, int(((R << 16) - fy - 1) * inv_y))
                 elif dY < 0:
                     m = min(m, int((((R - 1) << 16) + fy) * inv_y))
-                w = np.uint32(p | 0xFF000000)
+                w = tex[k] | np.uint32(0xFF000000)
                 seg = crow[u : u + m + 1]  # (a loop from 0: vectorised)
                 for i in range(m + 1):
                     seg[i] = w
                 u += m + 1
                 continue
-            b00[n] = p
+            b00[n] = int(tex[k])
             b01[n] = int(tex[k + 1])
             b10[n] = int(tex[k + tw])
             b11[n] = int(tex[k + tw + 1])
@@ -1608,7 +1609,7 @@ def color_noise(img, tile, a, b, gain):
 @njit(**_JIT)
 def compose_rows(
     color, depth, va, vb, r0, sky, row_depth, rowf,
-    ftex, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
+    ftex, fsq, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
     L, ltop, lbot, lcol, lza, lzb, lrange, lball, lbd, lbe, lbg, balls, kcol, cam_z, fy, cy,
     sg_tab, sg_d, sg_pix,
     finish, dnoise, na, nb, coef, dmin, dmax, bgr, cnoise, ca, cb, gain,
@@ -1621,7 +1622,8 @@ def compose_rows(
        where ``flo[u] <= v``, its colour (:func:`_floor_row`): the floor point of pixel (u, v)
        is at forward distance ``row_dist[v]`` and left offset -(u - cx) row_dist[v] / fx of the
        camera at (ox, oy) heading ``yaw``; the texture level ``row_lev[v]`` (``ftab``: offset,
-       width, height in ``ftex``) whose texels match the pixel's footprint;
+       width, height in ``ftex``; ``fsq`` the squares of uniform blocks) whose texels match the
+       pixel's footprint;
     2. the L layers of :func:`column_layers`, far to near (depth ``lza + lzb rowf[v]``,
        ``rowf[v]`` = fy / (v - cy) below the horizon; balls shaded per pixel);
     3. the stop-sign sprites: ``sg_tab`` (n, 5) rows v0..v1-1, columns u0..u1-1, offset into
@@ -1683,7 +1685,8 @@ def compose_rows(
             Y0 = int(math.floor(j0 * 65536.0 + 0.5))
             dX = int(math.floor(ddx * sc * 65536.0 + 0.5))
             dY = int(math.floor(-ddy * sc * 65536.0 + 0.5))
-            _floor_row(crow, v, flo, ftex, off, tw, th, X0, dX, Y0, dY, int(sky), bu, b00, b01, b10, b11, bwx, bwy)
+            _floor_row(crow, v, flo, ftex, fsq[(1 if dX < 0 else 0) | (2 if dY < 0 else 0)], off, tw, th, X0, dX, Y0, dY,
+                       int(sky), bu, b00, b01, b10, b11, bwx, bwy)
         rf = np.float32(rowf[v])
         for l in range(L):
             if v < lrange[l, 0] or v > lrange[l, 1]:

@@ -656,7 +656,7 @@ class RGBDCamera:
         n_layers, balls = layers
         _kernels.compose_rows(
             self._color4_u32, depth, a, b, v.r0, v.bg_packed, v.row_depth, self._rowf,
-            fl.texels, fl.levels, v.row_lev, v.row_dist, cx_w, cy_w, yaw, lv.fx, lv.cx, fl.x0, fl.y1, fl.ppm, self._flo,
+            fl.texels, fl.squares, fl.levels, v.row_lev, v.row_dist, cx_w, cy_w, yaw, lv.fx, lv.cx, fl.x0, fl.y1, fl.ppm, self._flo,
             n_layers, self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lrange, self._lball, self._lbd,
             self._lbe, self._lbg, balls, v.k, v.cam_z, v.fy, v.cy, signs[0], signs[1], signs[2],
             finish, dn, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth), bgr,
