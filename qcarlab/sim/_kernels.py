@@ -1505,7 +1505,29 @@ def _bilinear(p00, p01, p10, p11, wx, wy):
 
 
 @njit(**_JIT)
-def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy):
+def _gain_word(p, gain):
+    """A packed pixel's B, G, R bytes each saturate(rint(gain c)) in float32 (the numbers of
+    ``cv2.convertScaleAbs(c, alpha=gain)``), its top byte kept."""
+    g = np.float32(gain)
+    top = np.float32(255.0)
+    q = np.int64(p)
+    out = q & 0xFF000000
+    for sh in (0, 8, 16):
+        y = np.float32((q >> sh) & 255) * g
+        y = y if y < top else top
+        out |= np.int64(np.rint(y)) << sh
+    return np.uint32(out)
+
+
+@njit(**_JIT)
+def gain_words(words, gain):
+    """:func:`_gain_word` on every packed pixel of ``words`` (1-D uint32), in place."""
+    for i in range(words.shape[0]):
+        words[i] = _gain_word(words[i], gain)
+
+
+@njit(**_JIT)
+def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy, gain=1.0):
     """Row v of the floor into ``crow`` where ``flo[u] <= v``: bilinear samples of a texture level
     (``tex[off:]``, tw x th packed texels, see ``raster.floor_runs``) at texel (X0 + u dX,
     Y0 + u dY) / 65536 (16.16 fixed point; texel centres at integers); ``bg`` outside the
@@ -1518,15 +1540,21 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
     dX > 0, (ix - S, ix] when dX < 0, y likewise. The samples of a row lie on a line, so the
     pixels up to the first that leaves that square are filled at once (the same numbers as
     blending each). The other samples are gathered (scratch ``bu``, ``b00``.., ``bwx``,
-    ``bwy``) and blended in one vectorised pass."""
+    ``bwy``) and blended in one vectorised pass. With ``gain`` != 1 each sampled colour gets
+    the exposure (:func:`_gain_word`; once per run)."""
     W = crow.shape[0]
     inv_x = 1.0 / abs(dX) if dX != 0 else 0.0
     inv_y = 1.0 / abs(dY) if dY != 0 else 0.0
+    gained = gain != 1.0
+    last_in = np.uint32(0)
+    last_out = _gain_word(last_in, gain) if gained else last_in
     n = 0
     u = 0
     while u < W:
-        if flo[u] > v:
+        if flo[u] > v:  # covered by a layer: on to the next column the floor shows in
             u += 1
+            while u < W and flo[u] > v:
+                u += 1
             continue
         X = X0 + u * dX
         Y = Y0 + u * dY
@@ -1549,6 +1577,11 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
                 elif dY < 0:
                     m = min(m, int((((R - 1) << 16) + fy) * inv_y))
                 w = tex[k] | np.uint32(0xFF000000)
+                if gained:  # runs of one colour follow each other: one conversion per colour
+                    if w != last_in:
+                        last_in = w
+                        last_out = _gain_word(w, gain)
+                    w = last_out
                 seg = crow[u : u + m + 1]  # (a loop from 0: vectorised)
                 for i in range(m + 1):
                     seg[i] = w
@@ -1570,45 +1603,37 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
         u += 1
     for i in range(n):
         b00[i] = _bilinear(b00[i], b01[i], b10[i], b11[i], bwx[i], bwy[i])
+    if gained:
+        for i in range(n):
+            b00[i] = _gain_word(b00[i], gain)
     for i in range(n):
         crow[bu[i]] = np.uint32(b00[i])
 
 
 @njit(**_JIT)
-def _noise_row(dst, nrow, gain):
+def _noise_row(dst, nrow):
     """A row of colour bytes in place: ``dst = saturate(dst + nrow)`` (int8 noise; empty: none),
-    then with ``gain`` != 1 ``dst = saturate(rint(gain dst))`` in float32, the numbers of
-    ``cv2.convertScaleAbs(dst, alpha=gain)`` (the realism profile's exposure). Both loops run
-    in 16- and 32-bit lanes (written so that LLVM vectorises them)."""
-    n = dst.shape[0]
+    in 16-bit lanes (written so that LLVM vectorises it)."""
     if nrow.shape[0] > 0:
-        for i in range(n):
+        for i in range(dst.shape[0]):
             x = np.int16(dst[i]) + np.int16(nrow[i])
             x = np.int16(x) if np.int16(x) > np.int16(0) else np.int16(0)
             x = x if x < np.int16(255) else np.int16(255)
             dst[i] = np.uint8(x)
-    if gain != 1.0:
-        g = np.float32(gain)
-        top = np.float32(255.0)
-        for i in range(n):
-            y = np.float32(dst[i]) * g
-            y = y if y < top else top
-            dst[i] = np.uint8(np.int32(np.rint(y)))
 
 
 @njit(**_JIT)
-def color_noise(img, tile, a, b, gain):
-    """Colour noise and exposure on a frame in place (:func:`_noise_row` on each row): ``img``
-    (n, 3 w) uint8 B, G, R bytes, noise ``tile[a + v, 3 b + i]`` (int8; (1, 0): none)."""
+def color_noise(img, tile, a, b):
+    """Colour noise on a frame in place (:func:`_noise_row` on each row): ``img`` (n, 3 w)
+    uint8 B, G, R bytes, noise ``tile[a + v, 3 b + i]`` (int8)."""
     w = img.shape[1]
-    noisy = tile.shape[1] > 0
     for v in range(img.shape[0]):
-        _noise_row(img[v], tile[a + v, 3 * b : 3 * b + w] if noisy else tile[0, :0], gain)
+        _noise_row(img[v], tile[a + v, 3 * b : 3 * b + w])
 
 
 @njit(**_JIT)
 def compose_rows(
-    color, depth, va, vb, r0, sky, row_depth, rowf,
+    color, depth, va, vb, r0, sky, fbg, row_depth, rowf,
     ftex, fsq, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
     L, ltop, lbot, lcol, lza, lzb, lrange, lball, lbd, lbe, lbg, balls, kcol, cam_z, fy, cy,
     sg_tab, sg_d, sg_pix,
@@ -1618,6 +1643,7 @@ def compose_rows(
     (:func:`_word`), ``depth`` (H, W) float32 z-depth (inf = nothing). Each row, in cache:
 
     1. above row ``r0`` (the horizon) the background ``sky``, depth inf; below it the floor's
+       (``fbg`` beyond the floor texture, before the gain)
        depth ``row_depth[v]`` (a level pinhole sees the floor at one z-depth along a row) and,
        where ``flo[u] <= v``, its colour (:func:`_floor_row`): the floor point of pixel (u, v)
        is at forward distance ``row_dist[v]`` and left offset -(u - cx) row_dist[v] / fx of the
@@ -1634,8 +1660,12 @@ def compose_rows(
 
     With ``bgr`` ((H, 3 W) uint8, not empty) each row's colour goes there as B, G, R bytes
     instead (``color`` is then not written: a row at a time in cache, no second pass), with the
-    colour noise ``cnoise`` (int8, window from row ca, pixel column cb; (1, 0): none) and the exposure
-    ``gain`` (see :func:`_noise_row`).
+    colour noise ``cnoise`` (int8, window from row ca, pixel column cb; (1, 0): none).
+
+    ``gain`` (the realism profile's exposure; 1 = none) scales the colours drawn here, the
+    floor's and the balls' (:func:`_gain_word`, once per run of the floor); the caller has
+    scaled ``sky``, the layers' ``lcol`` and the signs' ``sg_pix`` (:func:`gain_words`). The
+    colour noise comes after, as the sensor's.
     """
     W = color.shape[1]
     nballs = balls.shape[0]
@@ -1656,6 +1686,9 @@ def compose_rows(
     to_bgr = bgr.shape[0] > 0
     cnoisy = cnoise.shape[1] > 0
     scratch = np.empty(W, np.uint32)
+    flo_min = vb
+    for u in range(W):
+        flo_min = min(flo_min, flo[u])
     for v in range(va, vb):
         crow = scratch if to_bgr else color[v]
         drow = depth[v]
@@ -1664,6 +1697,8 @@ def compose_rows(
                 crow[u] = sky
             for u in range(W):
                 drow[u] = inf
+        elif v < flo_min:
+            pass  # the layers cover every pixel of the row (see column_layers' flo): no floor to draw
         else:
             fz = row_depth[v]
             for u in range(W):
@@ -1686,7 +1721,7 @@ def compose_rows(
             dX = int(math.floor(ddx * sc * 65536.0 + 0.5))
             dY = int(math.floor(-ddy * sc * 65536.0 + 0.5))
             _floor_row(crow, v, flo, ftex, fsq[(1 if dX < 0 else 0) | (2 if dY < 0 else 0)], off, tw, th, X0, dX, Y0, dY,
-                       int(sky), bu, b00, b01, b10, b11, bwx, bwy)
+                       int(fbg), bu, b00, b01, b10, b11, bwx, bwy, gain)
         rf = np.float32(rowf[v])
         for l in range(L):
             if v < lrange[l, 0] or v > lrange[l, 1]:
@@ -1719,6 +1754,8 @@ def compose_rows(
                 s2 = 1.0 - qq * qq - lat * lat
                 sh = (0.35 + 0.65 * math.sqrt(s2) if s2 > 0.0 else 0.35) * lbg[l, u]
                 crow[u] = _word(balls[j, 3] * sh, balls[j, 4] * sh, balls[j, 5] * sh)
+                if gain != 1.0:
+                    crow[u] = _gain_word(crow[u], gain)
         for s in range(sg_tab.shape[0]):
             v0 = sg_tab[s, 0]
             if v < v0 or v >= sg_tab[s, 1]:
@@ -1747,4 +1784,4 @@ def compose_rows(
                     dst[3 * u] = src[4 * u + 3]
                     dst[3 * u + 1] = src[4 * u + 2]
                     dst[3 * u + 2] = src[4 * u + 1]
-            _noise_row(dst, cnoise[ca + v, 3 * cb : 3 * cb + 3 * W] if cnoisy else cnoise[0, :0], gain)
+            _noise_row(dst, cnoise[ca + v, 3 * cb : 3 * cb + 3 * W] if cnoisy else cnoise[0, :0])

@@ -42,8 +42,8 @@ How it is drawn. The RGBD camera (a level pinhole, rendered upright, row-major):
    blended bilinearly in one vectorised batch; the floor's depth is one number per row; then
    the layers, the stop-sign sprites (depth-tested), the depth's noise and range limits, the
    row's BGR bytes;
-3. with each row's BGR bytes, its colour noise (one int8 tile) and the realism profile's
-   exposure gain (``render(..., gain=)``), in the same pass.
+3. with each row's BGR bytes, its colour noise (one int8 tile), in the same pass. The realism
+   profile's exposure gain (``render(..., gain=)``) scales the colours as they are drawn.
 
 A camera pitched down renders the level view so, then rotates it (a homography). The CSI views
 are drawn per column in a transposed buffer (:func:`~qcarlab.sim._kernels.render_columns`,
@@ -236,18 +236,11 @@ class _Noise:
         x = int(self.rng.bit_generator.random_raw())
         return [(((x >> (10 * i)) & 1023) * _NOISE_PAD) >> 10 for i in range(6)]
 
-    def color(self, img: np.ndarray, o: list[int], v0: int = 0, gain: float = 1.0) -> None:
+    def color(self, img: np.ndarray, o: list[int], v0: int = 0) -> None:
         """Noise on ``img`` (BGR uint8, in place), rows v0.. of a frame (all of it by default),
         window ``o[0:2]`` (from :meth:`windows`): the pixel gets clip(c + rint(n)), n ~ N(0,
-        color_sd); then the exposure ``gain`` (see :func:`exposure`)."""
-        _kernels.color_noise(img.reshape(img.shape[0], -1), self.tile, o[0] + v0, o[1], float(gain))
-
-
-def exposure(img: np.ndarray, gain: float) -> None:
-    """``img`` (BGR uint8, in place) = saturate(rint(gain img)): ``cv2.convertScaleAbs(img,
-    alpha=gain)``'s numbers (:class:`~qcarlab.sim.realism.CameraEffects`), in the renderer's pass."""
-    if gain != 1.0:
-        _kernels.color_noise(img.reshape(img.shape[0], -1), _NO_CNOISE, 0, 0, float(gain))
+        color_sd)."""
+        _kernels.color_noise(img.reshape(img.shape[0], -1), self.tile, o[0] + v0, o[1])
 
 
 class _ColumnView:
@@ -587,9 +580,13 @@ class RGBDCamera:
         return self._view.camera_pose(pose)
 
     def render(self, pose: tuple[float, float, float], t: float = 0.0, gain: float = 1.0) -> RGBDFrame:
-        """The colour image (BGR uint8) and aligned depth (float32 m, 0 = none) seen from ``pose``;
-        ``gain``: the exposure's (the colour saturate(rint(gain c)) after the noise, as
-        :class:`~qcarlab.sim.realism.CameraEffects` applies it, in the same pass)."""
+        """The colour image (BGR uint8) and aligned depth (float32 m, 0 = none) seen from ``pose``.
+
+        ``gain``: the auto-exposure's (:class:`~qcarlab.sim.realism.CameraEffects`), applied
+        where the colours are drawn (saturate(rint(gain c)) per channel, the numbers of
+        ``cv2.convertScaleAbs``), before the sensor's noise: a frame with a gain costs what one
+        without does (a pass of its own over the frame took 0.1 ms). Without noise the frame is
+        exactly the ungained frame through ``convertScaleAbs``."""
         gain = float(gain)
         v = self._view
         cx_w, cy_w, yaw = v.camera_pose(pose)
@@ -599,6 +596,9 @@ class RGBDCamera:
         balls = v.balls_at(t)
         layers = (self._columns(cx_w, cy_w, yaw, balls), balls)
         signs = v.sign_patches(cx_w, cy_w, yaw)
+        if gain != 1.0 and self._rot is None:  # the layers' and signs' colours, once (before the rows are split)
+            _kernels.gain_words(self._lcol[: layers[0]].reshape(-1), gain)
+            _kernels.gain_words(signs[2], gain)
         lv = self._level
         depth = np.empty((lv.height, lv.width), np.float32)
         if self._rot is None:
@@ -618,11 +618,11 @@ class RGBDCamera:
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
         c4 = cv2.warpPerspective(self._color4, self._rot, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
         color = cv2.cvtColor(c4, cv2.COLOR_BGRA2BGR)
+        if gain != 1.0:  # after the rotation's blending, as on an unpitched frame's colours
+            cv2.convertScaleAbs(color, dst=color, alpha=gain)
         if o is not None:
             assert self._noise is not None
-            self._noise.color(color, o, gain=gain)
-        else:
-            exposure(color, gain)
+            self._noise.color(color, o)
         depth = cv2.warpPerspective(depth, self._rot, (W, H), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                     borderMode=cv2.BORDER_REPLICATE)
         depth = cv2.multiply(depth, self._depth_factor)
@@ -647,15 +647,17 @@ class RGBDCamera:
         (:func:`~qcarlab.sim._kernels.compose_rows`); unpitched, the depth finished too (range
         limits, and noise in the windows ``o`` unless None). A pitched view's depth is finished
         after the rotation. With ``bgr`` (the frame's colour as (H, 3 W) bytes) the colour goes
-        there instead of ``_color4``, noise (windows ``o``) and exposure ``gain`` on."""
+        there instead of ``_color4``, with its noise (windows ``o``). ``gain``: the exposure (see
+        :meth:`render`; the layers' and signs' colours carry it already)."""
         v, fl, lv = self._view, self._floor, self._level
         finish = self._rot is None
         dn, na, nb = self._depth_noise(o if finish else None)
         cn, ca, cb = (self._noise.tile, o[0], o[1]) if o is not None and self._noise is not None else (_NO_CNOISE, 0, 0)
         cx_w, cy_w, yaw = cam
         n_layers, balls = layers
+        sky = v.bg_packed if gain == 1.0 else _kernels._gain_word(v.bg_packed, gain)
         _kernels.compose_rows(
-            self._color4_u32, depth, a, b, v.r0, v.bg_packed, v.row_depth, self._rowf,
+            self._color4_u32, depth, a, b, v.r0, sky, v.bg_packed, v.row_depth, self._rowf,
             fl.texels, fl.squares, fl.levels, v.row_lev, v.row_dist, cx_w, cy_w, yaw, lv.fx, lv.cx, fl.x0, fl.y1, fl.ppm, self._flo,
             n_layers, self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lrange, self._lball, self._lbd,
             self._lbe, self._lbg, balls, v.k, v.cam_z, v.fy, v.cy, signs[0], signs[1], signs[2],
