@@ -642,6 +642,20 @@ def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, cells, tiles, ntx, 
 
 
 @njit(**_JIT)
+def lidar_effects(ranges, z, u, frac, dropout, rmin, rmax):
+    """The realism profile's LIDAR effects in place (:class:`~qcarlab.sim.realism.LidarEffects`):
+    each return (range > 0) times 1 + frac z[i], clipped to rmin..rmax (frac > 0); then 0 where
+    u[i] < dropout. One pass; the numbers of the numpy expressions it replaced."""
+    for i in range(ranges.shape[0]):
+        r = ranges[i]
+        if frac > 0.0 and r > 0.0:
+            r = min(max(r * (1.0 + frac * z[i]), rmin), rmax)
+        if dropout > 0.0 and u[i] < dropout:
+            r = 0.0
+        ranges[i] = r
+
+
+@njit(**_JIT)
 def _reading(r, ox, oy, dx, dy, balls, noise, rmax, rmin, near_mode):
     """A beam's reading from the distance ``r`` (m) of its first static hit (BIG: none): the
     nearer of it and the balls (circles (x, y, radius) cut by the scan plane), then as
