@@ -1519,29 +1519,22 @@ def _bilinear(p00, p01, p10, p11, wx, wy):
 
 
 @njit(**_JIT)
-def _gain_word(p, gain):
-    """A packed pixel's B, G, R bytes each saturate(rint(gain c)) in float32 (the numbers of
-    ``cv2.convertScaleAbs(c, alpha=gain)``), its top byte kept."""
-    g = np.float32(gain)
-    top = np.float32(255.0)
+def _gain_word(p, lut):
+    """A packed pixel's B, G, R bytes through ``lut`` (256 values: the exposure's
+    saturate(rint(gain c)), see ``camera.exposure_lut``), its top byte kept."""
     q = np.int64(p)
-    out = q & 0xFF000000
-    for sh in (0, 8, 16):
-        y = np.float32((q >> sh) & 255) * g
-        y = y if y < top else top
-        out |= np.int64(np.rint(y)) << sh
-    return np.uint32(out)
+    return np.uint32((q & 0xFF000000) | lut[q & 255] | (lut[(q >> 8) & 255] << 8) | (lut[(q >> 16) & 255] << 16))
 
 
 @njit(**_JIT)
-def gain_words(words, gain):
+def gain_words(words, lut):
     """:func:`_gain_word` on every packed pixel of ``words`` (1-D uint32), in place."""
     for i in range(words.shape[0]):
-        words[i] = _gain_word(words[i], gain)
+        words[i] = _gain_word(words[i], lut)
 
 
 @njit(**_JIT)
-def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy, gain=1.0):
+def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy, lut):
     """Row v of the floor into ``crow`` where ``flo[u] <= v``: bilinear samples of a texture level
     (``tex[off:]``, tw x th packed texels, see ``raster.floor_runs``) at texel (X0 + u dX,
     Y0 + u dY) / 65536 (16.16 fixed point; texel centres at integers); ``bg`` outside the
@@ -1554,14 +1547,14 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
     dX > 0, (ix - S, ix] when dX < 0, y likewise. The samples of a row lie on a line, so the
     pixels up to the first that leaves that square are filled at once (the same numbers as
     blending each). The other samples are gathered (scratch ``bu``, ``b00``.., ``bwx``,
-    ``bwy``) and blended in one vectorised pass. With ``gain`` != 1 each sampled colour gets
-    the exposure (:func:`_gain_word`; once per run)."""
+    ``bwy``) and blended in one vectorised pass. With a ``lut`` (not empty) each sampled colour
+    gets the exposure (:func:`_gain_word`; once per run)."""
     W = crow.shape[0]
     inv_x = 1.0 / abs(dX) if dX != 0 else 0.0
     inv_y = 1.0 / abs(dY) if dY != 0 else 0.0
-    gained = gain != 1.0
+    gained = lut.shape[0] > 0
     last_in = np.uint32(0)
-    last_out = _gain_word(last_in, gain) if gained else last_in
+    last_out = _gain_word(last_in, lut) if gained else last_in
     n = 0
     u = 0
     while u < W:
@@ -1594,7 +1587,7 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
                 if gained:  # runs of one colour follow each other: one conversion per colour
                     if w != last_in:
                         last_in = w
-                        last_out = _gain_word(w, gain)
+                        last_out = _gain_word(w, lut)
                     w = last_out
                 seg = crow[u : u + m + 1]  # (a loop from 0: vectorised)
                 for i in range(m + 1):
@@ -1619,7 +1612,7 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
         b00[i] = _bilinear(b00[i], b01[i], b10[i], b11[i], bwx[i], bwy[i])
     if gained:
         for i in range(n):
-            b00[i] = _gain_word(b00[i], gain)
+            b00[i] = _gain_word(b00[i], lut)
     for i in range(n):
         crow[bu[i]] = np.uint32(b00[i])
 
@@ -1651,7 +1644,7 @@ def compose_rows(
     ftex, fsq, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
     L, ltop, lbot, lcol, lza, lzb, lrange, lball, lbd, lbe, lbg, balls, kcol, cam_z, fy, cy,
     sg_tab, sg_d, sg_pix,
-    finish, dnoise, na, nb, coef, dmin, dmax, bgr, cnoise, ca, cb, gain,
+    finish, dnoise, na, nb, coef, dmin, dmax, bgr, cnoise, ca, cb, glut,
 ):
     """Rows va..vb-1 of a level pinhole's frame, upright, in place: ``color`` (H, W) packed pixels
     (:func:`_word`), ``depth`` (H, W) float32 z-depth (inf = nothing). Each row, in cache:
@@ -1676,10 +1669,10 @@ def compose_rows(
     instead (``color`` is then not written: a row at a time in cache, no second pass), with the
     colour noise ``cnoise`` (int8, window from row ca, pixel column cb; (1, 0): none).
 
-    ``gain`` (the realism profile's exposure; 1 = none) scales the colours drawn here, the
-    floor's and the balls' (:func:`_gain_word`, once per run of the floor); the caller has
-    scaled ``sky``, the layers' ``lcol`` and the signs' ``sg_pix`` (:func:`gain_words`). The
-    colour noise comes after, as the sensor's.
+    ``glut`` (the realism profile's exposure as a table of 256 levels; empty = none) maps the
+    colours drawn here, the floor's and the balls' (:func:`_gain_word`, once per run of the
+    floor); the caller has mapped ``sky``, the layers' ``lcol`` and the signs' ``sg_pix``
+    (:func:`gain_words`). The colour noise comes after, as the sensor's.
     """
     W = color.shape[1]
     nballs = balls.shape[0]
@@ -1735,7 +1728,7 @@ def compose_rows(
             dX = int(math.floor(ddx * sc * 65536.0 + 0.5))
             dY = int(math.floor(-ddy * sc * 65536.0 + 0.5))
             _floor_row(crow, v, flo, ftex, fsq[(1 if dX < 0 else 0) | (2 if dY < 0 else 0)], off, tw, th, X0, dX, Y0, dY,
-                       int(fbg), bu, b00, b01, b10, b11, bwx, bwy, gain)
+                       int(fbg), bu, b00, b01, b10, b11, bwx, bwy, glut)
         rf = np.float32(rowf[v])
         for l in range(L):
             if v < lrange[l, 0] or v > lrange[l, 1]:
@@ -1768,8 +1761,8 @@ def compose_rows(
                 s2 = 1.0 - qq * qq - lat * lat
                 sh = (0.35 + 0.65 * math.sqrt(s2) if s2 > 0.0 else 0.35) * lbg[l, u]
                 crow[u] = _word(balls[j, 3] * sh, balls[j, 4] * sh, balls[j, 5] * sh)
-                if gain != 1.0:
-                    crow[u] = _gain_word(crow[u], gain)
+                if glut.shape[0] > 0:
+                    crow[u] = _gain_word(crow[u], glut)
         for s in range(sg_tab.shape[0]):
             v0 = sg_tab[s, 0]
             if v < v0 or v >= sg_tab[s, 1]:

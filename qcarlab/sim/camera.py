@@ -243,6 +243,18 @@ class _Noise:
         _kernels.color_noise(img.reshape(img.shape[0], -1), self.tile, o[0] + v0, o[1])
 
 
+_NO_LUT = np.zeros(0, np.int64)
+
+
+def exposure_lut(gain: float) -> np.ndarray:
+    """The exposure ``gain`` as a table of the 256 levels: saturate(rint(gain c)) in float32,
+    the numbers of ``cv2.convertScaleAbs(c, alpha=gain)`` (:class:`~qcarlab.sim.realism.CameraEffects`);
+    empty for gain 1 (none)."""
+    if gain == 1.0:
+        return _NO_LUT
+    return np.minimum(np.rint(np.arange(256, dtype=np.float32) * np.float32(gain)), 255).astype(np.int64)
+
+
 class _ColumnView:
     """A level camera whose columns are vertical planes: a pinhole or a cylindrical panorama.
 
@@ -597,8 +609,9 @@ class RGBDCamera:
         layers = (self._columns(cx_w, cy_w, yaw, balls), balls)
         signs = v.sign_patches(cx_w, cy_w, yaw)
         if gain != 1.0 and self._rot is None:  # the layers' and signs' colours, once (before the rows are split)
-            _kernels.gain_words(self._lcol[: layers[0]].reshape(-1), gain)
-            _kernels.gain_words(signs[2], gain)
+            lut = exposure_lut(gain)
+            _kernels.gain_words(self._lcol[: layers[0]].reshape(-1), lut)
+            _kernels.gain_words(signs[2], lut)
         lv = self._level
         depth = np.empty((lv.height, lv.width), np.float32)
         if self._rot is None:
@@ -655,14 +668,15 @@ class RGBDCamera:
         cn, ca, cb = (self._noise.tile, o[0], o[1]) if o is not None and self._noise is not None else (_NO_CNOISE, 0, 0)
         cx_w, cy_w, yaw = cam
         n_layers, balls = layers
-        sky = v.bg_packed if gain == 1.0 else _kernels._gain_word(v.bg_packed, gain)
+        lut = exposure_lut(gain)
+        sky = v.bg_packed if gain == 1.0 else _kernels._gain_word(v.bg_packed, lut)
         _kernels.compose_rows(
             self._color4_u32, depth, a, b, v.r0, sky, v.bg_packed, v.row_depth, self._rowf,
             fl.texels, fl.squares, fl.levels, v.row_lev, v.row_dist, cx_w, cy_w, yaw, lv.fx, lv.cx, fl.x0, fl.y1, fl.ppm, self._flo,
             n_layers, self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lrange, self._lball, self._lbd,
             self._lbe, self._lbg, balls, v.k, v.cam_z, v.fy, v.cy, signs[0], signs[1], signs[2],
             finish, dn, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth), bgr,
-            cn, ca, cb, gain,
+            cn, ca, cb, lut,
         )
 
     def _rows(self, color: np.ndarray, depth: np.ndarray, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None,
