@@ -1550,8 +1550,11 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
     ``bwy``) and blended in one vectorised pass. With a ``lut`` (not empty) each sampled colour
     gets the exposure (:func:`_gain_word`; once per run)."""
     W = crow.shape[0]
-    inv_x = 1.0 / abs(dX) if dX != 0 else 0.0
-    inv_y = 1.0 / abs(dY) if dY != 0 else 0.0
+    # 2^38 / |d|, rounded down: q * inv >> 38 is floor(q / |d|) or one less (q < 2^24), never
+    # more, so a run never leaves its square (an integer multiply on the run's critical path
+    # instead of two conversions and a float multiply)
+    inv_x = (1 << 38) // abs(dX) if dX != 0 else 0
+    inv_y = (1 << 38) // abs(dY) if dY != 0 else 0
     gained = lut.shape[0] > 0
     last_in = np.uint32(0)
     last_out = _gain_word(last_in, lut) if gained else last_in
@@ -1571,18 +1574,18 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
             k = off + iy * tw + ix
             R = int(sq[k])
             if R > 0:
-                # how many more pixels stay in the square (exact: the quotients are small)
+                # how many more pixels stay in the square
                 m = W - 1 - u
                 fx = X & 0xFFFF
                 fy = Y & 0xFFFF
                 if dX > 0:
-                    m = min(m, int(((R << 16) - fx - 1) * inv_x))
+                    m = min(m, (((R << 16) - fx - 1) * inv_x) >> 38)
                 elif dX < 0:
-                    m = min(m, int((((R - 1) << 16) + fx) * inv_x))
+                    m = min(m, (((((R - 1) << 16) + fx)) * inv_x) >> 38)
                 if dY > 0:
-                    m = min(m, int(((R << 16) - fy - 1) * inv_y))
+                    m = min(m, (((R << 16) - fy - 1) * inv_y) >> 38)
                 elif dY < 0:
-                    m = min(m, int((((R - 1) << 16) + fy) * inv_y))
+                    m = min(m, (((((R - 1) << 16) + fy)) * inv_y) >> 38)
                 w = tex[k] | np.uint32(0xFF000000)
                 if gained:  # runs of one colour follow each other: one conversion per colour
                     if w != last_in:
