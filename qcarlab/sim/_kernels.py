@@ -1020,6 +1020,24 @@ def _finish_depth_row(row, noise, nv, nb, noisy, c, lo, hi):
 
 
 @njit(**_JIT)
+def _floor_depth_row(row, fz, noise, nv, nb, noisy, c, lo, hi):
+    """A row that shows the floor alone, finished (:func:`_finish_depth_row` on a row of ``fz``,
+    the same numbers, without filling it first)."""
+    W = row.shape[0]
+    d = np.float32(0.0) if fz > hi else np.float32(fz)
+    if noisy:
+        dd = d * d
+        nrow = noise[nv, nb : nb + W]
+        for u in range(W):
+            e = d + c * (dd * np.float32(nrow[u]))
+            row[u] = np.float32(0.0) if (e > hi) | (e <= lo) else e
+    else:
+        e = np.float32(0.0) if (d > hi) | (d <= lo) else d
+        for u in range(W):
+            row[u] = e
+
+
+@njit(**_JIT)
 def finish_depth(depth, noise, na, nb, coef, dmin, dmax):
     """The depth image as the D435 reports it, in place: ``depth`` (H, W) float32 z-depth (inf =
     nothing) -> 0 beyond ``dmax``, plus noise ``coef * z^2 * noise[na + v, nb + u]`` (when
@@ -1699,6 +1717,12 @@ def compose_rows(
     flo_min = vb
     for u in range(W):
         flo_min = min(flo_min, flo[u])
+    # rows from below_all on: no layer and no sign, the depth is the floor's alone
+    below_all = r0
+    for l in range(L):
+        below_all = max(below_all, lrange[l, 1] + 1)
+    for s in range(sg_tab.shape[0]):
+        below_all = max(below_all, sg_tab[s, 1])
     for v in range(va, vb):
         crow = scratch if to_bgr else color[v]
         drow = depth[v]
@@ -1711,8 +1735,9 @@ def compose_rows(
             pass  # the layers cover every pixel of the row (see column_layers' flo): no floor to draw
         else:
             fz = row_depth[v]
-            for u in range(W):
-                drow[u] = fz
+            if not (finish and v >= below_all):  # (else the floor's depth is finished in one pass below)
+                for u in range(W):
+                    drow[u] = fz
             lev = row_lev[v]
             off = ftab[lev, 0]
             tw = ftab[lev, 1]
@@ -1779,7 +1804,9 @@ def compose_rows(
                 if (p >> 24) > 127 and drow[u] > zs:
                     crow[u] = p | np.uint32(0xFF000000)
                     drow[u] = zs
-        if finish:
+        if finish and v >= below_all:
+            _floor_depth_row(drow, row_depth[v], dnoise, na + v, nb, noisy, c, lo, hi)
+        elif finish:
             _finish_depth_row(drow, dnoise, na + v, nb, noisy, c, lo, hi)
         if to_bgr:
             src = crow.view(np.uint8)  # (B, G, R, A bytes on a little-endian machine)
