@@ -1660,6 +1660,42 @@ def color_noise(img, tile, a, b):
 
 
 @njit(**_JIT)
+def _bgr_row(dst, crow, nrow):
+    """A row of packed pixels as B, G, R bytes into ``dst``, then its colour noise ``nrow``."""
+    W = crow.shape[0]
+    src = crow.view(np.uint8)  # (B, G, R, A bytes on a little-endian machine)
+    if LITTLE_ENDIAN:
+        for u in range(W):
+            dst[3 * u] = src[4 * u]
+            dst[3 * u + 1] = src[4 * u + 1]
+            dst[3 * u + 2] = src[4 * u + 2]
+    else:  # pragma: no cover - big-endian machines
+        for u in range(W):
+            dst[3 * u] = src[4 * u + 3]
+            dst[3 * u + 1] = src[4 * u + 2]
+            dst[3 * u + 2] = src[4 * u + 1]
+    _noise_row(dst, nrow)
+
+
+@njit(**_JIT)
+def _layer_depth_row(row, za, zb, rf, noise, nv, nb, noisy, c, lo, hi):
+    """A row one layer covers from end to end, its depth ``za + zb rf`` finished
+    (:func:`_finish_depth_row` after the layer pass, the same numbers, in one pass)."""
+    W = row.shape[0]
+    if noisy:
+        nrow = noise[nv, nb : nb + W]
+        for u in range(W):
+            d = za[u] + zb[u] * rf
+            d = np.float32(0.0) if d > hi else d
+            d = d + c * (d * d * np.float32(nrow[u]))
+            row[u] = np.float32(0.0) if (d > hi) | (d <= lo) else d
+    else:
+        for u in range(W):
+            d = za[u] + zb[u] * rf
+            row[u] = np.float32(0.0) if (d > hi) | (d <= lo) else d
+
+
+@njit(**_JIT)
 def compose_rows(
     color, depth, va, vb, r0, sky, fbg, row_depth, rowf,
     ftex, fsq, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
@@ -1723,9 +1759,30 @@ def compose_rows(
         below_all = max(below_all, lrange[l, 1] + 1)
     for s in range(sg_tab.shape[0]):
         below_all = max(below_all, sg_tab[s, 1])
+    # rows full_a..full_b: one layer (no ball) covers every column and no sign is there (a wall
+    # across the view): its colours, and its depths finished, in one pass each
+    full_a = vb
+    full_b = -1
+    if finish and L == 1 and nballs == 0 and lrange[0, 2] == 0 and lrange[0, 3] == W:
+        full_a = 0
+        full_b = vb
+        for u in range(W):
+            full_a = max(full_a, ltop[0, u])
+            full_b = min(full_b, lbot[0, u])
+        for s in range(sg_tab.shape[0]):
+            if sg_tab[s, 0] <= full_b and sg_tab[s, 1] > full_a:
+                full_b = -1
     for v in range(va, vb):
         crow = scratch if to_bgr else color[v]
         drow = depth[v]
+        if full_a <= v <= full_b:
+            cs = lcol[0]
+            for u in range(W):
+                crow[u] = cs[u]
+            _layer_depth_row(drow, lza[0], lzb[0], np.float32(rowf[v]), dnoise, na + v, nb, noisy, c, lo, hi)
+            if to_bgr:
+                _bgr_row(bgr[v], crow, cnoise[ca + v, 3 * cb : 3 * cb + 3 * W] if cnoisy else cnoise[0, :0])
+            continue
         if v < r0:
             for u in range(W):
                 crow[u] = sky
@@ -1809,16 +1866,4 @@ def compose_rows(
         elif finish:
             _finish_depth_row(drow, dnoise, na + v, nb, noisy, c, lo, hi)
         if to_bgr:
-            src = crow.view(np.uint8)  # (B, G, R, A bytes on a little-endian machine)
-            dst = bgr[v]
-            if LITTLE_ENDIAN:
-                for u in range(W):
-                    dst[3 * u] = src[4 * u]
-                    dst[3 * u + 1] = src[4 * u + 1]
-                    dst[3 * u + 2] = src[4 * u + 2]
-            else:  # pragma: no cover - big-endian machines
-                for u in range(W):
-                    dst[3 * u] = src[4 * u + 3]
-                    dst[3 * u + 1] = src[4 * u + 2]
-                    dst[3 * u + 2] = src[4 * u + 1]
-            _noise_row(dst, cnoise[ca + v, 3 * cb : 3 * cb + 3 * W] if cnoisy else cnoise[0, :0])
+            _bgr_row(bgr[v], crow, cnoise[ca + v, 3 * cb : 3 * cb + 3 * W] if cnoisy else cnoise[0, :0])
