@@ -37,11 +37,13 @@ How it is drawn. The RGBD camera (a level pinhole, rendered upright, row-major):
 2. one pass per image row (:func:`~qcarlab.sim._kernels.compose_rows`), each row in cache: the
    floor, a top-down texture (markings, brightness regions) at the level of its mipmap whose
    texels match the row's footprint: a row of a level camera is a straight line through the
-   texture, so where a texel's *run radius* (``raster.floor_runs``) says the next pixels all
-   read one colour they are filled at once (the same numbers as blending each), the rest are
-   blended bilinearly in one vectorised batch; the floor's depth is one number per row; then
-   the layers, the stop-sign sprites (depth-tested), the depth's noise and range limits, the
-   row's BGR bytes;
+   texture, so where the square of uniform texels ahead of a sample (``raster.run_squares``,
+   the quadrant the row moves into) says the next pixels all read one colour they are filled
+   at once (the same numbers as blending each), the rest are blended bilinearly in one
+   vectorised batch; the floor's depth is one number per row; then the layers, the stop-sign
+   sprites (depth-tested), the depth's noise and range limits, the row's BGR bytes. Rows the
+   layers cover in every column skip the floor; a row one wall covers end to end, or one that
+   shows the floor alone, has its depth finished in a single pass;
 3. with each row's BGR bytes, its colour noise (one int8 tile), in the same pass. The realism
    profile's exposure gain (``render(..., gain=)``) scales the colours as they are drawn.
 
