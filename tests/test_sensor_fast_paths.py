@@ -94,7 +94,7 @@ def test_floor_runs_read_what_blending_reads(world):
             flo = np.zeros(W, np.int32)
             sq = fl.squares[(1 if dX < 0 else 0) | (2 if dY < 0 else 0)]  # the quadrant the row moves into
             _kernels._floor_row(crow, 0, flo, fl.texels, sq, off, tw, th, X0, dX, Y0, dY, 0x00404040, *scratch,
-                                np.zeros(0, np.int64))
+                                np.zeros(0, np.int64), 1.0)
             u = np.arange(W, dtype=np.int64)
             want = _blend_all(tex, tw, th, X0 + u * dX, Y0 + u * dY, 0x00404040)
             # the top byte is alpha (set), the colour bytes must agree exactly

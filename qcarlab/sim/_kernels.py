@@ -1552,7 +1552,7 @@ def gain_words(words, lut):
 
 
 @njit(**_JIT)
-def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy, lut):
+def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy, lut, gain):
     """Row v of the floor into ``crow`` where ``flo[u] <= v``: bilinear samples of a texture level
     (``tex[off:]``, tw x th packed texels, see ``raster.floor_runs``) at texel (X0 + u dX,
     Y0 + u dY) / 65536 (16.16 fixed point; texel centres at integers); ``bg`` outside the
@@ -1565,8 +1565,8 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
     dX > 0, (ix - S, ix] when dX < 0, y likewise. The samples of a row lie on a line, so the
     pixels up to the first that leaves that square are filled at once (the same numbers as
     blending each). The other samples are gathered (scratch ``bu``, ``b00``.., ``bwx``,
-    ``bwy``) and blended in one vectorised pass. With a ``lut`` (not empty) each sampled colour
-    gets the exposure (:func:`_gain_word`; once per run)."""
+    ``bwy``) and blended in one vectorised pass. With a ``lut`` (not empty: the exposure
+    ``gain``'s table) each sampled colour gets the exposure (:func:`_gain_word`; once per run)."""
     W = crow.shape[0]
     # 2^38 / |d|, rounded down: q * inv >> 38 is floor(q / |d|) or one less (q < 2^24), never
     # more, so a run never leaves its square (an integer multiply on the run's critical path
@@ -1631,9 +1631,15 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
         u += 1
     for i in range(n):
         b00[i] = _bilinear(b00[i], b01[i], b10[i], b11[i], bwx[i], bwy[i])
-    if gained:
+    if gained:  # the table's numbers, computed (vectorised: a lookup per channel is not)
+        g = np.float32(gain)
+        top = np.float32(255.0)
         for i in range(n):
-            b00[i] = _gain_word(b00[i], lut)
+            q = b00[i]
+            yb = min(np.rint(np.float32(q & 255) * g), top)
+            yg = min(np.rint(np.float32((q >> 8) & 255) * g), top)
+            yr = min(np.rint(np.float32((q >> 16) & 255) * g), top)
+            b00[i] = (q & 0xFF000000) | np.int64(yb) | (np.int64(yg) << 8) | (np.int64(yr) << 16)
     for i in range(n):
         crow[bu[i]] = np.uint32(b00[i])
 
@@ -1701,7 +1707,7 @@ def compose_rows(
     ftex, fsq, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
     L, ltop, lbot, lcol, lza, lzb, lrange, lball, lbd, lbe, lbg, balls, kcol, cam_z, fy, cy,
     sg_tab, sg_d, sg_pix,
-    finish, dnoise, na, nb, coef, dmin, dmax, bgr, cnoise, ca, cb, glut,
+    finish, dnoise, na, nb, coef, dmin, dmax, bgr, cnoise, ca, cb, glut, gain,
 ):
     """Rows va..vb-1 of a level pinhole's frame, upright, in place: ``color`` (H, W) packed pixels
     (:func:`_word`), ``depth`` (H, W) float32 z-depth (inf = nothing). Each row, in cache:
@@ -1726,7 +1732,7 @@ def compose_rows(
     instead (``color`` is then not written: a row at a time in cache, no second pass), with the
     colour noise ``cnoise`` (int8, window from row ca, pixel column cb; (1, 0): none).
 
-    ``glut`` (the realism profile's exposure as a table of 256 levels; empty = none) maps the
+    ``glut`` (the realism profile's exposure ``gain`` as a table of 256 levels; empty = none) maps the
     colours drawn here, the floor's and the balls' (:func:`_gain_word`, once per run of the
     floor); the caller has mapped ``sky``, the layers' ``lcol`` and the signs' ``sg_pix``
     (:func:`gain_words`). The colour noise comes after, as the sensor's.
@@ -1813,7 +1819,7 @@ def compose_rows(
             dX = int(math.floor(ddx * sc * 65536.0 + 0.5))
             dY = int(math.floor(-ddy * sc * 65536.0 + 0.5))
             _floor_row(crow, v, flo, ftex, fsq[(1 if dX < 0 else 0) | (2 if dY < 0 else 0)], off, tw, th, X0, dX, Y0, dY,
-                       int(fbg), bu, b00, b01, b10, b11, bwx, bwy, glut)
+                       int(fbg), bu, b00, b01, b10, b11, bwx, bwy, glut, gain)
         rf = np.float32(rowf[v])
         for l in range(L):
             if v < lrange[l, 0] or v > lrange[l, 1]:

@@ -678,7 +678,7 @@ class RGBDCamera:
             n_layers, self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lrange, self._lball, self._lbd,
             self._lbe, self._lbg, balls, v.k, v.cam_z, v.fy, v.cy, signs[0], signs[1], signs[2],
             finish, dn, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth), bgr,
-            cn, ca, cb, lut,
+            cn, ca, cb, lut, gain,
         )
 
     def _rows(self, color: np.ndarray, depth: np.ndarray, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None,
