@@ -1545,6 +1545,15 @@ def _gain_word(p, lut):
 
 
 @njit(**_JIT)
+def exposure_table(gain, out):
+    """``out`` (256,) = saturate(rint(gain c)) for c = 0..255 in float32 (the exposure's table,
+    ``cv2.convertScaleAbs``'s numbers)."""
+    g = np.float32(gain)
+    for c in range(256):
+        out[c] = int(min(np.rint(np.float32(c) * g), np.float32(255.0)))
+
+
+@njit(**_JIT)
 def gain_words(words, lut):
     """:func:`_gain_word` on every packed pixel of ``words`` (1-D uint32), in place."""
     for i in range(words.shape[0]):
@@ -1703,7 +1712,7 @@ def _layer_depth_row(row, za, zb, rf, noise, nv, nb, noisy, c, lo, hi):
 
 @njit(**_JIT)
 def compose_rows(
-    color, depth, va, vb, r0, sky, fbg, row_depth, rowf,
+    color, depth, va, vb, r0, bg, row_depth, rowf,
     ftex, fsq, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
     L, ltop, lbot, lcol, lza, lzb, lrange, lball, lbd, lbe, lbg, balls, kcol, cam_z, fy, cy,
     sg_tab, sg_d, sg_pix,
@@ -1712,8 +1721,8 @@ def compose_rows(
     """Rows va..vb-1 of a level pinhole's frame, upright, in place: ``color`` (H, W) packed pixels
     (:func:`_word`), ``depth`` (H, W) float32 z-depth (inf = nothing). Each row, in cache:
 
-    1. above row ``r0`` (the horizon) the background ``sky``, depth inf; below it the floor's
-       (``fbg`` beyond the floor texture, before the gain)
+    1. above row ``r0`` (the horizon) the background ``bg``, depth inf; below it the floor's
+       (``bg`` beyond the floor texture too)
        depth ``row_depth[v]`` (a level pinhole sees the floor at one z-depth along a row) and,
        where ``flo[u] <= v``, its colour (:func:`_floor_row`): the floor point of pixel (u, v)
        is at forward distance ``row_dist[v]`` and left offset -(u - cx) row_dist[v] / fx of the
@@ -1734,11 +1743,12 @@ def compose_rows(
 
     ``glut`` (the realism profile's exposure ``gain`` as a table of 256 levels; empty = none) maps the
     colours drawn here, the floor's and the balls' (:func:`_gain_word`, once per run of the
-    floor); the caller has mapped ``sky``, the layers' ``lcol`` and the signs' ``sg_pix``
-    (:func:`gain_words`). The colour noise comes after, as the sensor's.
+    floor, and the background); the caller has mapped the layers' ``lcol`` and the signs'
+    ``sg_pix`` (:func:`gain_words`). The colour noise comes after, as the sensor's.
     """
     W = color.shape[1]
     nballs = balls.shape[0]
+    sky = _gain_word(bg, glut) if glut.shape[0] > 0 else np.uint32(bg)
     noisy = dnoise.shape[0] > 0
     c = np.float32(coef)
     lo = np.float32(dmin)
@@ -1819,7 +1829,7 @@ def compose_rows(
             dX = int(math.floor(ddx * sc * 65536.0 + 0.5))
             dY = int(math.floor(-ddy * sc * 65536.0 + 0.5))
             _floor_row(crow, v, flo, ftex, fsq[(1 if dX < 0 else 0) | (2 if dY < 0 else 0)], off, tw, th, X0, dX, Y0, dY,
-                       int(fbg), bu, b00, b01, b10, b11, bwx, bwy, glut, gain)
+                       int(bg), bu, b00, b01, b10, b11, bwx, bwy, glut, gain)
         rf = np.float32(rowf[v])
         for l in range(L):
             if v < lrange[l, 0] or v > lrange[l, 1]:

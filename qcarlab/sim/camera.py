@@ -254,7 +254,9 @@ def exposure_lut(gain: float) -> np.ndarray:
     empty for gain 1 (none)."""
     if gain == 1.0:
         return _NO_LUT
-    return np.minimum(np.rint(np.arange(256, dtype=np.float32) * np.float32(gain)), 255).astype(np.int64)
+    out = np.empty(256, np.int64)
+    _kernels.exposure_table(float(gain), out)
+    return out
 
 
 class _ColumnView:
@@ -610,6 +612,7 @@ class RGBDCamera:
         balls = v.balls_at(t)
         layers = (self._columns(cx_w, cy_w, yaw, balls), balls)
         signs = v.sign_patches(cx_w, cy_w, yaw)
+        lut = _NO_LUT
         if gain != 1.0 and self._rot is None:  # the layers' and signs' colours, once (before the rows are split)
             lut = exposure_lut(gain)
             _kernels.gain_words(self._lcol[: layers[0]].reshape(-1), lut)
@@ -621,7 +624,7 @@ class RGBDCamera:
             color = np.empty((H, W, 3), np.uint8)
             helper = _helper()
             mid = H // 2 if helper is not None else H
-            args = (color, depth, (cx_w, cy_w, yaw), layers, signs, o, gain)
+            args = (color, depth, (cx_w, cy_w, yaw), layers, signs, o, (gain, lut))
             done = helper.submit(self._rows, *args, mid, H) if helper is not None and mid < H else None
             try:
                 self._rows(*args, 0, mid)
@@ -657,12 +660,13 @@ class RGBDCamera:
         )
 
     def _compose(self, depth, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None, a: int, b: int,
-                 bgr: np.ndarray = _NO_BGR, gain: float = 1.0) -> None:
+                 bgr: np.ndarray = _NO_BGR, gain: tuple[float, np.ndarray] = (1.0, _NO_LUT)) -> None:
         """Rows a..b of the level view into ``_color4`` and ``depth``
         (:func:`~qcarlab.sim._kernels.compose_rows`); unpitched, the depth finished too (range
         limits, and noise in the windows ``o`` unless None). A pitched view's depth is finished
         after the rotation. With ``bgr`` (the frame's colour as (H, 3 W) bytes) the colour goes
-        there instead of ``_color4``, with its noise (windows ``o``). ``gain``: the exposure (see
+        there instead of ``_color4``, with its noise (windows ``o``). ``gain``: the exposure and its
+        table (:func:`exposure_lut`; see
         :meth:`render`; the layers' and signs' colours carry it already)."""
         v, fl, lv = self._view, self._floor, self._level
         finish = self._rot is None
@@ -670,19 +674,18 @@ class RGBDCamera:
         cn, ca, cb = (self._noise.tile, o[0], o[1]) if o is not None and self._noise is not None else (_NO_CNOISE, 0, 0)
         cx_w, cy_w, yaw = cam
         n_layers, balls = layers
-        lut = exposure_lut(gain)
-        sky = v.bg_packed if gain == 1.0 else _kernels._gain_word(v.bg_packed, lut)
+        g, lut = gain
         _kernels.compose_rows(
-            self._color4_u32, depth, a, b, v.r0, sky, v.bg_packed, v.row_depth, self._rowf,
+            self._color4_u32, depth, a, b, v.r0, v.bg_packed, v.row_depth, self._rowf,
             fl.texels, fl.squares, fl.levels, v.row_lev, v.row_dist, cx_w, cy_w, yaw, lv.fx, lv.cx, fl.x0, fl.y1, fl.ppm, self._flo,
             n_layers, self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lrange, self._lball, self._lbd,
             self._lbe, self._lbg, balls, v.k, v.cam_z, v.fy, v.cy, signs[0], signs[1], signs[2],
             finish, dn, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth), bgr,
-            cn, ca, cb, lut, gain,
+            cn, ca, cb, lut, g,
         )
 
     def _rows(self, color: np.ndarray, depth: np.ndarray, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None,
-              gain: float, a: int, b: int) -> None:
+              gain: tuple[float, np.ndarray], a: int, b: int) -> None:
         """Rows a..b of an unpitched frame, done: composed and finished into ``color`` (BGR, the
         colour noise and exposure on) and ``depth``."""
         self._compose(depth, cam, layers, signs, o, a, b, color.reshape(color.shape[0], -1), gain)
