@@ -12,11 +12,17 @@ from random free poses (bench_lidar.py has the side-by-side with f1tenth_gym), a
 ``track`` world (scanned per edge); the cameras in the ``track`` world from poses along the road. Noise is on (seeded), as in a simulation run. The first call of
 each sensor (numba compilation or cache load, rasters) is excluded and reported separately.
 
-Last, the whole simulated car (issue 12's target >= 60x real time on one core):
-``open_car("sim", world="track", seed=0)`` stepped at 100 Hz for 3 simulated seconds (write,
-advance 10 ms, read, read_lidar, read_rgbd each step; the sensors render at their own rates, 10
-and 30 Hz), as the real-time factor (simulated s / wall s), median of a few runs, with the share
-of the wall time spent rendering RGBD frames, scanning and in the rest (physics, the car's calls).
+Last, the whole simulated car (issue 12's target >= 60x real time on one core, under the ideal
+and the lab realism profiles): ``open_car("sim", world="track", seed=0, realism=...)`` stepped at
+100 Hz for 3 simulated seconds (write, advance 10 ms, read, read_lidar, read_rgbd each step; the
+sensors render at their own rates, 10 and 30 Hz), as the real-time factor (simulated s / CPU s),
+median of a few runs, with the share of the CPU time spent rendering RGBD frames, scanning and
+in the rest (physics, the car's calls).
+
+    python benchmarks/bench_sensors.py --quick --against /work/main   # the car beside other code
+
+With ``--against DIR`` the car's runs alternate with the same runs of the checkout in DIR (a
+subprocess each, pinned to the same core) and the ratio of the medians is printed.
 """
 
 from __future__ import annotations
@@ -106,10 +112,16 @@ def report(name: str, value: tuple[float, float], unit: str, target: float | Non
     print(f"  {name:<30} {cpu:>9,.0f} {unit} per CPU s, {wall:>9,.0f} per wall s{status}{extra}")
 
 
-def simcar_factor(seconds: float = 3.0, hz: float = 100.0) -> tuple[float, float, float]:
-    """Real-time factor of the stepped SimCar in ``track`` with the LIDAR and the RGBD camera,
-    and the fractions of the wall time in read_rgbd and read_lidar."""
-    with qcarlab.open_car("sim", world="track", seed=0) as car:
+def simcar_factor(seconds: float = 3.0, hz: float = 100.0, realism: str = "ideal") -> tuple[float, float, float, float]:
+    """Real-time factor of the stepped SimCar in ``track`` with the LIDAR and the RGBD camera per
+    CPU second, the fractions of the CPU time in read_rgbd and read_lidar, and the factor per
+    wall second. (Self-contained: ``--against`` runs its source in another checkout.)"""
+    import time
+
+    import qcarlab
+    from _common import Timer
+
+    with qcarlab.open_car("sim", world="track", seed=0, realism=realism) as car:
         car.read_lidar()  # sensors built (rasters, numba cache) outside the timing
         car.read_rgbd()
         dt = 1.0 / hz
@@ -134,6 +146,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer, shorter batches")
     ap.add_argument("--all-cores", action="store_true", help="do not pin the process to one core")
+    ap.add_argument("--against", metavar="DIR", help="time the SimCar runs of the checkout in DIR too, alternating")
     args = ap.parse_args()
     pin = "all cores" if args.all_cores else one_core()
     batches = 3 if args.quick else 7
@@ -186,17 +199,46 @@ def main() -> int:
         print(f"  {cost * 1000:.1f} ms of sensor work: at most {1.0 / cost:.0f}x real time from the sensors alone")
 
     print("SimCar in track, 100 Hz steps (write, advance, read, read_lidar, read_rgbd), 3 simulated s:")
-    runs = [simcar_factor() for _ in range(3 if args.quick else 5)]
-    factor = statistics.median(r[0] for r in runs)
-    f_rgbd = statistics.median(r[1] for r in runs)
-    f_lidar = statistics.median(r[2] for r in runs)
-    wall_factor = statistics.median(r[3] for r in runs)
-    print(f"  {'real-time factor':<30} {factor:>9.1f} x per CPU s, {wall_factor:>9.1f} x per wall s  "
-          f"target >= 60: {'met' if factor >= 60.0 else 'NOT met'}")
-    print(f"  of the CPU time: RGBD frames {f_rgbd * 100:.0f} %, LIDAR scans {f_lidar * 100:.0f} %, "
-          f"the rest (physics, the car's calls) {(1 - f_rgbd - f_lidar) * 100:.0f} %")
+    n = 3 if args.quick else 5
+    ok = True
+    for realism in ("ideal", "lab"):
+        runs, other = [], []
+        for _ in range(n):
+            runs.append(simcar_factor(realism=realism))
+            if args.against:
+                other.append(_simcar_elsewhere(args.against, realism))
+        factor = statistics.median(r[0] for r in runs)
+        f_rgbd = statistics.median(r[1] for r in runs)
+        f_lidar = statistics.median(r[2] for r in runs)
+        wall_factor = statistics.median(r[3] for r in runs)
+        ok &= factor >= 60.0
+        print(f"  {'real-time factor, ' + realism:<30} {factor:>9.1f} x per CPU s, {wall_factor:>9.1f} x per wall s  "
+              f"target >= 60: {'met' if factor >= 60.0 else 'NOT met'}")
+        print(f"    of the CPU time: RGBD frames {f_rgbd * 100:.0f} %, LIDAR scans {f_lidar * 100:.0f} %, "
+              f"the rest (physics, the car's calls) {(1 - f_rgbd - f_lidar) * 100:.0f} %")
+        if other:
+            o = statistics.median(r[0] for r in other)
+            print(f"    {args.against} in alternating runs: {o:.1f} x per CPU s; this code {factor / o:.2f}x its rate")
     print(f"load after: {load_note()}")
     return 0
+
+
+def _simcar_elsewhere(root: str, realism: str) -> tuple[float, float, float, float]:
+    """:func:`simcar_factor` run in a subprocess on the checkout at ``root`` (same core)."""
+    import inspect
+    import json
+    import subprocess
+    import textwrap
+
+    code = "\n".join([
+        "import json, sys",
+        f"sys.path[:0] = [{str(Path(root).resolve())!r}, {str(Path(__file__).resolve().parent)!r}]",
+        textwrap.dedent(inspect.getsource(simcar_factor)),
+        "car = None",
+        f"print(json.dumps(simcar_factor(realism={realism!r})))",
+    ])
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root)
+    return tuple(json.loads(out.stdout.strip().splitlines()[-1]))
 
 
 if __name__ == "__main__":

@@ -210,6 +210,30 @@ def test_camera_exposure_changes_and_turning_blurs_under_lab():
     assert sharpness(turning_lab[2:]) < 0.9 * sharpness(turning_ideal[2:])
 
 
+@pytest.mark.parametrize("world", ["track", "stop-sign", "hallway"])
+@pytest.mark.parametrize("pitch", [0.0, 0.15])
+def test_rgbd_exposure_drawn_in_the_renderer_is_convert_scale_abs(world, pitch):
+    # the RGBD camera applies the exposure where it draws the colours (no pass of its own over the
+    # frame): without noise the frame is exactly CameraEffects' saturate(rint(gain c)) of the
+    # ungained frame, walls, floor, signs and balls alike; with noise, the sensor's noise comes after
+    import cv2
+
+    from qcarlab.constants import DEFAULT_PARAMS
+    from qcarlab.sim.camera import COLOR_NOISE_SD, RGBDCamera
+    from qcarlab.sim.world import load_world
+
+    w = load_world(world)
+    cam = RGBDCamera(w, params=dataclasses.replace(DEFAULT_PARAMS, rgbd_pitch=pitch))
+    for gain in (0.8, 0.93, 1.17):
+        for pose in (w.start, (w.start[0] + 0.3, w.start[1], w.start[2] + 0.4)):
+            ideal = cam.render(pose, 0.5).color
+            assert np.array_equal(cam.render(pose, 0.5, gain=gain).color, cv2.convertScaleAbs(ideal, alpha=gain))
+    noisy = RGBDCamera(w, rng=np.random.default_rng(1)).render(w.start, 0.5, gain=1.1).color.astype(float)
+    clean = cv2.convertScaleAbs(RGBDCamera(w).render(w.start, 0.5).color, alpha=1.1).astype(float)
+    inside = (clean > 20) & (clean < 235)
+    assert abs(np.std((noisy - clean)[inside]) - COLOR_NOISE_SD) < 0.3
+
+
 # --- the command line ------------------------------------------------------------------------
 def test_cli_defaults_to_lab_and_records_the_profile(cli_json):
     lab = cli_json("path-follow", "line")

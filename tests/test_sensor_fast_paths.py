@@ -18,7 +18,7 @@ from qcarlab.constants import DEFAULT_PARAMS
 from qcarlab.sim import _kernels
 from qcarlab.sim.camera import COLOR_NOISE_SD, DEPTH_NOISE, RGBDCamera
 from qcarlab.sim.lidar import Lidar
-from qcarlab.sim.raster import floor_runs, run_radii
+from qcarlab.sim.raster import floor_runs, run_radii, run_squares
 from qcarlab.sim.world import load_world, world_from_dict
 
 P = DEFAULT_PARAMS
@@ -54,6 +54,24 @@ def test_run_radii_bound_uniform_blocks():
         assert (r[max(y - k, 0) : y + k + 1, max(x - k, 0) : x + k + 1] > 0).all()
 
 
+def test_run_squares_are_the_largest_uniform_squares_at_each_corner():
+    rng = np.random.default_rng(5)
+    r = (rng.random((30, 41)) < 0.93).astype(np.uint8)
+    r[:, 0] = r[0] = 0
+    sq = run_squares(r)
+    for q in range(4):
+        sx, sy = (-1 if q & 1 else 1), (-1 if q & 2 else 1)
+        for y in range(30):
+            for x in range(41):
+                def uniform(s):  # the s x s blocks from (x, y) toward q's corner, all inside and uniform
+                    xs, ys = x + sx * np.arange(s), y + sy * np.arange(s)
+                    if xs.min() < 0 or ys.min() < 0 or xs.max() >= 41 or ys.max() >= 30:
+                        return False
+                    return bool((r[np.ix_(ys, xs)] > 0).all())
+                s = int(sq[q, y, x])
+                assert (s == 0 or uniform(s)) and not uniform(s + 1), (q, x, y, s)
+
+
 @pytest.mark.parametrize("world", ["track", "stop-sign"])
 def test_floor_runs_read_what_blending_reads(world):
     w = load_world(world)
@@ -74,7 +92,9 @@ def test_floor_runs_read_what_blending_reads(world):
             dX, dY = int(step * math.cos(ang)), int(step * math.sin(ang))
             crow = np.zeros(W, np.uint32)
             flo = np.zeros(W, np.int32)
-            _kernels._floor_row(crow, 0, flo, fl.texels, off, tw, th, X0, dX, Y0, dY, 0x00404040, *scratch)
+            sq = fl.squares[(1 if dX < 0 else 0) | (2 if dY < 0 else 0)]  # the quadrant the row moves into
+            _kernels._floor_row(crow, 0, flo, fl.texels, sq, off, tw, th, X0, dX, Y0, dY, 0x00404040, *scratch,
+                                np.zeros(0, np.int64), 1.0)
             u = np.arange(W, dtype=np.int64)
             want = _blend_all(tex, tw, th, X0 + u * dX, Y0 + u * dY, 0x00404040)
             # the top byte is alpha (set), the colour bytes must agree exactly

@@ -242,6 +242,10 @@ class SimCar(Car):
     def _latest_frame(self, kind: str, rate: float, render) -> Any:
         """The latest frame of a sensor that takes ``rate`` frames/s: frame k is taken at k / rate
         from the pose at that time; reads between two frames return the same frame."""
+        if not self._realtime:  # the hot path of a stepped loop (most reads find the frame taken)
+            cached = self._frames.get(kind)
+            if cached is not None and cached[0] == math.floor(self.vehicle.state.t * rate + 1e-9):
+                return cached[1]
         return self._frame_job(kind, rate, render)()
 
     def _frame_job(self, kind: str, rate: float, render) -> Any:
@@ -284,7 +288,20 @@ class SimCar(Car):
     def draw_frame(self, kind: str, pose: tuple[float, float, float], t: float, yaw_rate: float = 0.0) -> Any:
         """Draw sensor ``kind``'s frame at time ``t`` from ``pose`` (no clock, no vehicle), turning
         at ``yaw_rate`` (rad/s: the realism profile's motion blur)."""
-        return self._finish_frame(kind, _DRAW[kind](self._sensor(kind), pose, t), t, yaw_rate)
+        return self._draw(kind, self._sensor(kind), _DRAW[kind], pose, t, yaw_rate)
+
+    def _draw(self, kind: str, sensor: Any, render: Any, pose: Any, t: float, yaw_rate: float) -> Any:
+        """``render(sensor, pose, t)`` with the realism profile's effects (:meth:`_finish_frame`).
+        The RGBD camera applies the exposure gain itself, in the pass that adds the colour noise
+        (the numbers of :meth:`CameraEffects.apply <qcarlab.sim.realism.CameraEffects.apply>`,
+        without a pass of its own over the frame); the blur follows."""
+        fx = self._effects.get("camera") if kind == "rgbd" and render is _DRAW["rgbd"] else None
+        if fx is None:
+            return self._finish_frame(kind, render(sensor, pose, t), t, yaw_rate)
+        p = self.params
+        frame = sensor.render(pose, t, gain=fx.gain(t))
+        fx.apply(frame.color, 1.0, fx.blur_px(yaw_rate, _rgbd_focal(p)))
+        return frame
 
     def _finish_frame(self, kind: str, frame: Any, t: float, yaw_rate: float) -> Any:
         """The realism profile's effects on a finished frame, in place: LIDAR noise and dropouts,
@@ -301,8 +318,8 @@ class SimCar(Car):
             return frame
         gain = fx.gain(t)
         p = self.params
-        if kind == "rgbd":  # pinhole: f = (H / 2) / tan(vfov / 2) px per rad at the centre
-            fx.apply(frame.color, gain, fx.blur_px(yaw_rate, 0.5 * p.rgbd_height / math.tan(0.5 * p.rgbd_vfov)))
+        if kind == "rgbd":
+            fx.apply(frame.color, gain, fx.blur_px(yaw_rate, _rgbd_focal(p)))
         else:  # the CSI views are cylindrical: width / fov px per rad of yaw
             blur = fx.blur_px(yaw_rate, p.csi_width / p.csi_fov)
             for img in frame.as_list():
@@ -340,6 +357,11 @@ class SimCar(Car):
                       start=self.start, realtime=self._realtime, throttle_limit=self.throttle_limit,
                       realism=self.realism)
 
+def _rgbd_focal(p: QCarParams) -> float:
+    """The RGBD pinhole's focal length: (H / 2) / tan(vfov / 2) px per rad at the centre."""
+    return 0.5 * p.rgbd_height / math.tan(0.5 * p.rgbd_vfov)
+
+
 _RATES = {"lidar": lambda p: p.lidar_rate, "rgbd": lambda p: p.rgbd_rate, "csi": lambda p: p.csi_rate}
 _DRAW = {
     "lidar": lambda sensor, pose, t: sensor.scan(pose, t),
@@ -369,7 +391,7 @@ class _FrameJob:
             sensor = self.car._sensor(self.kind)
             if first:  # building it may have loaded numba: load the compiled physics here too, off any lock
                 _warm_physics(self.car.params)
-            self.frame = self.car._finish_frame(self.kind, self.render(sensor, self.pose, self.t), self.t, self.yaw_rate)
+            self.frame = self.car._draw(self.kind, sensor, self.render, self.pose, self.t, self.yaw_rate)
             self.car._frames[self.kind] = (self.k, self.frame)
         return self.frame
 

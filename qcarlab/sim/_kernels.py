@@ -642,6 +642,20 @@ def lidar_scan(ox, oy, yaw, cos_b, sin_b, rmax, x0, y0, res, cells, tiles, ntx, 
 
 
 @njit(**_JIT)
+def lidar_effects(ranges, z, u, frac, dropout, rmin, rmax):
+    """The realism profile's LIDAR effects in place (:class:`~qcarlab.sim.realism.LidarEffects`):
+    each return (range > 0) times 1 + frac z[i], clipped to rmin..rmax (frac > 0); then 0 where
+    u[i] < dropout. One pass; the numbers of the numpy expressions it replaced."""
+    for i in range(ranges.shape[0]):
+        r = ranges[i]
+        if frac > 0.0 and r > 0.0:
+            r = min(max(r * (1.0 + frac * z[i]), rmin), rmax)
+        if dropout > 0.0 and u[i] < dropout:
+            r = 0.0
+        ranges[i] = r
+
+
+@njit(**_JIT)
 def _reading(r, ox, oy, dx, dy, balls, noise, rmax, rmin, near_mode):
     """A beam's reading from the distance ``r`` (m) of its first static hit (BIG: none): the
     nearer of it and the balls (circles (x, y, radius) cut by the scan plane), then as
@@ -1003,6 +1017,24 @@ def _finish_depth_row(row, noise, nv, nb, noisy, c, lo, hi):
         for u in range(W):
             d = row[u]
             row[u] = np.float32(0.0) if (d > hi) | (d <= lo) else d
+
+
+@njit(**_JIT)
+def _floor_depth_row(row, fz, noise, nv, nb, noisy, c, lo, hi):
+    """A row that shows the floor alone, finished (:func:`_finish_depth_row` on a row of ``fz``,
+    the same numbers, without filling it first)."""
+    W = row.shape[0]
+    d = np.float32(0.0) if fz > hi else np.float32(fz)
+    if noisy:
+        dd = d * d
+        nrow = noise[nv, nb : nb + W]
+        for u in range(W):
+            e = d + c * (dd * np.float32(nrow[u]))
+            row[u] = np.float32(0.0) if (e > hi) | (e <= lo) else e
+    else:
+        e = np.float32(0.0) if (d > hi) | (d <= lo) else d
+        for u in range(W):
+            row[u] = e
 
 
 @njit(**_JIT)
@@ -1505,26 +1537,61 @@ def _bilinear(p00, p01, p10, p11, wx, wy):
 
 
 @njit(**_JIT)
-def _floor_row(crow, v, flo, tex, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy):
-    """Row v of the floor into ``crow`` where ``flo[u] <= v``: bilinear samples of a texture level
-    (``tex[off:]``, tw x th packed texels whose top byte is the run radius, see
-    ``raster.floor_runs``) at texel (X0 + u dX, Y0 + u dY) / 65536 (16.16 fixed point; texel
-    centres at integers); ``bg`` outside the texture.
+def _gain_word(p, lut):
+    """A packed pixel's B, G, R bytes through ``lut`` (256 values: the exposure's
+    saturate(rint(gain c)), see ``camera.exposure_lut``), its top byte kept."""
+    q = np.int64(p)
+    return np.uint32((q & 0xFF000000) | lut[q & 255] | (lut[(q >> 8) & 255] << 8) | (lut[(q >> 16) & 255] << 16))
 
-    A sample whose block (the 2 x 2 texels it reads) has run radius R >= 1 reads texel
-    (ix, iy) exactly, and so does every sample whose block is within R - 1 of it: x in
-    [ix - R + 1, ix + R), y likewise. The samples of a row lie on a line, so the pixels up to
-    the first that leaves that square are filled at once (the same numbers as blending each).
-    The other samples are gathered (scratch ``bu``, ``b00``.., ``bwx``, ``bwy``) and blended in
-    one vectorised pass."""
+
+@njit(**_JIT)
+def exposure_table(gain, out):
+    """``out`` (256,) = saturate(rint(gain c)) for c = 0..255 in float32 (the exposure's table,
+    ``cv2.convertScaleAbs``'s numbers)."""
+    g = np.float32(gain)
+    for c in range(256):
+        out[c] = int(min(np.rint(np.float32(c) * g), np.float32(255.0)))
+
+
+@njit(**_JIT)
+def gain_words(words, lut):
+    """:func:`_gain_word` on every packed pixel of ``words`` (1-D uint32), in place."""
+    for i in range(words.shape[0]):
+        words[i] = _gain_word(words[i], lut)
+
+
+@njit(**_JIT)
+def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01, b10, b11, bwx, bwy, lut, gain):
+    """Row v of the floor into ``crow`` where ``flo[u] <= v``: bilinear samples of a texture level
+    (``tex[off:]``, tw x th packed texels, see ``raster.floor_runs``) at texel (X0 + u dX,
+    Y0 + u dY) / 65536 (16.16 fixed point; texel centres at integers); ``bg`` outside the
+    texture.
+
+    A sample whose block (the 2 x 2 texels it reads) is uniform reads texel (ix, iy) exactly,
+    and so does every sample whose block lies in the square of uniform blocks that has (ix, iy)
+    at its corner and extends the way the row moves (``sq[off:]``, its side S >= 1, the row's
+    quadrant of ``FloorRuns.squares``; 0: the block is not uniform): x in [ix, ix + S) when
+    dX > 0, (ix - S, ix] when dX < 0, y likewise. The samples of a row lie on a line, so the
+    pixels up to the first that leaves that square are filled at once (the same numbers as
+    blending each). The other samples are gathered (scratch ``bu``, ``b00``.., ``bwx``,
+    ``bwy``) and blended in one vectorised pass. With a ``lut`` (not empty: the exposure
+    ``gain``'s table) each sampled colour gets the exposure (:func:`_gain_word`; once per run)."""
     W = crow.shape[0]
-    inv_x = 1.0 / abs(dX) if dX != 0 else 0.0
-    inv_y = 1.0 / abs(dY) if dY != 0 else 0.0
+    # 2^38 / |d|, rounded down: q * inv >> 38 is floor(q / |d|) or one less (q < 2^24), never
+    # more, so a run never leaves its square (an integer multiply on the run's critical path
+    # instead of two conversions and a float multiply)
+    inv_x = (1 << 38) // abs(dX) if dX != 0 else 0
+    inv_y = (1 << 38) // abs(dY) if dY != 0 else 0
+    gained = lut.shape[0] > 0
+    last_in = np.uint32(0)
+    last_out = _gain_word(last_in, lut) if gained else last_in
     n = 0
     u = 0
     while u < W:
-        if flo[u] > v:
+        if flo[u] > v:  # covered by a layer: on to the next column the floor shows in
             u += 1
+            while u < W and flo[u] > v:
+                u += 1
             continue
         X = X0 + u * dX
         Y = Y0 + u * dY
@@ -1532,28 +1599,32 @@ def _floor_row(crow, v, flo, tex, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01,
         iy = Y >> 16
         if ix >= 0 and iy >= 0 and ix + 1 < tw and iy + 1 < th:
             k = off + iy * tw + ix
-            p = int(tex[k])
-            R = p >> 24
+            R = int(sq[k])
             if R > 0:
-                # how many more pixels stay in the square (exact: the quotients are small)
+                # how many more pixels stay in the square
                 m = W - 1 - u
                 fx = X & 0xFFFF
                 fy = Y & 0xFFFF
                 if dX > 0:
-                    m = min(m, int(((R << 16) - fx - 1) * inv_x))
+                    m = min(m, (((R << 16) - fx - 1) * inv_x) >> 38)
                 elif dX < 0:
-                    m = min(m, int((((R - 1) << 16) + fx) * inv_x))
+                    m = min(m, (((((R - 1) << 16) + fx)) * inv_x) >> 38)
                 if dY > 0:
-                    m = min(m, int(((R << 16) - fy - 1) * inv_y))
+                    m = min(m, (((R << 16) - fy - 1) * inv_y) >> 38)
                 elif dY < 0:
-                    m = min(m, int((((R - 1) << 16) + fy) * inv_y))
-                w = np.uint32(p | 0xFF000000)
+                    m = min(m, (((((R - 1) << 16) + fy)) * inv_y) >> 38)
+                w = tex[k] | np.uint32(0xFF000000)
+                if gained:  # runs of one colour follow each other: one conversion per colour
+                    if w != last_in:
+                        last_in = w
+                        last_out = _gain_word(w, lut)
+                    w = last_out
                 seg = crow[u : u + m + 1]  # (a loop from 0: vectorised)
                 for i in range(m + 1):
                     seg[i] = w
                 u += m + 1
                 continue
-            b00[n] = p
+            b00[n] = int(tex[k])
             b01[n] = int(tex[k + 1])
             b10[n] = int(tex[k + tw])
             b11[n] = int(tex[k + tw + 1])
@@ -1569,27 +1640,95 @@ def _floor_row(crow, v, flo, tex, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, b01,
         u += 1
     for i in range(n):
         b00[i] = _bilinear(b00[i], b01[i], b10[i], b11[i], bwx[i], bwy[i])
+    if gained:  # the table's numbers, computed (vectorised: a lookup per channel is not)
+        g = np.float32(gain)
+        top = np.float32(255.0)
+        for i in range(n):
+            q = b00[i]
+            yb = min(np.rint(np.float32(q & 255) * g), top)
+            yg = min(np.rint(np.float32((q >> 8) & 255) * g), top)
+            yr = min(np.rint(np.float32((q >> 16) & 255) * g), top)
+            b00[i] = (q & 0xFF000000) | np.int64(yb) | (np.int64(yg) << 8) | (np.int64(yr) << 16)
     for i in range(n):
         crow[bu[i]] = np.uint32(b00[i])
 
 
 @njit(**_JIT)
+def _noise_row(dst, nrow):
+    """A row of colour bytes in place: ``dst = saturate(dst + nrow)`` (int8 noise; empty: none),
+    in 16-bit lanes (written so that LLVM vectorises it)."""
+    if nrow.shape[0] > 0:
+        for i in range(dst.shape[0]):
+            x = np.int16(dst[i]) + np.int16(nrow[i])
+            x = np.int16(x) if np.int16(x) > np.int16(0) else np.int16(0)
+            x = x if x < np.int16(255) else np.int16(255)
+            dst[i] = np.uint8(x)
+
+
+@njit(**_JIT)
+def color_noise(img, tile, a, b):
+    """Colour noise on a frame in place (:func:`_noise_row` on each row): ``img`` (n, 3 w)
+    uint8 B, G, R bytes, noise ``tile[a + v, 3 b + i]`` (int8)."""
+    w = img.shape[1]
+    for v in range(img.shape[0]):
+        _noise_row(img[v], tile[a + v, 3 * b : 3 * b + w])
+
+
+@njit(**_JIT)
+def _bgr_row(dst, crow, nrow):
+    """A row of packed pixels as B, G, R bytes into ``dst``, then its colour noise ``nrow``."""
+    W = crow.shape[0]
+    src = crow.view(np.uint8)  # (B, G, R, A bytes on a little-endian machine)
+    if LITTLE_ENDIAN:
+        for u in range(W):
+            dst[3 * u] = src[4 * u]
+            dst[3 * u + 1] = src[4 * u + 1]
+            dst[3 * u + 2] = src[4 * u + 2]
+    else:  # pragma: no cover - big-endian machines
+        for u in range(W):
+            dst[3 * u] = src[4 * u + 3]
+            dst[3 * u + 1] = src[4 * u + 2]
+            dst[3 * u + 2] = src[4 * u + 1]
+    _noise_row(dst, nrow)
+
+
+@njit(**_JIT)
+def _layer_depth_row(row, za, zb, rf, noise, nv, nb, noisy, c, lo, hi):
+    """A row one layer covers from end to end, its depth ``za + zb rf`` finished
+    (:func:`_finish_depth_row` after the layer pass, the same numbers, in one pass)."""
+    W = row.shape[0]
+    if noisy:
+        nrow = noise[nv, nb : nb + W]
+        for u in range(W):
+            d = za[u] + zb[u] * rf
+            d = np.float32(0.0) if d > hi else d
+            d = d + c * (d * d * np.float32(nrow[u]))
+            row[u] = np.float32(0.0) if (d > hi) | (d <= lo) else d
+    else:
+        for u in range(W):
+            d = za[u] + zb[u] * rf
+            row[u] = np.float32(0.0) if (d > hi) | (d <= lo) else d
+
+
+@njit(**_JIT)
 def compose_rows(
-    color, depth, va, vb, r0, sky, row_depth, rowf,
-    ftex, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
+    color, depth, va, vb, r0, bg, row_depth, rowf,
+    ftex, fsq, ftab, row_lev, row_dist, ox, oy, yaw, fx, cx, tx0, ty1, ppm, flo,
     L, ltop, lbot, lcol, lza, lzb, lrange, lball, lbd, lbe, lbg, balls, kcol, cam_z, fy, cy,
     sg_tab, sg_d, sg_pix,
-    finish, dnoise, na, nb, coef, dmin, dmax, bgr,
+    finish, dnoise, na, nb, coef, dmin, dmax, bgr, cnoise, ca, cb, glut, gain,
 ):
     """Rows va..vb-1 of a level pinhole's frame, upright, in place: ``color`` (H, W) packed pixels
     (:func:`_word`), ``depth`` (H, W) float32 z-depth (inf = nothing). Each row, in cache:
 
-    1. above row ``r0`` (the horizon) the background ``sky``, depth inf; below it the floor's
+    1. above row ``r0`` (the horizon) the background ``bg``, depth inf; below it the floor's
+       (``bg`` beyond the floor texture too)
        depth ``row_depth[v]`` (a level pinhole sees the floor at one z-depth along a row) and,
        where ``flo[u] <= v``, its colour (:func:`_floor_row`): the floor point of pixel (u, v)
        is at forward distance ``row_dist[v]`` and left offset -(u - cx) row_dist[v] / fx of the
        camera at (ox, oy) heading ``yaw``; the texture level ``row_lev[v]`` (``ftab``: offset,
-       width, height in ``ftex``) whose texels match the pixel's footprint;
+       width, height in ``ftex``; ``fsq`` the squares of uniform blocks) whose texels match the
+       pixel's footprint;
     2. the L layers of :func:`column_layers`, far to near (depth ``lza + lzb rowf[v]``,
        ``rowf[v]`` = fy / (v - cy) below the horizon; balls shaded per pixel);
     3. the stop-sign sprites: ``sg_tab`` (n, 5) rows v0..v1-1, columns u0..u1-1, offset into
@@ -1599,10 +1738,17 @@ def compose_rows(
        from row na, column nb).
 
     With ``bgr`` ((H, 3 W) uint8, not empty) each row's colour goes there as B, G, R bytes
-    instead (``color`` is then not written: a row at a time in cache, no second pass).
+    instead (``color`` is then not written: a row at a time in cache, no second pass), with the
+    colour noise ``cnoise`` (int8, window from row ca, pixel column cb; (1, 0): none).
+
+    ``glut`` (the realism profile's exposure ``gain`` as a table of 256 levels; empty = none) maps the
+    colours drawn here, the floor's and the balls' (:func:`_gain_word`, once per run of the
+    floor, and the background); the caller has mapped the layers' ``lcol`` and the signs'
+    ``sg_pix`` (:func:`gain_words`). The colour noise comes after, as the sensor's.
     """
     W = color.shape[1]
     nballs = balls.shape[0]
+    sky = _gain_word(bg, glut) if glut.shape[0] > 0 else np.uint32(bg)
     noisy = dnoise.shape[0] > 0
     c = np.float32(coef)
     lo = np.float32(dmin)
@@ -1618,19 +1764,53 @@ def compose_rows(
     bwx = np.empty(W, np.int64)
     bwy = np.empty(W, np.int64)
     to_bgr = bgr.shape[0] > 0
+    cnoisy = cnoise.shape[1] > 0
     scratch = np.empty(W, np.uint32)
+    flo_min = vb
+    for u in range(W):
+        flo_min = min(flo_min, flo[u])
+    # rows from below_all on: no layer and no sign, the depth is the floor's alone
+    below_all = r0
+    for l in range(L):
+        below_all = max(below_all, lrange[l, 1] + 1)
+    for s in range(sg_tab.shape[0]):
+        below_all = max(below_all, sg_tab[s, 1])
+    # rows full_a..full_b: one layer (no ball) covers every column and no sign is there (a wall
+    # across the view): its colours, and its depths finished, in one pass each
+    full_a = vb
+    full_b = -1
+    if finish and L == 1 and nballs == 0 and lrange[0, 2] == 0 and lrange[0, 3] == W:
+        full_a = 0
+        full_b = vb
+        for u in range(W):
+            full_a = max(full_a, ltop[0, u])
+            full_b = min(full_b, lbot[0, u])
+        for s in range(sg_tab.shape[0]):
+            if sg_tab[s, 0] <= full_b and sg_tab[s, 1] > full_a:
+                full_b = -1
     for v in range(va, vb):
         crow = scratch if to_bgr else color[v]
         drow = depth[v]
+        if full_a <= v <= full_b:
+            cs = lcol[0]
+            for u in range(W):
+                crow[u] = cs[u]
+            _layer_depth_row(drow, lza[0], lzb[0], np.float32(rowf[v]), dnoise, na + v, nb, noisy, c, lo, hi)
+            if to_bgr:
+                _bgr_row(bgr[v], crow, cnoise[ca + v, 3 * cb : 3 * cb + 3 * W] if cnoisy else cnoise[0, :0])
+            continue
         if v < r0:
             for u in range(W):
                 crow[u] = sky
             for u in range(W):
                 drow[u] = inf
+        elif v < flo_min:
+            pass  # the layers cover every pixel of the row (see column_layers' flo): no floor to draw
         else:
             fz = row_depth[v]
-            for u in range(W):
-                drow[u] = fz
+            if not (finish and v >= below_all):  # (else the floor's depth is finished in one pass below)
+                for u in range(W):
+                    drow[u] = fz
             lev = row_lev[v]
             off = ftab[lev, 0]
             tw = ftab[lev, 1]
@@ -1648,7 +1828,8 @@ def compose_rows(
             Y0 = int(math.floor(j0 * 65536.0 + 0.5))
             dX = int(math.floor(ddx * sc * 65536.0 + 0.5))
             dY = int(math.floor(-ddy * sc * 65536.0 + 0.5))
-            _floor_row(crow, v, flo, ftex, off, tw, th, X0, dX, Y0, dY, int(sky), bu, b00, b01, b10, b11, bwx, bwy)
+            _floor_row(crow, v, flo, ftex, fsq[(1 if dX < 0 else 0) | (2 if dY < 0 else 0)], off, tw, th, X0, dX, Y0, dY,
+                       int(bg), bu, b00, b01, b10, b11, bwx, bwy, glut, gain)
         rf = np.float32(rowf[v])
         for l in range(L):
             if v < lrange[l, 0] or v > lrange[l, 1]:
@@ -1681,6 +1862,8 @@ def compose_rows(
                 s2 = 1.0 - qq * qq - lat * lat
                 sh = (0.35 + 0.65 * math.sqrt(s2) if s2 > 0.0 else 0.35) * lbg[l, u]
                 crow[u] = _word(balls[j, 3] * sh, balls[j, 4] * sh, balls[j, 5] * sh)
+                if glut.shape[0] > 0:
+                    crow[u] = _gain_word(crow[u], glut)
         for s in range(sg_tab.shape[0]):
             v0 = sg_tab[s, 0]
             if v < v0 or v >= sg_tab[s, 1]:
@@ -1694,18 +1877,9 @@ def compose_rows(
                 if (p >> 24) > 127 and drow[u] > zs:
                     crow[u] = p | np.uint32(0xFF000000)
                     drow[u] = zs
-        if finish:
+        if finish and v >= below_all:
+            _floor_depth_row(drow, row_depth[v], dnoise, na + v, nb, noisy, c, lo, hi)
+        elif finish:
             _finish_depth_row(drow, dnoise, na + v, nb, noisy, c, lo, hi)
         if to_bgr:
-            src = crow.view(np.uint8)  # (B, G, R, A bytes on a little-endian machine)
-            dst = bgr[v]
-            if LITTLE_ENDIAN:
-                for u in range(W):
-                    dst[3 * u] = src[4 * u]
-                    dst[3 * u + 1] = src[4 * u + 1]
-                    dst[3 * u + 2] = src[4 * u + 2]
-            else:  # pragma: no cover - big-endian machines
-                for u in range(W):
-                    dst[3 * u] = src[4 * u + 3]
-                    dst[3 * u + 1] = src[4 * u + 2]
-                    dst[3 * u + 2] = src[4 * u + 1]
+            _bgr_row(bgr[v], crow, cnoise[ca + v, 3 * cb : 3 * cb + 3 * W] if cnoisy else cnoise[0, :0])

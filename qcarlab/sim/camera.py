@@ -37,12 +37,15 @@ How it is drawn. The RGBD camera (a level pinhole, rendered upright, row-major):
 2. one pass per image row (:func:`~qcarlab.sim._kernels.compose_rows`), each row in cache: the
    floor, a top-down texture (markings, brightness regions) at the level of its mipmap whose
    texels match the row's footprint: a row of a level camera is a straight line through the
-   texture, so where a texel's *run radius* (``raster.floor_runs``) says the next pixels all
-   read one colour they are filled at once (the same numbers as blending each), the rest are
-   blended bilinearly in one vectorised batch; the floor's depth is one number per row; then
-   the layers, the stop-sign sprites (depth-tested), the depth's noise and range limits, the
-   row's BGR bytes;
-3. the colour noise (two saturating OpenCV passes over the frame).
+   texture, so where the square of uniform texels ahead of a sample (``raster.run_squares``,
+   the quadrant the row moves into) says the next pixels all read one colour they are filled
+   at once (the same numbers as blending each), the rest are blended bilinearly in one
+   vectorised batch; the floor's depth is one number per row; then the layers, the stop-sign
+   sprites (depth-tested), the depth's noise and range limits, the row's BGR bytes. Rows the
+   layers cover in every column skip the floor; a row one wall covers end to end, or one that
+   shows the floor alone, has its depth finished in a single pass;
+3. with each row's BGR bytes, its colour noise (one int8 tile), in the same pass. The realism
+   profile's exposure gain (``render(..., gain=)``) scales the colours as they are drawn.
 
 A camera pitched down renders the level view so, then rotates it (a homography). The CSI views
 are drawn per column in a transposed buffer (:func:`~qcarlab.sim._kernels.render_columns`,
@@ -91,6 +94,7 @@ CSI_OVERSAMPLE = 0.8  # cylinder pixels per fisheye pixel at the centre of a CSI
 _NOISE_PAD = 48
 _SPRITE = 128
 _NO_NOISE = np.zeros((0, 0), np.int8)
+_NO_CNOISE = np.zeros((1, 0), np.int8)
 _NO_BGR = np.zeros((0, 0), np.uint8)
 _NO_SIGNS = (np.zeros((0, 5), np.int64), np.zeros(0, np.float64), np.zeros(0, np.uint32))
 
@@ -217,8 +221,10 @@ class _Noise:
         self.w, self.h = w, h
         shape = (w + _NOISE_PAD, h + _NOISE_PAD)
         n = rng.normal(0.0, color_sd, shape + (3,))
-        self.pos = np.clip(np.rint(n), 0, 255).astype(np.uint8)
-        self.neg = np.clip(np.rint(-n), 0, 255).astype(np.uint8)
+        # rint(n) as int8, (rows, 3 columns) bytes: a pixel gets clip(c + rint(n)), what adding
+        # the tile's + part and subtracting its - part (two saturating passes) gave, in one pass
+        # of half the bytes (:func:`~qcarlab.sim._kernels.color_noise`)
+        self.tile = np.clip(np.rint(n), -127, 127).astype(np.int8).reshape(shape[0], -1)
         # depth: standard normal in int8 steps of DEPTH_TILE_STEP (a quarter of the float32
         # tile's bytes: the tile stays in the cache beside the frame)
         self.depth = (np.clip(np.rint(rng.standard_normal(shape, dtype=np.float32) / DEPTH_TILE_STEP), -127, 127)
@@ -233,13 +239,24 @@ class _Noise:
         return [(((x >> (10 * i)) & 1023) * _NOISE_PAD) >> 10 for i in range(6)]
 
     def color(self, img: np.ndarray, o: list[int], v0: int = 0) -> None:
-        """Noise on ``img``, rows v0.. of a frame (all of it by default), window ``o[0:2]`` (from
-        :meth:`windows`): the + and - parts of one tile at the same place, so the pixel gets
-        clip(c + rint(n)), n ~ N(0, color_sd) (two windows gave a spread of 0.83 color_sd)."""
-        n, w = img.shape[0], img.shape[1]
-        a, b = o[0] + v0, o[1]
-        cv2.add(img, self.pos[a : a + n, b : b + w], dst=img)
-        cv2.subtract(img, self.neg[a : a + n, b : b + w], dst=img)
+        """Noise on ``img`` (BGR uint8, in place), rows v0.. of a frame (all of it by default),
+        window ``o[0:2]`` (from :meth:`windows`): the pixel gets clip(c + rint(n)), n ~ N(0,
+        color_sd)."""
+        _kernels.color_noise(img.reshape(img.shape[0], -1), self.tile, o[0] + v0, o[1])
+
+
+_NO_LUT = np.zeros(0, np.int64)
+
+
+def exposure_lut(gain: float) -> np.ndarray:
+    """The exposure ``gain`` as a table of the 256 levels: saturate(rint(gain c)) in float32,
+    the numbers of ``cv2.convertScaleAbs(c, alpha=gain)`` (:class:`~qcarlab.sim.realism.CameraEffects`);
+    empty for gain 1 (none)."""
+    if gain == 1.0:
+        return _NO_LUT
+    out = np.empty(256, np.int64)
+    _kernels.exposure_table(float(gain), out)
+    return out
 
 
 class _ColumnView:
@@ -578,8 +595,15 @@ class RGBDCamera:
         """The camera's (x, y, yaw) in the world for a car pose."""
         return self._view.camera_pose(pose)
 
-    def render(self, pose: tuple[float, float, float], t: float = 0.0) -> RGBDFrame:
-        """The colour image (BGR uint8) and aligned depth (float32 m, 0 = none) seen from ``pose``."""
+    def render(self, pose: tuple[float, float, float], t: float = 0.0, gain: float = 1.0) -> RGBDFrame:
+        """The colour image (BGR uint8) and aligned depth (float32 m, 0 = none) seen from ``pose``.
+
+        ``gain``: the auto-exposure's (:class:`~qcarlab.sim.realism.CameraEffects`), applied
+        where the colours are drawn (saturate(rint(gain c)) per channel, the numbers of
+        ``cv2.convertScaleAbs``), before the sensor's noise: a frame with a gain costs what one
+        without does (a pass of its own over the frame took 0.1 ms). Without noise the frame is
+        exactly the ungained frame through ``convertScaleAbs``."""
+        gain = float(gain)
         v = self._view
         cx_w, cy_w, yaw = v.camera_pose(pose)
         W, H = self.intrinsics.width, self.intrinsics.height
@@ -588,6 +612,11 @@ class RGBDCamera:
         balls = v.balls_at(t)
         layers = (self._columns(cx_w, cy_w, yaw, balls), balls)
         signs = v.sign_patches(cx_w, cy_w, yaw)
+        lut = _NO_LUT
+        if gain != 1.0 and self._rot is None:  # the layers' and signs' colours, once (before the rows are split)
+            lut = exposure_lut(gain)
+            _kernels.gain_words(self._lcol[: layers[0]].reshape(-1), lut)
+            _kernels.gain_words(signs[2], lut)
         lv = self._level
         depth = np.empty((lv.height, lv.width), np.float32)
         if self._rot is None:
@@ -595,7 +624,7 @@ class RGBDCamera:
             color = np.empty((H, W, 3), np.uint8)
             helper = _helper()
             mid = H // 2 if helper is not None else H
-            args = (color, depth, (cx_w, cy_w, yaw), layers, signs, o)
+            args = (color, depth, (cx_w, cy_w, yaw), layers, signs, o, (gain, lut))
             done = helper.submit(self._rows, *args, mid, H) if helper is not None and mid < H else None
             try:
                 self._rows(*args, 0, mid)
@@ -607,6 +636,8 @@ class RGBDCamera:
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
         c4 = cv2.warpPerspective(self._color4, self._rot, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
         color = cv2.cvtColor(c4, cv2.COLOR_BGRA2BGR)
+        if gain != 1.0:  # after the rotation's blending, as on an unpitched frame's colours
+            cv2.convertScaleAbs(color, dst=color, alpha=gain)
         if o is not None:
             assert self._noise is not None
             self._noise.color(color, o)
@@ -629,33 +660,35 @@ class RGBDCamera:
         )
 
     def _compose(self, depth, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None, a: int, b: int,
-                 bgr: np.ndarray = _NO_BGR) -> None:
+                 bgr: np.ndarray = _NO_BGR, gain: tuple[float, np.ndarray] = (1.0, _NO_LUT)) -> None:
         """Rows a..b of the level view into ``_color4`` and ``depth``
         (:func:`~qcarlab.sim._kernels.compose_rows`); unpitched, the depth finished too (range
         limits, and noise in the windows ``o`` unless None). A pitched view's depth is finished
         after the rotation. With ``bgr`` (the frame's colour as (H, 3 W) bytes) the colour goes
-        there instead of ``_color4``."""
+        there instead of ``_color4``, with its noise (windows ``o``). ``gain``: the exposure and its
+        table (:func:`exposure_lut`; see
+        :meth:`render`; the layers' and signs' colours carry it already)."""
         v, fl, lv = self._view, self._floor, self._level
         finish = self._rot is None
         dn, na, nb = self._depth_noise(o if finish else None)
+        cn, ca, cb = (self._noise.tile, o[0], o[1]) if o is not None and self._noise is not None else (_NO_CNOISE, 0, 0)
         cx_w, cy_w, yaw = cam
         n_layers, balls = layers
+        g, lut = gain
         _kernels.compose_rows(
             self._color4_u32, depth, a, b, v.r0, v.bg_packed, v.row_depth, self._rowf,
-            fl.texels, fl.levels, v.row_lev, v.row_dist, cx_w, cy_w, yaw, lv.fx, lv.cx, fl.x0, fl.y1, fl.ppm, self._flo,
+            fl.texels, fl.squares, fl.levels, v.row_lev, v.row_dist, cx_w, cy_w, yaw, lv.fx, lv.cx, fl.x0, fl.y1, fl.ppm, self._flo,
             n_layers, self._ltop, self._lbot, self._lcol, self._lza, self._lzb, self._lrange, self._lball, self._lbd,
             self._lbe, self._lbg, balls, v.k, v.cam_z, v.fy, v.cy, signs[0], signs[1], signs[2],
             finish, dn, na, nb, DEPTH_NOISE * DEPTH_TILE_STEP, RGBD_MIN_DEPTH, float(self.params.rgbd_max_depth), bgr,
+            cn, ca, cb, lut, g,
         )
 
     def _rows(self, color: np.ndarray, depth: np.ndarray, cam, layers: tuple[int, np.ndarray], signs, o: list[int] | None,
-              a: int, b: int) -> None:
-        """Rows a..b of an unpitched frame, done: composed and finished into ``color`` (BGR) and
-        ``depth``, then the colour noise."""
-        self._compose(depth, cam, layers, signs, o, a, b, color.reshape(color.shape[0], -1))
-        if o is not None:
-            assert self._noise is not None
-            self._noise.color(color[a:b], o, a)
+              gain: tuple[float, np.ndarray], a: int, b: int) -> None:
+        """Rows a..b of an unpitched frame, done: composed and finished into ``color`` (BGR, the
+        colour noise and exposure on) and ``depth``."""
+        self._compose(depth, cam, layers, signs, o, a, b, color.reshape(color.shape[0], -1), gain)
 
     def _depth_noise(self, o: list[int] | None) -> tuple[np.ndarray, int, int]:
         if o is None:

@@ -241,16 +241,19 @@ class LidarEffects:
     def __init__(self, realism: Realism, rng: np.random.Generator, r_min: float, r_max: float):
         self.frac, self.dropout, self.rng, self.r_min, self.r_max = (
             realism.lidar_range_noise, realism.lidar_dropout, rng, r_min, r_max)
+        self._z = self._u = np.zeros(0)
 
     def __call__(self, ranges: np.ndarray) -> np.ndarray:
+        """ranges (float64, in place): each return times 1 + frac z, z ~ N(0, 1), clipped to the
+        device's range; then each beam 0 with probability ``dropout``."""
+        from qcarlab.sim import _kernels
+
         n = len(ranges)
-        z = self.rng.standard_normal(n)
-        u = self.rng.random(n)
-        hit = ranges > 0.0
-        if self.frac > 0.0:
-            ranges[hit] = np.clip(ranges[hit] * (1.0 + self.frac * z[hit]), self.r_min, self.r_max)
-        if self.dropout > 0.0:
-            ranges[u < self.dropout] = 0.0
+        if len(self._z) != n:  # scratch reused scan after scan (the draws go straight into it)
+            self._z, self._u = np.empty(n), np.empty(n)
+        z = self.rng.standard_normal(out=self._z)
+        u = self.rng.random(out=self._u)
+        _kernels.lidar_effects(ranges, z, u, self.frac, self.dropout, self.r_min, self.r_max)
         return ranges
 
 
