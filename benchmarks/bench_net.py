@@ -242,7 +242,9 @@ def bench_rtt(n: int, batches: int = 10, privileged: bool = True, before: str | 
         for suffix, path in codes:
             port_sim = stack.enter_context(Served("sim", priority=privileged, code=path))
             port_syn = stack.enter_context(Served("synthetic", priority=privileged, code=path))
-            mine = dict(ports, sim=port_sim, synthetic=port_syn) if path is None else {"sim": port_sim, "synthetic": port_syn}
+            mine = {"sim": port_sim, "synthetic": port_syn}
+            if path is None:  # the raw echo, plain write + read and ping: ours only
+                mine["echo"] = ports["echo"]
             conn, theirs = ctx.Pipe()
             proc = ctx.Process(target=_rtt_worker, args=(theirs, mine, privileged, path), daemon=True)
             proc.start()
@@ -711,8 +713,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=30.0, help="seconds of each timed load (controller + monitors)")
     ap.add_argument("--only", default="rtt,rgbd,load,watchdog,camera,takeover,flood,fuzz", help="comma-separated subset")
-    ap.add_argument("--before", metavar="DIR", help="a checkout of the code before (git worktree add DIR main): its server "
-                    "and client are timed too, in batches alternating with ours (rtt)")
+    ap.add_argument("--before", metavar="DIR", help="a checkout of the code before (git worktree add DIR main): "
+                    "its server and client are timed too, in batches alternating with ours (rtt)")
     ap.add_argument("--quick", action="store_true", help="small samples (a smoke run): 5 s loads, 1,000 fuzz frames")
     args = ap.parse_args()
     only = set(args.only.split(","))

@@ -35,7 +35,7 @@ log = logging.getLogger("qcarlab")
 
 TOKEN_ENV = "QCARLAB_TOKEN"
 _new_tuple = tuple.__new__  # a Readout from its ten values without the Python-level _make
-_READOUT, _APPLIED = (int(M.READOUT),), (int(M.APPLIED),)  # the replies every tick expects (plain ints: no enum lookups)
+_READOUT, _APPLIED = (int(M.READOUT),), (int(M.APPLIED),)  # every tick's replies (plain ints: no enum lookups)
 
 
 class TcpConnectError(CarError):
@@ -278,7 +278,8 @@ class TcpCar(Car):
                     rx = self._rx + 1
                     if frame.seq != rx:
                         self._drop()
-                        raise TcpConnectError(f"{self.uri}: reply out of order (seq {frame.seq}, expected {rx})", "protocol")
+                        raise TcpConnectError(f"{self.uri}: reply out of order (seq {frame.seq}, expected {rx})",
+                                              "protocol")
                     self._rx = rx
                     if frame.ref < seq and frame.type == M.PONG:
                         continue  # a late reply to a request we gave up on (a lost ping)
@@ -299,7 +300,7 @@ class TcpCar(Car):
                 raise TcpConnectError(f"{self.uri}: the connection to the car was lost ({exc.strerror or exc})", "lost") from None
             finally:
                 reader.recv_timeout = self.timeout
-        if frame.ref == seq and frame.type in expect:  # the common case (expect never holds ERROR; BYE only for a BYE)
+        if frame.ref == seq and frame.type in expect:  # the common case (expect never holds ERROR; BYE only for BYE)
             return frame
         if frame.type == M.ERROR:
             self._raise_error(frame)

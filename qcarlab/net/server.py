@@ -73,7 +73,7 @@ def _log(level: int, msg: str, *args: Any) -> None:
 
 WATCHDOG_LAMPS = parse_lamps(["hazard", "brake"])
 CONTROL_ONLY = frozenset({int(M.COMMAND), int(M.STOP), int(M.ADVANCE)})
-_BYE, FLAG_READ_BACK, FLAGS_KNOWN = int(M.BYE), P.FLAG_READ_BACK, P.FLAGS_KNOWN  # (module globals: no lookups per request)
+_BYE, FLAG_READ_BACK, FLAGS_KNOWN = int(M.BYE), P.FLAG_READ_BACK, P.FLAGS_KNOWN  # globals: fewer lookups per request
 MAX_LOGGED_ERRORS = 5  # per connection; further ones are counted and summed up at disconnect
 HOUSEKEEPING_S = 0.05  # period of the housekeeping thread (log lines, the real-time simulator's clock)
 SWITCH_INTERVAL_S = 0.0005  # the interpreter's thread switch interval in a serving process

@@ -190,18 +190,8 @@ def send_frame(sock: socket.socket, mtype: int, seq: int, ref: int, *parts: Any,
     """Send one frame; ``parts`` are bytes-like objects (numpy arrays included) sent without copies.
 
     With a ``waiter`` the socket is non-blocking and the frame must make progress at least every
-    ``timeout`` seconds (TimeoutError otherwise); without one the socket's own timeout applies."""
-    if waiter is not None and len(parts) <= 1 and isinstance(parts[0] if parts else b"", (bytes, bytearray)):
-        payload = parts[0] if parts else b""  # the common case: one small reply, one system call
-        if len(payload) <= 65536:
-            data = HEADER.pack(MAGIC, VERSION, mtype, seq & 0xFFFFFFFF, ref & 0xFFFFFFFF, len(payload)) + payload
-            try:
-                sent = sock.send(data)
-            except (BlockingIOError, InterruptedError):
-                sent = 0
-            if sent < len(data):
-                _send_nonblocking(sock, [memoryview(data)[sent:]], waiter, timeout)
-            return
+    ``timeout`` seconds (TimeoutError otherwise); without one the socket's own timeout applies.
+    (A connection's small frames go through its :class:`FrameWriter`.)"""
     views = [memoryview(p).cast("B") if not isinstance(p, (bytes, bytearray)) else p for p in parts]
     length = sum(len(v) for v in views)
     header = pack_header(mtype, seq, ref, length)
