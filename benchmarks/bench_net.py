@@ -1,6 +1,7 @@
 """The car over TCP on loopback: latency, frames, load, watchdog, camera monitors, takeover, floods, fuzz.
 
 Run: python benchmarks/bench_net.py [--duration 30] [--only rtt,rgbd,load,watchdog,camera,takeover,flood,fuzz] [--quick]
+     [--before DIR]   (DIR: a checkout of the code before, timed in batches alternating with ours)
 
 Targets (issues 5, 12 and 16):
 - command + readout round trip, loopback: median <= 0.05 ms, p99 <= 0.2 ms (the raw Python echo of
@@ -24,6 +25,7 @@ elsewhere on the network, here they share the server's two cores with whatever e
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import multiprocessing as mp
 import os
@@ -43,7 +45,8 @@ TARGETS = {"rtt_median_ms": 0.05, "rtt_p99_ms": 0.2, "rgbd_fps": 100.0, "watchdo
 
 
 # --- the server process -----------------------------------------------------------------------------
-def _serve(kind: str, conn, watchdog: float, hello_timeout: float, options: dict) -> None:
+def _serve(kind: str, conn, watchdog: float, hello_timeout: float, options: dict, code: str | None = None) -> None:
+    _use_code(code)
     from qcarlab.car.sim import SimCar
     from qcarlab.net.server import CarServer, tune_process
     from qcarlab.net.testing import SyntheticCar
@@ -98,11 +101,14 @@ def _serve(kind: str, conn, watchdog: float, hello_timeout: float, options: dict
 class Served:
     """A server process: ``with Served("sim") as port: ...``; ``.report`` after exit."""
 
-    def __init__(self, kind: str = "sim", watchdog: float = 0.25, hello_timeout: float = 2.0, **options):
+    def __init__(self, kind: str = "sim", watchdog: float = 0.25, hello_timeout: float = 2.0, code: str | None = None,
+                 **options):
         self.ctx = mp.get_context("spawn")
         self.parent, child = self.ctx.Pipe()
-        # not a daemon: the server starts a process of its own to draw sensor frames, as serve does
-        self.proc = self.ctx.Process(target=_serve, args=(kind, child, watchdog, hello_timeout, options), daemon=False)
+        # not a daemon: the server starts a process of its own to draw sensor frames, as serve does;
+        # code: serve with the qcarlab of that checkout (bench_rtt's --before)
+        self.proc = self.ctx.Process(target=_serve, args=(kind, child, watchdog, hello_timeout, options, code),
+                                     daemon=False)
         self.report: dict = {}
 
     def __enter__(self) -> int:
@@ -156,71 +162,114 @@ def _stats(values: list[float]) -> dict:
     return {"median_ms": statistics.median(values) * 1e3, "p99_ms": values[int(0.99 * len(values))] * 1e3}
 
 
-def _rtt_client(ports: dict, n: int, batches: int, results, privileged: bool) -> None:
+def _use_code(path: str | None) -> None:
+    """Import qcarlab from the checkout at ``path`` from here on (the code before, for --before)."""
+    if not path:
+        return
+    for name in [m for m in sys.modules if m == "qcarlab" or m.startswith("qcarlab.")]:
+        del sys.modules[name]
+    sys.path.insert(0, str(Path(path).resolve()))
+
+
+def _rtt_worker(conn, ports: dict, privileged: bool, path: str | None) -> None:
+    """One client process: connects to the served simulator and synthetic car (and the raw echo),
+    then runs the batches it is sent (``(kind, count)``; None ends it), answering each with its
+    round trips in seconds. With ``path``, the client is that checkout's code."""
     import socket
 
-    results.put(_as_own_machine() if privileged else "normal")
-    esock = socket.create_connection(("127.0.0.1", ports["echo"]))
-    esock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    request, ebuf = bytes(132), bytearray(4096)
+    _use_code(path)
+    conn.send(_as_own_machine() if privileged else "normal")
     sim, syn = _car(ports["sim"]), _car(ports["synthetic"])
+    runs = {
+        "write_read sim": lambda: sim.write_read(0.05, 0.0),
+        "write_read synthetic": lambda: syn.write_read(0.05, 0.0),
+    }
+    esock = None
+    if "echo" in ports:
+        esock = socket.create_connection(("127.0.0.1", ports["echo"]))
+        esock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        request, ebuf = bytes(132), bytearray(4096)
+
+        def echo_once() -> None:
+            esock.sendall(request)
+            got = 0
+            while got < 220:
+                got += esock.recv_into(ebuf)
+
+        def write_then_read() -> None:
+            sim.write(0.0, 0.0)
+            sim.read()
+
+        runs.update({"raw echo": echo_once, "write + read sim": write_then_read, "ping": sim.ping})
     for _ in range(500):  # warm up
         sim.write_read(0.0, 0.0)
         syn.write_read(0.0, 0.0)
-
-    def echo_once() -> None:
-        esock.sendall(request)
-        got = 0
-        while got < 220:
-            got += esock.recv_into(ebuf)
-
-    def write_then_read() -> None:
-        sim.write(0.0, 0.0)
-        sim.read()
-
-    runs = {
-        "raw echo": echo_once,
-        "write_read sim": lambda: sim.write_read(0.05, 0.0),
-        "write_read synthetic": lambda: syn.write_read(0.05, 0.0),
-        "write + read sim": write_then_read,
-        "ping": sim.ping,
-    }
-    samples: dict[str, list[float]] = {name: [] for name in runs}
-    per = max(1, n // batches)
+    conn.send(list(runs))
     clock = time.perf_counter
-    for b in range(batches):  # back-to-back round trips, one kind per batch, kinds alternating
-        order = list(runs.items()) if b % 2 == 0 else list(runs.items())[::-1]
-        for name, once in order:
-            out = samples[name]
-            for _ in range(per):
-                t0 = clock()
-                once()
-                out.append(clock() - t0)
-    esock.close()
+    while True:
+        job = conn.recv()
+        if job is None:
+            break
+        kind, count = job
+        once, out = runs[kind], []
+        for _ in range(count):
+            t0 = clock()
+            once()
+            out.append(clock() - t0)
+        conn.send(out)
+    if esock is not None:
+        esock.close()
     sim.close()
     syn.close()
-    results.put({name: _stats(values) for name, values in samples.items()})
 
 
-def bench_rtt(n: int, batches: int = 10, privileged: bool = True) -> dict:
+def bench_rtt(n: int, batches: int = 10, privileged: bool = True, before: str | None = None) -> dict:
     """write_read (command + readout in one round trip) against a served simulator and a served
     synthetic car (transport only), plain write + read, ping, and the raw echo, back to back in
-    alternating batches so that the machine's load hits them alike. The client is a process of its
-    own at the priority of a laptop of its own (``_as_own_machine``)."""
+    alternating batches so that the machine's load hits them alike. Each client is a process of its
+    own at the priority of a laptop of its own (``_as_own_machine``). With ``before`` (a checkout
+    of the code before), that code serves and drives its own simulator and synthetic car too, its
+    batches alternating with ours ("..., before"). Each kind's figures: the median and p99 of all
+    its round trips, and the median of its batches' medians with their range."""
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
     echo = ctx.Process(target=_echo_server, args=(child,), daemon=True)
     echo.start()
     ports = {"echo": parent.recv()}
-    with Served("sim", priority=privileged) as port_sim, Served("synthetic", priority=privileged) as port_syn:
-        ports.update(sim=port_sim, synthetic=port_syn)
-        results = ctx.Queue()
-        client = ctx.Process(target=_rtt_client, args=(ports, n, batches, results, privileged), daemon=True)
-        client.start()
-        priority = results.get(timeout=60)
-        out = results.get(timeout=600)
-        client.join(10)
+    codes = [("", None)] + ([(", before", before)] if before else [])
+    with contextlib.ExitStack() as stack:
+        workers = []
+        for suffix, path in codes:
+            port_sim = stack.enter_context(Served("sim", priority=privileged, code=path))
+            port_syn = stack.enter_context(Served("synthetic", priority=privileged, code=path))
+            mine = {"sim": port_sim, "synthetic": port_syn}
+            if path is None:  # the raw echo, plain write + read and ping: ours only
+                mine["echo"] = ports["echo"]
+            conn, theirs = ctx.Pipe()
+            proc = ctx.Process(target=_rtt_worker, args=(theirs, mine, privileged, path), daemon=True)
+            proc.start()
+            workers.append((suffix, conn, proc))
+        priority = [conn.recv() for _, conn, _ in workers][0]
+        jobs = []  # (label, worker's pipe, its kind)
+        for suffix, conn, _ in workers:
+            if not conn.poll(120):
+                raise RuntimeError("a round-trip client did not start")
+            jobs += [(kind + suffix, conn, kind) for kind in conn.recv()]
+        samples: dict[str, list[list[float]]] = {label: [] for label, _, _ in jobs}
+        per = max(1, n // batches)
+        for b in range(batches):  # back-to-back round trips, one kind per batch, kinds alternating
+            for label, conn, kind in (jobs if b % 2 == 0 else jobs[::-1]):
+                conn.send((kind, per))
+                samples[label].append(conn.recv())
+        for _, conn, proc in workers:
+            conn.send(None)
+            proc.join(10)
     echo.join(5)
+    out: dict = {}
+    for label, runs in samples.items():
+        medians = [statistics.median(r) * 1e3 for r in runs]
+        out[label] = {**_stats([x for r in runs for x in r]), "batch_median_ms": statistics.median(medians),
+                      "batch_range_ms": (min(medians), max(medians))}
     out["client priority"] = priority
     return out
 
@@ -664,6 +713,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=30.0, help="seconds of each timed load (controller + monitors)")
     ap.add_argument("--only", default="rtt,rgbd,load,watchdog,camera,takeover,flood,fuzz", help="comma-separated subset")
+    ap.add_argument("--before", metavar="DIR", help="a checkout of the code before (git worktree add DIR main): "
+                    "its server and client are timed too, in batches alternating with ours (rtt)")
     ap.add_argument("--quick", action="store_true", help="small samples (a smoke run): 5 s loads, 1,000 fuzz frames")
     args = ap.parse_args()
     only = set(args.only.split(","))
@@ -674,18 +725,26 @@ def main() -> None:
     ok = True
     if "rtt" in only:
         for privileged in (True, False):
-            r = bench_rtt(2000 if quick else 20000, privileged=privileged)
+            r = bench_rtt(2000 if quick else 20000, privileged=privileged, before=args.before)
             how = (f"server as qcarlab serve runs it here, client at {r.pop('client priority')} priority" if privileged
                    else f"no priorities asked for (as without root), client at {r.pop('client priority')} priority")
-            print(f"round trips, {how}:")
+            print(f"round trips, {how} (median and p99 of all; median of the 10 "
+                  "batches' medians and their range):")
             for name, v in r.items():
-                print(f"  round trip {name:<21} median {v['median_ms']:.3f} ms  p99 {v['p99_ms']:.3f} ms")
+                lo, hi = v["batch_range_ms"]
+                print(f"  round trip {name:<29} median {v['median_ms']:.3f} ms  p99 {v['p99_ms']:.3f} ms  "
+                      f"batches {v['batch_median_ms']:.3f} ms ({lo:.3f}-{hi:.3f})")
             floor = r["raw echo"]["median_ms"]
             print(f"  the server's own cost over the raw echo: {r['write_read sim']['median_ms'] - floor:.3f} ms "
                   f"(sim), {r['write_read synthetic']['median_ms'] - floor:.3f} ms (synthetic car) at the median")
+            for kind in ("write_read sim", "write_read synthetic"):
+                if f"{kind}, before" in r:
+                    was, now = r[f"{kind}, before"], r[kind]
+                    print(f"  {kind}: before / now {was['batch_median_ms'] / now['batch_median_ms']:.2f}x at the median "
+                          f"of batches, {was['p99_ms'] / now['p99_ms']:.2f}x at p99")
             if privileged:
                 w = r["write_read sim"]
-                ok &= w["median_ms"] <= TARGETS["rtt_median_ms"] and w["p99_ms"] <= TARGETS["rtt_p99_ms"]
+                ok &= w["batch_median_ms"] <= TARGETS["rtt_median_ms"] and w["p99_ms"] <= TARGETS["rtt_p99_ms"]
     if "rgbd" in only:
         r = bench_rgbd(2.0 if quick else 5.0)
         for kind, v in r.items():

@@ -34,7 +34,8 @@ from qcarlab.wire.protocol import MsgType as M
 log = logging.getLogger("qcarlab")
 
 TOKEN_ENV = "QCARLAB_TOKEN"
-_yield = getattr(os, "sched_yield", lambda: None)
+_new_tuple = tuple.__new__  # a Readout from its ten values without the Python-level _make
+_READOUT, _APPLIED = (int(M.READOUT),), (int(M.APPLIED),)  # every tick's replies (plain ints: no enum lookups)
 
 
 class TcpConnectError(CarError):
@@ -93,6 +94,7 @@ class TcpCar(Car):
         self._sock: socket.socket | None = None
         self._waiter: P.Waiter | None = None
         self._reader: P.FrameReader | None = None
+        self._writer: P.FrameWriter | None = None
         self._warned_trip = False
         self._commanded = False  # a watchdog trip before our first command stopped nothing of ours
         if token is None:
@@ -146,12 +148,13 @@ class TcpCar(Car):
         self._waiter = P.Waiter(sock)
         self._reader = P.FrameReader(sock, P.MAX_REPLY, waiter=self._waiter)
         self._reader.recv_timeout = self.timeout
+        self._writer = P.FrameWriter(sock, self._waiter, self.timeout)
         hello = {"protocol": P.VERSION, "role": self.role, "client": client}
         if token:
             hello["token"] = token
         try:
             self._seq = 1
-            P.send_frame(sock, M.HELLO, 1, 0, P.encode_json(hello), waiter=self._waiter, timeout=self.timeout)
+            self._writer.send(M.HELLO, 1, 0, P.encode_json(hello))
             frame = self._reader.read_frame()
         except TimeoutError:
             self._drop()
@@ -244,35 +247,40 @@ class TcpCar(Car):
 
     def _request(
         self, mtype: int, *parts: Any, expect: tuple[int, ...], timeout: float | None = None,
-        keep_on_timeout: bool = False,
+        keep_on_timeout: bool = False, framed: Any = None, values: tuple[Any, ...] = (),
     ) -> P.Frame:
         """Send one request, return its reply; error frames become exceptions.
 
+        ``parts`` are the payload's bytes; or ``framed`` (:func:`P.framed` of a payload's struct)
+        and the payload's ``values``, packed with the header straight into the writer's buffer.
         ``timeout`` overrides the connection's reply timeout for this request. On a timeout the
         connection is dropped (a reply may still be in flight), unless ``keep_on_timeout``: then
         TimeoutError is raised and a late reply is skipped later (pings)."""
         with self._lock:
-            sock, reader = self._sock, self._reader
-            if sock is None or reader is None:
+            reader, writer = self._reader, self._writer
+            if self._sock is None or reader is None or writer is None:
                 raise TcpConnectError(f"{self.uri}: not connected (the connection was closed)", "lost")
             self._seq += 1
             seq = self._seq
             try:
                 if timeout is not None:
                     reader.recv_timeout = timeout
-                P.send_frame(sock, mtype, seq, 0, *parts, waiter=self._waiter, timeout=self.timeout)
-                self._look_for_reply(reader)
+                if framed is None:
+                    writer.send(mtype, seq, 0, *parts)
+                else:
+                    writer.send_struct(framed, mtype, seq, 0, values)
+                reader.spin(self.spin)
                 while True:
                     frame = reader.read_frame()
                     if frame is None:
                         self._drop()
                         raise TcpConnectError(f"{self.uri}: the server closed the connection", "lost")
-                    if frame.seq != self._rx + 1:
+                    rx = self._rx + 1
+                    if frame.seq != rx:
                         self._drop()
-                        raise TcpConnectError(
-                            f"{self.uri}: reply out of order (seq {frame.seq}, expected {self._rx + 1})", "protocol"
-                        )
-                    self._rx = frame.seq
+                        raise TcpConnectError(f"{self.uri}: reply out of order (seq {frame.seq}, expected {rx})",
+                                              "protocol")
+                    self._rx = rx
                     if frame.ref < seq and frame.type == M.PONG:
                         continue  # a late reply to a request we gave up on (a lost ping)
                     break
@@ -292,6 +300,8 @@ class TcpCar(Car):
                 raise TcpConnectError(f"{self.uri}: the connection to the car was lost ({exc.strerror or exc})", "lost") from None
             finally:
                 reader.recv_timeout = self.timeout
+        if frame.ref == seq and frame.type in expect:  # the common case (expect never holds ERROR; BYE only for BYE)
+            return frame
         if frame.type == M.ERROR:
             self._raise_error(frame)
         if frame.type == M.BYE and mtype != M.BYE:
@@ -305,15 +315,6 @@ class TcpCar(Car):
             self._drop()
             raise TcpConnectError(f"{self.uri}: unexpected {frame.name} in reply to {M(mtype).name}", "protocol")
         return frame
-
-    def _look_for_reply(self, reader: P.FrameReader) -> None:
-        """Spin a little for the reply before sleeping on it: a thread woken from sleep pays tens of
-        microseconds a round trip on a busy machine."""
-        if not self.spin:
-            return
-        end = time.perf_counter() + self.spin
-        while not reader.poll() and not reader.eof and time.perf_counter() < end:
-            _yield()
 
     def _raise_error(self, frame: P.Frame) -> None:
         err = _error_fields(frame)
@@ -342,7 +343,8 @@ class TcpCar(Car):
 
     def _apply(self, cmd: Command) -> Command:
         self._need_control("driving")
-        frame = self._request(M.COMMAND, P.pack_command(cmd.throttle, cmd.steering, cmd.leds), expect=(M.APPLIED,))
+        frame = self._request(M.COMMAND, expect=_APPLIED, framed=P.COMMAND_FRAME,
+                              values=(cmd.throttle, cmd.steering, *cmd.leds, 0))
         self._commanded = True
         thr, ste, lamps = P.unpack_applied(frame.payload)
         return Command(thr, ste, lamps)
@@ -350,10 +352,10 @@ class TcpCar(Car):
     def write_read(self, throttle: float, steering: float, leds: Any = None) -> Readout:
         """Send a command and get the readout taken right after it, in one round trip."""
         cmd = self.validate(throttle, steering, leds)
-        self._need_control("driving")
-        frame = self._request(
-            M.COMMAND, P.pack_command(cmd.throttle, cmd.steering, cmd.leds, P.FLAG_READ_BACK), expect=(M.READOUT,)
-        )
+        if self.role != "control":
+            self._need_control("driving")
+        frame = self._request(M.COMMAND, expect=_READOUT, framed=P.COMMAND_FRAME,
+                              values=(cmd.throttle, cmd.steering, *cmd.leds, P.FLAG_READ_BACK))
         self._commanded = True
         return self._readout(frame)
 
@@ -379,7 +381,7 @@ class TcpCar(Car):
 
     # --- reads ------------------------------------------------------------------------------------
     def _readout(self, frame: P.Frame) -> Readout:
-        fields, status = P.unpack_readout(frame.payload)
+        values, status = P.readout_values(frame.payload)
         self.status = status
         if status & P.STATUS_WATCHDOG and self._commanded:
             if not self._warned_trip:
@@ -387,10 +389,10 @@ class TcpCar(Car):
                 log.warning("%s: the server's watchdog stopped the car (no command in time)", self.uri)
         else:
             self._warned_trip = False
-        return Readout(**fields)
+        return _new_tuple(Readout, values)
 
     def read(self) -> Readout:
-        return self._readout(self._request(M.READ, expect=(M.READOUT,)))
+        return self._readout(self._request(M.READ, expect=_READOUT))
 
     @property
     def time(self) -> float:

@@ -72,7 +72,8 @@ def _log(level: int, msg: str, *args: Any) -> None:
         pass
 
 WATCHDOG_LAMPS = parse_lamps(["hazard", "brake"])
-CONTROL_ONLY = frozenset({M.COMMAND, M.STOP, M.ADVANCE})
+CONTROL_ONLY = frozenset({int(M.COMMAND), int(M.STOP), int(M.ADVANCE)})
+_BYE, FLAG_READ_BACK, FLAGS_KNOWN = int(M.BYE), P.FLAG_READ_BACK, P.FLAGS_KNOWN  # globals: fewer lookups per request
 MAX_LOGGED_ERRORS = 5  # per connection; further ones are counted and summed up at disconnect
 HOUSEKEEPING_S = 0.05  # period of the housekeeping thread (log lines, the real-time simulator's clock)
 SWITCH_INTERVAL_S = 0.0005  # the interpreter's thread switch interval in a serving process
@@ -709,7 +710,6 @@ class _End(Exception):
         self.code = code
 
 
-_yield = getattr(os, "sched_yield", lambda: None)
 _POLL_GONE = getattr(select, "POLLRDHUP", 0) | select.POLLHUP | select.POLLERR if hasattr(select, "poll") else 0
 
 
@@ -742,6 +742,7 @@ class _Session:
         self.send_timeout = server.io_timeout
         sock.settimeout(0.0)  # non-blocking: every wait goes through the waiter, with its deadline
         self.waiter = P.Waiter(sock)
+        self.writer = P.FrameWriter(sock, self.waiter, self.send_timeout)  # one preallocated buffer for replies
         self.reader = P.FrameReader(sock, P.MAX_REQUEST, bufsize=P.MAX_REQUEST + P.HEADER_SIZE + 4096,
                                     frame_timeout=server.io_timeout, waiter=self.waiter)
         self.reader.deadline = self.accepted + server.hello_timeout
@@ -763,14 +764,23 @@ class _Session:
         return self.server.controller is self
 
     # --- sending ----------------------------------------------------------------------------------
-    def send(self, mtype: int, ref: int, *parts: Any) -> None:
-        self.tx_seq += 1
+    def send(self, mtype: int, ref: int, *parts: Any, framed: Any = None, values: tuple[Any, ...] = ()) -> None:
+        """One reply: ``parts`` its payload's bytes; or ``framed`` (:func:`P.framed` of the
+        payload's struct) and the payload's ``values``, packed with the header into the writer's
+        buffer (values that do not pack raise struct.error before anything is sent or counted)."""
+        seq = self.tx_seq + 1
         try:
-            P.send_frame(self.sock, mtype, self.tx_seq, ref, *parts, waiter=self.waiter, timeout=self.send_timeout)
+            if framed is None:
+                self.writer.send(mtype, seq, ref, *parts)
+            else:
+                self.writer.send_struct(framed, mtype, seq, ref, values)
         except TimeoutError:
+            self.tx_seq = seq
             raise _End(f"not reading its replies: a reply could not be sent for {self.send_timeout:g} s") from None
         except OSError as exc:
+            self.tx_seq = seq
             raise _End(f"connection error: {exc.strerror or exc}") from None
+        self.tx_seq = seq
 
     def error(self, code: str, message: str, ref: int) -> None:
         """Answer an error frame; non-fatal ones are logged here (one line, rate limited)."""
@@ -894,19 +904,10 @@ class _Session:
     def _wait_for_request(self) -> None:
         """The controller's next request usually comes within microseconds of its reply: look for it
         a little while (no sleep, no wake-up to pay) before blocking."""
-        reader = self.reader
-        if reader.buffered or reader.eof:
-            return
-        end = time.perf_counter() + self.server.spin
-        while True:
-            try:
-                if reader.poll() or reader.eof:
-                    return
-            except OSError:
-                return
-            if time.perf_counter() >= end:
-                return
-            _yield()  # a thread that needs this core (the client on a busy machine) gets it
+        try:
+            self.reader.spin(self.server.spin)
+        except OSError:  # read_frame meets it
+            pass
 
     def _loop(self) -> str:
         server = self.server
@@ -914,7 +915,7 @@ class _Session:
         while True:
             if self.revoked is not None:
                 return "control_lost"
-            if server.spin and self.role == "control" and self.is_controller:
+            if server.spin and server.controller is self:
                 self._wait_for_request()
             try:
                 frame = reader.read_frame()
@@ -960,7 +961,7 @@ class _Session:
             if self.role is None:
                 self._hello(frame)
                 continue
-            if frame.type == M.BYE:
+            if frame.type == _BYE:
                 self.bye_ref = frame.seq  # answered once the car is stopped and the line logged
                 return "said bye"
             if self.role == "monitor":
@@ -1069,7 +1070,7 @@ class _Session:
             else:
                 self.error("unknown_type", f"unknown or unexpected message type {frame.name}", frame.seq)
             return
-        if mtype in CONTROL_ONLY and not controller:
+        if not controller and mtype in CONTROL_ONLY:
             if self.role == "control":
                 self.error("read_only", f"{frame.name}: this connection no longer has control", frame.seq)
             else:
@@ -1097,19 +1098,20 @@ class _Session:
     def _command(self, frame: P.Frame) -> None:
         server = self.server
         throttle, steering, leds, flags = P.unpack_command(frame.payload)
-        if flags & ~P.FLAGS_KNOWN:
+        if flags & ~FLAGS_KNOWN:
             raise InputError(f"command flags 0x{flags:08x} set reserved bits (only bit 0, read back, is defined)")
         with server.drive_lock:
             server.feed()
             server.arm()
             cmd = self.car.write(throttle, steering, leds)
-            readout = self.car.read() if flags & P.FLAG_READ_BACK else None
+            readout = self.car.read() if flags & FLAG_READ_BACK else None
         if readout is not None:
             if server.lockstep:
                 server.cache_readout = readout
-            self.send(M.READOUT, frame.seq, P.pack_readout(readout, server.status()))
+            self.send(M.READOUT, frame.seq, framed=P.READOUT_FRAME,
+                      values=P.readout_payload_values(readout, server.status()))
         else:
-            self.send(M.APPLIED, frame.seq, P.pack_applied(cmd.throttle, cmd.steering, cmd.leds))
+            self.send(M.APPLIED, frame.seq, framed=P.APPLIED_FRAME, values=(cmd.throttle, cmd.steering, *cmd.leds))
 
     def _stop(self, frame: P.Frame) -> None:
         server = self.server
@@ -1135,7 +1137,7 @@ class _Session:
                 readout = self.car.read()
             if server.lockstep:
                 server.cache_readout = readout
-        self.send(M.READOUT, frame.seq, P.pack_readout(readout, status))
+        self.send(M.READOUT, frame.seq, framed=P.READOUT_FRAME, values=P.readout_payload_values(readout, status))
 
     def _truth(self, frame: P.Frame) -> None:
         _expect_empty(frame)

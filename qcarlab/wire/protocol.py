@@ -19,16 +19,17 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import select
 import socket
 import struct
 import time
-from dataclasses import dataclass
 from enum import IntEnum
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
+_yield = getattr(os, "sched_yield", lambda: None)
 MAGIC = b"QC"
 VERSION = 1
 DEFAULT_PORT = 18960
@@ -87,6 +88,17 @@ SCALAR = struct.Struct("<d")  # 8 bytes: ADVANCE dt, TIME t
 ARRAYS_HEAD = struct.Struct("<dII")  # t, number of arrays, reserved
 ARRAY_DESC = struct.Struct("<BBH3I")  # dtype code, ndim, reserved, dims[3]
 
+
+def framed(payload: struct.Struct) -> struct.Struct:
+    """The header and a fixed-size payload as one struct: a whole frame packed (or unpacked) in
+    one call, its values the header's six (magic, version, type, seq, ref, length) then the payload's."""
+    return struct.Struct(HEADER.format + payload.format.lstrip("<"))
+
+
+COMMAND_FRAME = framed(COMMAND)  # 132 bytes
+APPLIED_FRAME = framed(APPLIED)  # 128 bytes
+READOUT_FRAME = framed(READOUT)  # 220 bytes
+
 DTYPES: dict[int, np.dtype] = {
     1: np.dtype("<u1"),
     2: np.dtype("<u2"),
@@ -136,8 +148,10 @@ class IncompleteFrame(ProtocolError):
         super().__init__("incomplete", f"connection closed in the middle of a frame ({got} bytes buffered)")
 
 
-@dataclass(slots=True)
-class Frame:
+class Frame(NamedTuple):
+    """One frame as read: its header's type, seq and ref, and its payload (an immutable named
+    tuple: made for every frame, ``_new_frame`` makes it without a Python-level ``__init__``)."""
+
     type: int
     seq: int
     ref: int
@@ -146,6 +160,9 @@ class Frame:
     @property
     def name(self) -> str:
         return MSG_NAMES.get(self.type, f"0x{self.type:02x}")
+
+
+_new_frame = tuple.__new__
 
 
 def looks_like_http(data: bytes | bytearray) -> bool:
@@ -173,18 +190,8 @@ def send_frame(sock: socket.socket, mtype: int, seq: int, ref: int, *parts: Any,
     """Send one frame; ``parts`` are bytes-like objects (numpy arrays included) sent without copies.
 
     With a ``waiter`` the socket is non-blocking and the frame must make progress at least every
-    ``timeout`` seconds (TimeoutError otherwise); without one the socket's own timeout applies."""
-    if waiter is not None and len(parts) <= 1 and isinstance(parts[0] if parts else b"", (bytes, bytearray)):
-        payload = parts[0] if parts else b""  # the common case: one small reply, one system call
-        if len(payload) <= 65536:
-            data = HEADER.pack(MAGIC, VERSION, mtype, seq & 0xFFFFFFFF, ref & 0xFFFFFFFF, len(payload)) + payload
-            try:
-                sent = sock.send(data)
-            except (BlockingIOError, InterruptedError):
-                sent = 0
-            if sent < len(data):
-                _send_nonblocking(sock, [memoryview(data)[sent:]], waiter, timeout)
-            return
+    ``timeout`` seconds (TimeoutError otherwise); without one the socket's own timeout applies.
+    (A connection's small frames go through its :class:`FrameWriter`.)"""
     views = [memoryview(p).cast("B") if not isinstance(p, (bytes, bytearray)) else p for p in parts]
     length = sum(len(v) for v in views)
     header = pack_header(mtype, seq, ref, length)
@@ -231,6 +238,57 @@ def _send_nonblocking(sock: socket.socket, parts: list[Any], waiter: Waiter, tim
                 raise TimeoutError(f"no progress sending for {timeout} s") from None
             continue
         _consume(views, sent)
+
+
+class FrameWriter:
+    """Sends the frames of one connection through one preallocated buffer: a small frame's header
+    and payload are packed into it in place and go out in one system call (no concatenation, no
+    new bytes object per frame); a large one goes through :func:`send_frame`. The socket is
+    non-blocking: a frame that does not go out at once waits on ``waiter``, making progress at
+    least every ``timeout`` seconds (TimeoutError otherwise)."""
+
+    SMALL = 4096  # payloads up to this size are copied into the buffer
+
+    def __init__(self, sock: socket.socket, waiter: Waiter, timeout: float | None):
+        self.sock = sock
+        self.waiter = waiter
+        self.timeout = timeout
+        self.buf = bytearray(HEADER_SIZE + self.SMALL)
+        self.view = memoryview(self.buf)
+
+    def send(self, mtype: int, seq: int, ref: int, *parts: Any) -> None:
+        """One frame whose payload is ``parts`` (bytes-like objects, numpy arrays included)."""
+        if len(parts) > 1 or (parts and not isinstance(parts[0], (bytes, bytearray))):
+            send_frame(self.sock, mtype, seq, ref, *parts, waiter=self.waiter, timeout=self.timeout)
+            return
+        payload = parts[0] if parts else b""
+        n = len(payload)
+        if n > self.SMALL:
+            send_frame(self.sock, mtype, seq, ref, payload, waiter=self.waiter, timeout=self.timeout)
+            return
+        HEADER.pack_into(self.buf, 0, MAGIC, VERSION, mtype, seq & 0xFFFFFFFF, ref & 0xFFFFFFFF, n)
+        end = HEADER_SIZE + n
+        self.buf[HEADER_SIZE:end] = payload
+        self._out(end)
+
+    def send_struct(self, frame: struct.Struct, mtype: int, seq: int, ref: int, values: tuple[Any, ...]) -> None:
+        """One frame of a fixed-size payload: ``frame`` is :func:`framed` of the payload's struct,
+        ``values`` the payload's values (struct.error, before anything is sent, for values that do
+        not fit)."""
+        size = frame.size
+        frame.pack_into(self.buf, 0, MAGIC, VERSION, mtype, seq & 0xFFFFFFFF, ref & 0xFFFFFFFF, size - HEADER_SIZE,
+                        *values)
+        self._out(size)
+
+    def _out(self, size: int) -> None:
+        """Send the buffer's first ``size`` bytes; what does not go out at once is sent before the
+        buffer is used again."""
+        try:
+            sent = self.sock.send(self.view[:size])
+        except (BlockingIOError, InterruptedError):
+            sent = 0
+        if sent < size:
+            _send_nonblocking(self.sock, [self.view[sent:size]], self.waiter, self.timeout)
 
 
 class Waiter:
@@ -410,12 +468,37 @@ class FrameReader:
                 return False
         return True
 
+    def spin(self, seconds: float) -> None:
+        """Look for bytes for up to ``seconds`` without sleeping, yielding the CPU between looks;
+        returns as soon as some are buffered (or the stream ended). A reply on loopback comes within
+        tens of microseconds, and a thread woken from sleep pays about as much again on a busy
+        machine. (A non-blocking recv per look: measured a little faster than a poll(0) and then a
+        recv once bytes are there.) OSError as the socket's recv raises it."""
+        if self.end > self.start or self.eof or seconds <= 0.0:
+            return
+        clock = time.perf_counter
+        end = clock() + seconds
+        while not self.poll() and not self.eof and clock() < end:
+            _yield()
+
     def read_frame(self) -> Frame | None:
         if self.broken:
             raise ProtocolError("incomplete", "the connection's stream is out of step")
         if self._resume:  # time spent between two calls (serving the last frame) is not the peer's
             self._resume = False
             self.first_byte_at = time.monotonic()
+        start = self.start
+        if self.end - start >= HEADER_SIZE:  # the common case: a whole frame is in (else the full checks below)
+            magic, version, mtype, seq, ref, length = HEADER.unpack_from(self.buf, start)
+            total = HEADER_SIZE + length
+            if magic == MAGIC and version == VERSION and length <= self.max_payload and self.end - start >= total:
+                payload = self.view[start + HEADER_SIZE : start + total].tobytes()
+                self.start = start + total
+                if self.start == self.end:
+                    self.start = self.end = 0
+                else:
+                    self._resume = True
+                return _new_frame(Frame, (mtype, seq, ref, payload))
         if not self._ensure(2):
             if self.buffered:
                 raise IncompleteFrame(self.buffered)
@@ -436,13 +519,13 @@ class FrameReader:
             if not self._ensure(total):
                 raise IncompleteFrame(self.buffered)
             p0 = self.start + HEADER_SIZE
-            payload = bytes(self.buf[p0 : p0 + length])
+            payload = self.view[p0 : p0 + length].tobytes()
             self.start += total
             if self.start == self.end:
                 self.start = self.end = 0
             else:  # the next frame's first bytes came with this one: its clock starts when it is read
                 self._resume = True
-            return Frame(mtype, seq, ref, payload)
+            return _new_frame(Frame, (mtype, seq, ref, payload))
         # a large payload: copy what is buffered, receive the rest in place
         payload = bytearray(length)
         have = min(self.buffered - HEADER_SIZE, length)
@@ -457,7 +540,7 @@ class FrameReader:
                 raise IncompleteFrame(have)
             have += got
         self.broken = False
-        return Frame(mtype, seq, ref, payload)
+        return _new_frame(Frame, (mtype, seq, ref, payload))
 
 
 # --- JSON payloads -----------------------------------------------------------------------------
@@ -500,9 +583,10 @@ def pack_command(throttle: float, steering: float, leds: tuple[float, ...], flag
 
 
 def unpack_command(payload: bytes | bytearray) -> tuple[float, float, tuple[float, ...], int]:
-    _check_size(payload, COMMAND, "command")
+    if len(payload) != COMMAND.size:
+        _check_size(payload, COMMAND, "command")
     values = COMMAND.unpack(payload)
-    return values[0], values[1], tuple(values[2:14]), values[14]
+    return values[0], values[1], values[2:14], values[14]
 
 
 def pack_applied(throttle: float, steering: float, leds: tuple[float, ...]) -> bytes:
@@ -515,32 +599,36 @@ def unpack_applied(payload: bytes | bytearray) -> tuple[float, float, tuple[floa
     return values[0], values[1], tuple(values[2:])
 
 
-def pack_readout(r: Any, status: int = 0) -> bytes:
+def readout_payload_values(r: Any, status: int = 0) -> tuple[Any, ...]:
+    """The values of a READOUT payload for a readout (``READOUT.pack(*...)``; ``READOUT_FRAME``
+    after a header's values)."""
     g, a = r.gyro, r.accel
-    return READOUT.pack(
-        r.t, int(r.encoder_counts), r.tach, r.motor_current, r.battery_voltage,
-        float(g[0]), float(g[1]), float(g[2]), float(a[0]), float(a[1]), float(a[2]),
-        r.steering, r.throttle, *r.leds, status,
-    )
+    return (r.t, int(r.encoder_counts), r.tach, r.motor_current, r.battery_voltage,
+            float(g[0]), float(g[1]), float(g[2]), float(a[0]), float(a[1]), float(a[2]),
+            r.steering, r.throttle, *r.leds, status)
+
+
+def pack_readout(r: Any, status: int = 0) -> bytes:
+    return READOUT.pack(*readout_payload_values(r, status))
+
+
+READOUT_FIELDS = ("t", "encoder_counts", "tach", "motor_current", "battery_voltage", "gyro", "accel", "steering",
+                  "throttle", "leds")
+
+
+def readout_values(payload: bytes | bytearray) -> tuple[tuple[Any, ...], int]:
+    """The readout's ten fields in :class:`qcarlab.car.base.Readout`'s order (``Readout._make``
+    takes them as they are) and the server's status bits."""
+    if len(payload) != READOUT.size:
+        _check_size(payload, READOUT, "readout")
+    v = READOUT.unpack(payload)
+    return (v[0], v[1], v[2], v[3], v[4], np.array(v[5:8]), np.array(v[8:11]), v[11], v[12], v[13:25]), v[25]
 
 
 def unpack_readout(payload: bytes | bytearray) -> tuple[dict[str, Any], int]:
-    """The readout's fields (for :class:`qcarlab.car.base.Readout`) and the server's status bits."""
-    _check_size(payload, READOUT, "readout")
-    v = READOUT.unpack(payload)
-    fields = {
-        "t": v[0],
-        "encoder_counts": v[1],
-        "tach": v[2],
-        "motor_current": v[3],
-        "battery_voltage": v[4],
-        "gyro": np.array(v[5:8]),
-        "accel": np.array(v[8:11]),
-        "steering": v[11],
-        "throttle": v[12],
-        "leds": tuple(v[13:25]),
-    }
-    return fields, v[25]
+    """The readout's fields by name (for :class:`qcarlab.car.base.Readout`) and the server's status bits."""
+    values, status = readout_values(payload)
+    return dict(zip(READOUT_FIELDS, values)), status
 
 
 TRUTH_FIELDS = ("t", "x", "y", "yaw", "speed", "wheel_speed", "steering", "distance", "wheel_distance")
