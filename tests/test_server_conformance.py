@@ -174,3 +174,24 @@ def test_the_controller_is_not_rate_limited(server):
             assert ctl.request(M.PING, b"x").type == M.PONG
         took = time.monotonic() - t0
     assert took < (500 - s.burst) / s.rate, took  # what a monitor's 500 requests take at least (0.48 s)
+
+
+@pytest.mark.parametrize("kind", ["serve", "car-side"])
+def test_a_stop_request_takes_no_lock_so_a_signal_cannot_deadlock_the_server(kind):
+    """A signal handler runs in the main thread between two bytecodes, possibly while that thread
+    holds the stop event's lock inside Event.wait; a request_stop that took the lock (Event.set)
+    hung the server for good (seen as a SIGHUP'd server killed after 10 s)."""
+    s = Server(kind)
+    done = threading.Event()
+
+    def interrupted_main_thread():
+        with s.server._stop_evt._cond:  # what Event.wait holds around its wait
+            s.server.request_stop()
+        done.set()
+
+    t = threading.Thread(target=interrupted_main_thread, daemon=True)
+    t.start()
+    t.join(2.0)
+    if not done.is_set():  # (stopping the server would block on the same lock: leave it)
+        pytest.fail("request_stop blocked on the stop event's lock")
+    s.stop()

@@ -277,6 +277,7 @@ class CarServer:
         self.evicted = 0
         self.stopping = False
         self._stop_evt = threading.Event()
+        self._stop_requested = False  # set by request_stop (a signal handler): a plain flag
         self._kick = threading.Event()  # wakes the watchdog: a controller came or went
         self._notes: deque[tuple[int, str, tuple[Any, ...]]] = deque(maxlen=1000)
         self.refusals = RefusalLog(log)
@@ -419,12 +420,14 @@ class CarServer:
     def serve_forever(self) -> None:
         """Serve until :meth:`request_stop` or :meth:`stop` is called (another thread, a signal handler)."""
         self.start()
-        while not self._stop_evt.wait(0.2):
+        while not self._stop_requested and not self._stop_evt.wait(0.1):
             pass
 
     def request_stop(self) -> None:
-        """Make :meth:`serve_forever` return (safe from a signal handler); then call :meth:`stop`."""
-        self._stop_evt.set()
+        """Make :meth:`serve_forever` return within 0.1 s; then call :meth:`stop`. Safe from a signal
+        handler: it only sets a flag (Event.set takes a lock that the interrupted main thread may be
+        holding, inside Event.wait: a signal there deadlocked the server)."""
+        self._stop_requested = True
 
     def stop(self) -> None:
         """Stop serving: the car is stopped, every client is told bye and disconnected."""

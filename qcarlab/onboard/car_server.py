@@ -1091,6 +1091,7 @@ class CarServer(object):
         self.sensor_cache = {}  # reply type -> (monotonic time read, payload parts)
         self.sensor_locks = {LIDAR: threading.Lock(), RGBD: threading.Lock(), CSI: threading.Lock()}
         self._stop_evt = threading.Event()
+        self._stop_requested = False  # set by request_stop (a signal handler): a plain flag
         self._watchdog_off = threading.Event()  # set last, when every client is gone
         self._kick = threading.Event()  # wakes the watchdog to recompute its deadline
         self._listener = None
@@ -1167,12 +1168,21 @@ class CarServer(object):
         return sock
 
     def wait(self, timeout=None):
-        """Block until :meth:`request_stop` (True) or ``timeout`` (False)."""
-        return self._stop_evt.wait(timeout)
+        """Block until :meth:`request_stop` or :meth:`stop` (True) or ``timeout`` (False); sees a
+        request within 0.1 s."""
+        end = None if timeout is None else time.monotonic() + timeout
+        while not self._stop_requested:
+            step = 0.1 if end is None else min(0.1, end - time.monotonic())
+            if step <= 0.0:
+                return False
+            if self._stop_evt.wait(step):
+                return True
+        return True
 
     def request_stop(self):
-        """Make :meth:`wait` return; safe from a signal handler."""
-        self._stop_evt.set()
+        """Make :meth:`wait` return; safe from a signal handler: it only sets a flag (Event.set
+        takes a lock that the interrupted main thread may be holding, inside Event.wait)."""
+        self._stop_requested = True
 
     def stop(self, why="server stopping"):
         """Stop the car first, then tell every client bye and disconnect them."""
