@@ -219,39 +219,15 @@ class LookaheadTarget:
         ``(target_x, target_y, index, progress)`` (the lab's tick: no array is made)."""
         poly = self.poly
         ld = self.lookahead
-        xs, ys, dxs, dys, l2s = poly._x, poly._y, poly._dx, poly._dy, poly._l2
-        # j, t, d0 = poly.walk_forward(self.index, px, py, self.max_segments), written out (every tick)
-        j = self.index
-        last = j + self.max_segments
-        if last > poly.n - 2:
-            last = poly.n - 2
-        ax, ay, dx, dy, l2 = xs[j], ys[j], dxs[j], dys[j], l2s[j]
-        if l2 == 0.0:
-            t = 0.0
-        else:
-            u = ((px - ax) * dx + (py - ay) * dy) / l2
-            t = (u if u < 1.0 else 1.0) if u > 0.0 else 0.0
+        xs, ys = poly._x, poly._y
+        j, t, d0 = poly.walk_forward(self.index, px, py, self.max_segments)
         hypot = math.hypot
-        d0 = hypot(px - ax - t * dx, py - ay - t * dy)
-        while j < last:
-            k = j + 1
-            ax, ay, dx, dy, l2 = xs[k], ys[k], dxs[k], dys[k], l2s[k]
-            if l2 == 0.0:
-                tn = 0.0
-            else:
-                u = ((px - ax) * dx + (py - ay) * dy) / l2
-                tn = (u if u < 1.0 else 1.0) if u > 0.0 else 0.0
-            dn = hypot(px - ax - tn * dx, py - ay - tn * dy)
-            if dn > d0 + 1e-12:
-                break
-            j, t, d0 = k, tn, dn
         cum, seglen = poly._cum, poly._len
         s = cum[j] + t * seglen[j]
         if s < self.progress:  # never move back along the path
             s = self.progress
             t = 0.0 if seglen[j] == 0.0 else (s - cum[j]) / seglen[j]
-            d0 = math.hypot(px - poly._x[j] - t * (poly._x[j + 1] - poly._x[j]),
-                            py - poly._y[j] - t * (poly._y[j + 1] - poly._y[j]))
+            d0 = hypot(px - xs[j] - t * (xs[j + 1] - xs[j]), py - ys[j] - t * (ys[j + 1] - ys[j]))
         self.index, self.progress = j, s
         if d0 >= ld:  # the point l_d ahead of the projection along the path (Polyline.point_at)
             q = min(max(s + ld, 0.0), poly.length)
