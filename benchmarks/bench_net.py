@@ -418,28 +418,9 @@ def bench_watchdog(repeats: int, pullers: int = 8) -> dict:
     with served as port:
         w, d = _watchdog_runs(port, repeats)
     out["idle"] = {"watchdog": w, "dropped": d, "server": served.report.get("trip_delays", [])}
-    served = Served("sim", watchdog=0.25)
-    with served as port:
-        start, stop = ctx.Event(), ctx.Event()
-        procs = [ctx.Process(target=_sensor_puller, args=(port, ("lidar", "rgbd", "csi"), start, stop), daemon=True)
-                 for _ in range(pullers)]
-        for proc in procs:
-            proc.start()
-        time.sleep(2.0)
-        start.set()
-        time.sleep(0.5)
-        w, d = _watchdog_runs(port, repeats)
-        stop.set()
-        for proc in procs:
-            proc.join(10)
-    out[f"{pullers} monitors pulling every sensor"] = {"watchdog": w, "dropped": d,
-                                                        "server": served.report.get("trip_delays", [])}
-    try:
-        import foxglove  # noqa: F401  (serve --live needs the record extra)
-    except ImportError:
-        foxglove = None
-    if foxglove is not None:  # the same under serve --live (every frame a monitor reads is streamed)
-        served = Served("sim", watchdog=0.25, live=True)
+    def under_pullers(label: str, **served_options) -> None:
+        """The watchdog's trips with ``pullers`` monitor processes pulling every sensor."""
+        served = Served("sim", watchdog=0.25, **served_options)
         with served as port:
             start, stop = ctx.Event(), ctx.Event()
             procs = [ctx.Process(target=_sensor_puller, args=(port, ("lidar", "rgbd", "csi"), start, stop), daemon=True)
@@ -453,8 +434,15 @@ def bench_watchdog(repeats: int, pullers: int = 8) -> dict:
             stop.set()
             for proc in procs:
                 proc.join(10)
-        out[f"serve --live, {pullers} monitors pulling every sensor"] = {
-            "watchdog": w, "dropped": d, "server": served.report.get("trip_delays", [])}
+        out[label] = {"watchdog": w, "dropped": d, "server": served.report.get("trip_delays", [])}
+
+    under_pullers(f"{pullers} monitors pulling every sensor")
+    try:
+        import foxglove  # noqa: F401  (serve --live needs the record extra)
+    except ImportError:
+        foxglove = None
+    if foxglove is not None:  # the same under serve --live (every frame a monitor reads is streamed)
+        under_pullers(f"serve --live, {pullers} monitors pulling every sensor", live=True)
     first: list[float] = []
     first_server: list[float] = []
     for _ in range(max(2, repeats // 3)):
