@@ -248,6 +248,16 @@ class _Noise:
 _NO_LUT = np.zeros(0, np.int64)
 
 
+def _pixel_box(pts: np.ndarray, nx: int, ny: int) -> tuple[int, int, int, int] | None:
+    """The whole pixels ``x0..x1, y0..y1`` (ends exclusive) covering the points ``pts`` (n, 2),
+    clipped to an ``nx`` x ``ny`` image; None when nothing of it is inside."""
+    x0 = max(int(math.floor(pts[:, 0].min())), 0)
+    x1 = min(int(math.ceil(pts[:, 0].max())) + 1, nx)
+    y0 = max(int(math.floor(pts[:, 1].min())), 0)
+    y1 = min(int(math.ceil(pts[:, 1].max())) + 1, ny)
+    return None if x0 >= x1 or y0 >= y1 else (x0, x1, y0, y1)
+
+
 def exposure_lut(gain: float) -> np.ndarray:
     """The exposure ``gain`` as a table of the 256 levels: saturate(rint(gain c)) in float32,
     the numbers of ``cv2.convertScaleAbs(c, alpha=gain)`` (:class:`~qcarlab.sim.realism.CameraEffects`);
@@ -467,12 +477,10 @@ class _ColumnView:
         if q is None:
             return
         pix, d, front, gain = q
-        x0 = max(int(math.floor(pix[:, 0].min())), 0)
-        x1 = min(int(math.ceil(pix[:, 0].max())) + 1, self.H)
-        y0 = max(int(math.floor(pix[:, 1].min())), 0)
-        y1 = min(int(math.ceil(pix[:, 1].max())) + 1, self.W)
-        if x0 >= x1 or y0 >= y1:
+        box = _pixel_box(pix, self.H, self.W)
+        if box is None:
             return
+        x0, x1, y0, y1 = box
         # transposed image coords: x = v (image row), y = u (image column); the patch has rows =
         # image columns, like the transposed buffers
         patch = self._sprite_patch(pix - [x0, y0], front, gain, y1 - y0, x1 - x0)
@@ -496,12 +504,10 @@ class _ColumnView:
                 continue
             pix, d, front, gain = q
             uv = pix[:, ::-1]  # (u, v)
-            u0 = max(int(math.floor(uv[:, 0].min())), 0)
-            u1 = min(int(math.ceil(uv[:, 0].max())) + 1, self.W)
-            v0 = max(int(math.floor(uv[:, 1].min())), 0)
-            v1 = min(int(math.ceil(uv[:, 1].max())) + 1, self.H)
-            if u0 >= u1 or v0 >= v1:
+            box = _pixel_box(uv, self.W, self.H)
+            if box is None:
                 continue
+            u0, u1, v0, v1 = box
             patch = self._sprite_patch(uv - [u0, v0], front, gain, v1 - v0, u1 - u0).astype(np.uint32)
             words = patch[:, :, 0] | (patch[:, :, 1] << 8) | (patch[:, :, 2] << 16) | (patch[:, :, 3] << 24)
             tabs.append((v0, v1, u0, u1, off))
