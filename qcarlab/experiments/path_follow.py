@@ -35,7 +35,7 @@ from qcarlab.car.lamps import ALL_OFF, parse_lamps
 from qcarlab.constants import QCarParams
 from qcarlab.control.pose import BicyclePoseEstimator
 from qcarlab.control.speed import KFF, KI, KP, SpeedController, speed_estimation, turn_speed_handling
-from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pursuit, stanley
+from qcarlab.control.steering import LookaheadTarget, follow_the_carrot, pure_pursuit, rear_axle, stanley
 from qcarlab.control.tracking import Polyline, cross_track_errors, progress_along
 from qcarlab.errors import InputError
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
@@ -192,8 +192,7 @@ class PathFollowingLab(LabModel):
         else:
             pose = est
         if pursuit:  # pure pursuit's look-ahead is measured from the rear axle (its arc starts there)
-            x, y, yaw = float(pose[0]), float(pose[1]), float(pose[2])  # rear_axle(pose), written out
-            axle = (x - half_wheelbase * math.cos(yaw), y - half_wheelbase * math.sin(yaw), yaw)
+            axle = rear_axle(pose, wheelbase)
             tx, ty, index, progress = self.search.locate(axle[0], axle[1])
             # the path left ahead of the car's centre (pure pursuit's search runs L/2 behind it)
             remaining = length - progress - half_wheelbase
