@@ -13,12 +13,11 @@ average is printed with them. Beside the wall-clock figure, the same from the pr
 between two runs of the same thing, the CPU time far less; it is what the real-time factor would
 be with a core to itself.
 
-The recorder encodes JPEG colour (and millimetre depth) on a thread of its own, as the simulator
-draws half of each frame on a helper thread: on two cores, the wall-clock figure is what recording
-costs with the second core free to take that encoding; the CPU figure counts it all the same
-(every thread's time), so it is the cost in work done, whichever core does it. A third pass
-(``--one-core``, on by default for lane-follow) pins every thread of the process to one core,
-where the camera's helper and the encoder both run in the calling thread: its wall clock is the
+The recorder encodes JPEG colour (and millimetre depth) on a thread of its own: on two cores, the
+wall-clock figure is what recording costs with the second core free to take that encoding; the
+CPU figure counts it all the same (every thread's time), so it is the cost in work done, whichever
+core does it. A third pass (``--one-core``, on by default for lane-follow) pins every thread of
+the process to one core, where the encoder runs in the calling thread: its wall clock is the
 one-core figure.
 """
 
@@ -72,7 +71,7 @@ def run_once(lab: str, seconds: float, record: Path | None, profile: str = "comp
 
 
 def pin(cores: set[int]) -> None:
-    """Every thread of this process (the camera's helper, OpenCV's and numba's pools, started
+    """Every thread of this process (the recorder's encoder, OpenCV's and numba's pools, started
     before) and the ones started after, on ``cores``: os.sched_setaffinity(0) alone moves only the
     calling thread."""
     for tid in os.listdir("/proc/self/task"):

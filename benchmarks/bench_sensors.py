@@ -2,7 +2,7 @@
 
     python benchmarks/bench_sensors.py              # about a minute
     python benchmarks/bench_sensors.py --quick      # a few seconds, noisier
-    python benchmarks/bench_sensors.py --all-cores  # let the camera use its helper thread
+    python benchmarks/bench_sensors.py --all-cores  # do not pin (OpenCV's own threads)
 
 The process pins itself to one core first (the targets are per core: a 2-core machine grades two
 runs at once), unless ``--all-cores``. Prints the machine and the load average, then the median

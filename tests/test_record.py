@@ -273,6 +273,6 @@ def test_images_go_to_the_encoder_thread_only_with_a_core_to_spare(cores, load, 
     try:
         assert frames._threaded() is threaded
         job = frames.color(None, C.COLOR, np.zeros((48, 64, 3), np.uint8), 0, C.CAMERA_FRAME, False)
-        assert (job.future is not None) is threaded and job.result() is not None
+        assert (job.encoder is not None) is threaded and job.result() is not None
     finally:
         frames.close()

@@ -36,6 +36,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import queue
 import sys
 import threading
 import time
@@ -469,24 +470,74 @@ class Recorder:
 
 class _Job:
     """One image message of the queue: its channel, topic and log time, and the message, encoded
-    here (``value``) or still being encoded on the encoder's thread (``future``)."""
+    here (``value``) or on the encoder's thread (``encoder`` set; ``done`` once it is)."""
 
-    __slots__ = ("channel", "topic", "ns", "future", "value", "buffer")
+    __slots__ = ("channel", "topic", "ns", "value", "error", "done", "encoder", "buffer")
 
-    def __init__(self, channel: Any, topic: str, ns: int, *, value: Any = None, future: Any = None,
+    def __init__(self, channel: Any, topic: str, ns: int, *, value: Any = None, encoder: _Encoder | None = None,
                  buffer: np.ndarray | None = None):
         self.channel, self.topic, self.ns = channel, topic, ns
-        self.value, self.future, self.buffer = value, future, buffer
+        self.value, self.error, self.done = value, None, encoder is None
+        self.encoder, self.buffer = encoder, buffer
 
     def ready(self) -> bool:
-        return self.future is None or self.future.done()
+        return self.done
 
     def wait(self) -> None:
-        if self.future is not None:
-            self.future.exception()  # (waits; the error itself is raised by result(), in order)
+        if not self.done:
+            assert self.encoder is not None
+            self.encoder.wait(self)
 
     def result(self) -> Any:
-        return self.value if self.future is None else self.future.result()
+        self.wait()
+        if self.error is not None:
+            raise self.error
+        return self.value
+
+
+class _Encoder:
+    """The encoder's thread: runs ``fn(*args)`` for each job handed to it, in order, and stores
+    the result in the job. Lean on purpose (a job costs the caller one queue put, the thread two
+    takes of the interpreter lock: waking up, and after OpenCV's encoder): a ThreadPoolExecutor's
+    futures, locks and conditions cost the lab 0.1 ms a frame (measured, bench_record.py)."""
+
+    def __init__(self) -> None:
+        self._todo: queue.SimpleQueue = queue.SimpleQueue()
+        self._wake: queue.SimpleQueue = queue.SimpleQueue()  # a token after each job while someone waits
+        self._waiting = False
+        self._thread = threading.Thread(target=self._run, name="qcarlab-record-encoder", daemon=True)
+        self._thread.start()
+
+    def submit(self, job: _Job, fn, args: tuple) -> None:
+        self._todo.put((job, fn, args))
+
+    def _run(self) -> None:
+        todo, wake = self._todo, self._wake
+        while True:
+            item = todo.get()
+            if item is None:
+                return
+            job, fn, args = item
+            try:
+                job.value = fn(*args)
+            except BaseException as exc:  # handed to whoever writes the job, in its place
+                job.error = exc
+            job.done = True  # (then the waiter's flag: see wait)
+            if self._waiting:
+                wake.put(None)
+
+    def wait(self, job: _Job) -> None:
+        """Block until ``job`` is done (one waiter at a time: the flush lock's holder)."""
+        self._waiting = True  # (set before done is read: the thread sets done before it reads this)
+        try:
+            while not job.done:
+                self._wake.get()
+        finally:
+            self._waiting = False
+
+    def close(self) -> None:
+        self._todo.put(None)
+        self._thread.join()
 
 
 class _Frames:
@@ -507,7 +558,7 @@ class _Frames:
         from qcarlab.recording import messages
 
         self._M = messages
-        self._pool: Any = None  # the encoder's thread (a one-worker executor), started on first use
+        self._encoder: _Encoder | None = None  # the encoder's thread, started on first use
         self._free: dict[tuple, list[np.ndarray]] = {}  # reusable copy buffers by (shape, dtype)
         self._asked_at = -math.inf  # when _threaded last looked at the cores and the load
         self._use_thread = False
@@ -550,11 +601,11 @@ class _Frames:
         free = self._free.get(key)
         buf = free.pop() if free else np.empty(array.shape, array.dtype)
         np.copyto(buf, array)
-        if self._pool is None:
-            from concurrent.futures import ThreadPoolExecutor
-
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="qcarlab-record-encoder")
-        return _Job(channel, topic, ns, future=self._pool.submit(encode, buf, ns, *args), buffer=buf)
+        if self._encoder is None:
+            self._encoder = _Encoder()
+        job = _Job(channel, topic, ns, encoder=self._encoder, buffer=buf)
+        self._encoder.submit(job, encode, (buf, ns, *args))
+        return job
 
     def release(self, job: _Job) -> None:
         """``job`` is written: its copy buffer can take another frame."""
@@ -564,9 +615,9 @@ class _Frames:
             self._free.setdefault((buf.shape, buf.dtype.str), []).append(buf)
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        if self._encoder is not None:
+            self._encoder.close()
+            self._encoder = None
         self._free.clear()
 
 

@@ -52,17 +52,15 @@ are drawn per column in a transposed buffer (:func:`~qcarlab.sim._kernels.render
 the floor by a precomputed per-pixel ray map) and remapped to the fisheye.
 
 Speed (one core, ``benchmarks/bench_sensors.py``): no transposes, no per-frame warps of the
-floor, each output byte written once. With two free cores the rows are split with a helper
-thread (:data:`SPLIT_FRAMES`). Noise comes from precomputed tiles at random offsets.
+floor, each output byte written once; every frame in the calling thread (a helper thread that
+drew half the rows cost more than it saved once a frame took 0.4 ms: handing it over and waking
+it up). Noise comes from precomputed tiles at random offsets.
 """
 
 from __future__ import annotations
 
 import math
-import os
-import queue
-import threading
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -99,86 +97,9 @@ _NO_BGR = np.zeros((0, 0), np.uint8)
 _NO_SIGNS = (np.zeros((0, 5), np.int64), np.zeros(0, np.float64), np.zeros(0, np.uint32))
 
 
-#: Share an RGBD frame with a helper thread (one per process): after the column pass, the
-#: second half of the rows (their composition and colour noise) while the calling thread does
-#: the first. OpenCV and the numba kernels release the GIL; the result is the same pixel for
-#: pixel. Off without numba (the pure-Python kernels hold the GIL) or when the process may run
-#: on one core only (``os.sched_getaffinity``, checked at each frame: a benchmark or a grader
-#: pinned to a core); set to False to draw every frame in the calling thread.
-SPLIT_FRAMES = _kernels.HAVE_NUMBA
-
-
-def _cores() -> int:
-    """How many cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
 # --------------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------------
-class _Helper:
-    """The helper thread (one per process, shared by every camera): runs the jobs handed to it."""
-
-    def __init__(self) -> None:
-        self.pid = os.getpid()
-        self.jobs: queue.SimpleQueue = queue.SimpleQueue()
-        threading.Thread(target=self._run, name="qcarlab-camera-helper", daemon=True).start()
-
-    def _run(self) -> None:
-        while True:
-            fn, args, done = self.jobs.get()
-            try:
-                fn(*args)
-            except BaseException as e:  # handed to the waiting caller
-                done.put(e)
-            else:
-                done.put(None)
-
-    def submit(self, fn: Callable[..., None], *args: Any) -> queue.SimpleQueue:
-        done: queue.SimpleQueue = queue.SimpleQueue()
-        self.jobs.put((fn, args, done))
-        return done
-
-
-_HELPER: _Helper | None = None
-_HELPER_LOCK = threading.Lock()
-
-
-def _helper() -> _Helper | None:
-    """The process's helper thread (started on first use), or None when frames are not split."""
-    global _HELPER
-    if not SPLIT_FRAMES or _cores() < 2:
-        return None
-    h = _HELPER
-    if h is None or h.pid != os.getpid():  # a forked child has no thread: start its own
-        with _HELPER_LOCK:
-            if _HELPER is None or _HELPER.pid != os.getpid():
-                _HELPER = _Helper()
-            h = _HELPER
-    return h
-
-
-def _after_fork_in_child() -> None:
-    global _HELPER, _HELPER_LOCK
-    _HELPER = None
-    _HELPER_LOCK = threading.Lock()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_after_fork_in_child)
-
-
-def _wait(done: queue.SimpleQueue | None) -> None:
-    """Wait for a job handed to the helper (None: nothing to wait for); re-raise its error."""
-    if done is not None:
-        err = done.get()
-        if err is not None:
-            raise err
-
-
 def _stop_sprites() -> tuple[np.ndarray, np.ndarray]:
     """Front (red octagon, white border, STOP) and back (grey octagon) of a stop sign, BGRA."""
     s = _SPRITE
@@ -626,16 +547,8 @@ class RGBDCamera:
         lv = self._level
         depth = np.empty((lv.height, lv.width), np.float32)
         if self._rot is None:
-            # the frame by halves of its rows, the second half in the helper thread
             color = np.empty((H, W, 3), np.uint8)
-            helper = _helper()
-            mid = H // 2 if helper is not None else H
-            args = (color, depth, (cx_w, cy_w, yaw), layers, signs, o, (gain, lut))
-            done = helper.submit(self._rows, *args, mid, H) if helper is not None and mid < H else None
-            try:
-                self._rows(*args, 0, mid)
-            finally:
-                _wait(done)
+            self._rows(color, depth, (cx_w, cy_w, yaw), layers, signs, o, (gain, lut), 0, H)
             return RGBDFrame(t=float(t), color=color, depth=depth)
         # pitched: the level view upright, then rotated
         self._compose(depth, (cx_w, cy_w, yaw), layers, signs, None, 0, lv.height)
