@@ -35,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from qcarlab.car import open_car  # noqa: E402
+from qcarlab.cli.common import opencv_single_threaded  # noqa: E402
 from qcarlab.experiments.avoid import AvoidConfig, avoid  # noqa: E402
 from qcarlab.experiments.lane_follow import LaneFollowConfig, run_lane_follow  # noqa: E402
 from qcarlab.recording.car import RecordingCar  # noqa: E402
@@ -104,6 +105,7 @@ def main() -> None:
     ap.add_argument("--one-core", default="lane-follow",
                     help="labs also measured pinned to one core (comma-separated; 'none' for none)")
     args = ap.parse_args()
+    opencv_single_threaded()  # as the CLI does for a run on the simulator
     labs = [x for x in args.labs.split(",") if x]
     pinned = [x for x in args.one_core.split(",") if x in LABS]
     bad = [x for x in labs if x not in LABS]
