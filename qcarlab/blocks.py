@@ -61,7 +61,8 @@ class BlockSpec:
 
     ``returns`` names the check applied to a student's return value: ``speed`` (m/s, finite,
     |v| <= 10), ``steering`` (rad, finite, |delta| <= pi/2), ``throttle`` (duty, finite,
-    |u| <= 1), ``speed_steering`` (a pair of those), ``pose`` (three finite numbers), or ``any``.
+    |u| <= 1), ``speed_steering`` (a pair of those), ``pose`` (three finite numbers), ``image``
+    (uint8, the shape of the block's input image), ``mask`` (uint8, its height and width), or ``any``.
     ``fill`` is the sheet's task text when the block is one the student fills in (the template
     writes a file for it); ``stub`` is the body the template gives it.
     """
@@ -116,10 +117,27 @@ def _short(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def check_return(block: str, kind: str, value: Any) -> Any:
-    """``value`` as the lab uses it, or :class:`StudentBlockError` naming the block and the value."""
+def _image(block: str, value: Any, like: Any, kind: str) -> Any:
+    """An image block's value: uint8, the shape of the block's input image (``image``: (H, W, 3)
+    for a BGR input; ``mask``: (H, W))."""
+    want = tuple(getattr(like, "shape", ()))
+    if kind == "mask":
+        want = want[:2]
+    shape, dtype = getattr(value, "shape", None), getattr(value, "dtype", None)
+    if shape is None or tuple(shape) != want or str(dtype) != "uint8":
+        got = f"an array of shape {tuple(shape)} and dtype {dtype}" if shape is not None else _short(value)
+        what = "a uint8 mask (0/255)" if kind == "mask" else "a uint8 BGR image"
+        raise StudentBlockError(f"block {block} returned {got}; expected {what} of shape {want}, like its input")
+    return value
+
+
+def check_return(block: str, kind: str, value: Any, args: tuple = ()) -> Any:
+    """``value`` as the lab uses it, or :class:`StudentBlockError` naming the block and the value
+    (``args``: the block's arguments, for the checks that compare with its input)."""
     if kind in _LIMITS:
         return _number(block, value, kind)
+    if kind in ("image", "mask"):
+        return _image(block, value, args[0] if args else None, kind)
     if kind == "speed_steering":
         if not (isinstance(value, (tuple, list)) and len(value) == 2):
             raise StudentBlockError(f"block {block} returned {_short(value)}; expected a pair "
@@ -211,7 +229,7 @@ class StudentBlock:
             self.worst_s = spent
         if self.budget_s is not None and spent > self.budget_s:
             self.over_budget += 1
-        return check_return(self.spec.name, self.spec.returns, value)
+        return check_return(self.spec.name, self.spec.returns, value, args)
 
     def __getattr__(self, name: str) -> Any:  # e.g. a class's .state, read for the log
         if name.startswith("__") or self.__dict__.get("fn") is None:

@@ -113,6 +113,27 @@ def test_a_failing_student_block_stops_the_run_with_one_clear_error(cli, tmp_pat
     assert "qcarlab/" not in err and "Traceback (most recent" not in err  # the student's frames only
 
 
+@pytest.mark.parametrize("lab, block, body, words", [
+    ("lane-follow", "image_selector(image)", "return image[::2]",
+     ["block image_selector returned an array of shape (240, 640, 3)", "shape (480, 640, 3), like its input"]),
+    ("lane-follow", "color_thresholding_hsv(image_bgr)", "return image_bgr[:, :, 0] > 100",
+     ["dtype bool", "a uint8 mask (0/255) of shape (480, 640)"]),
+    ("stop-sign", "color_thresholding_hsv(image_bgr)", "return None",
+     ["block color_thresholding_hsv returned None", "a uint8 mask"]),
+])
+def test_an_image_block_with_the_wrong_shape_or_type_names_the_block(cli, tmp_path, lab, block, body, words):
+    # (it used to surface later, inside the lab, as an "internal error" about boolean indices)
+    path = write(tmp_path, "blocks.py", f"""
+        def {block}:
+            {body}
+    """)
+    code, out, err = cli(lab, "--use", path, *(["--duration", "2"] if lab == "lane-follow" else []))
+    assert code == 1, err
+    assert "internal error" not in err and "the car was stopped" in err
+    for w in words:
+        assert w in err
+
+
 def test_a_failing_block_leaves_the_car_stopped():
     def bad(distance_to_sign, desired_speed):
         raise RuntimeError("boom")

@@ -224,9 +224,9 @@ def lane_metrics(xy: np.ndarray, centre: np.ndarray, dt: float, half_width: floa
 BLOCKS = (
     BASIC_SPEED_ESTIMATION,
     BlockSpec("image_selector", "image_selector(image) -> image", "BGR (H, W, 3) -> the same, zero outside",
-              "lane example block 1", "Keep the region where the tracked line is expected (same shape)."),
+              "lane example block 1", "Keep the region where the tracked line is expected (same shape).", "image"),
     BlockSpec("color_thresholding_hsv", "color_thresholding_hsv(image_bgr) -> mask", "BGR uint8 -> uint8 0/255",
-              "5.3 Task, lane example block 2", "Keep the yellow paint (the HSV ranges you tuned)."),
+              "5.3 Task, lane example block 2", "Keep the yellow paint (the HSV ranges you tuned).", "mask"),
     BlockSpec("linear_poly_fit", "linear_poly_fit(mask) -> LineFit | None",
               "mask -> slope, intercept of u = slope v + intercept (px), pixels, rows",
               "lane example block 3 (steeringCalculation)",

@@ -158,7 +158,7 @@ def sign_distance(depth: np.ndarray, centroid, mask: np.ndarray | None = None) -
 BLOCKS = (
     BASIC_SPEED_ESTIMATION,
     BlockSpec("color_thresholding_hsv", "color_thresholding_hsv(image_bgr) -> mask", "BGR uint8 -> uint8 0/255",
-              "5.1, Figure 47", "Keep the pixels whose HSV is the sign's red (hue wraps through 0)."),
+              "5.1, Figure 47", "Keep the pixels whose HSV is the sign's red (hue wraps through 0).", "mask"),
     BlockSpec("find_objects", "find_objects(mask) -> ImageObject | None", "mask -> centroid (u, v) px, bbox, area",
               "5.1, Image Find Objects", "The largest blob of the mask: the sign."),
     BlockSpec("calculate_distance", "calculate_distance(depth, centroid, mask) -> distance", "m image, px, mask -> m",
