@@ -133,11 +133,13 @@ def test_lab_command_with_live_streams_while_it_drives(tmp_path):
     assert proc.returncode == 130
 
 
-def _start_recording(tmp_path: Path) -> tuple[subprocess.Popen, Path]:
+def _start_recording(tmp_path: Path, child: bool = True) -> tuple[subprocess.Popen, Path]:
+    """A recorded lane-follow under way; ``child=False``: the recorder in the lab's process."""
     f = tmp_path / "run.mcap"
+    env = dict(os.environ, QCARLAB_RECORD_PROCESS="1" if child else "0")
     proc = subprocess.Popen(
         [sys.executable, "-m", "qcarlab", "lane-follow", "--duration", "120", "--realtime", "--record", str(f)],
-        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.monotonic() + 90
     while time.monotonic() < deadline:  # wait until chunks are on disk: the run is under way
         if f.exists() and f.stat().st_size > 1_500_000:
@@ -163,7 +165,8 @@ def test_ctrl_c_or_sigterm_leaves_a_complete_readable_file(sig, tmp_path):
 
 
 def test_sigkill_loses_at_most_the_last_chunk(tmp_path):
-    proc, f = _start_recording(tmp_path)
+    """The recorder in the lab's process (a live view, one core): the file ends at its last chunk."""
+    proc, f = _start_recording(tmp_path, child=False)
     size = f.stat().st_size
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(30)
@@ -173,3 +176,18 @@ def test_sigkill_loses_at_most_the_last_chunk(tmp_path):
     assert info["topics"][C.READOUT]["count"] > 10 and info["topics"][C.COLOR]["count"] > 5
     assert len(rec.tape().readouts) == info["topics"][C.READOUT]["count"]
     assert f.stat().st_size >= size
+
+
+def test_sigkill_of_the_lab_leaves_a_complete_file_when_the_recorder_has_a_process(tmp_path):
+    """The recorder's own process sees the lab's pipe end and closes the file with its summary."""
+    proc, f = _start_recording(tmp_path, child=True)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(30)
+    deadline = time.monotonic() + 30
+    while not Recording(f).complete and time.monotonic() < deadline:
+        time.sleep(0.1)
+    rec = Recording(f)
+    assert rec.complete
+    info = rec.info()
+    assert info["topics"][C.READOUT]["count"] > 10 and info["topics"][C.COLOR]["count"] > 5
+    assert len(rec.tape().readouts) == info["topics"][C.READOUT]["count"]

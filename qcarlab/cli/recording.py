@@ -51,9 +51,17 @@ def request(record: Path | None, exact: bool, live: bool, live_port: str | None,
         previous = signal.signal(signal.SIGTERM, _interrupt)
         handler_set = True
     _REQ = _Request(record, exact, live, live_port, topics)
+    if record is not None and not live:
+        from qcarlab.recording.process import prestart
+
+        prestart()  # the recorder's child starts while the car and the world are opened
     try:
         yield _REQ
     finally:
+        if record is not None and not live:
+            from qcarlab.recording.process import discard_spare
+
+            discard_spare()
         for car in _REQ.cars:  # a command that ended without closing its car (an exception)
             with contextlib.suppress(Exception):
                 car.close()
@@ -112,7 +120,7 @@ def make_recorder(qcar: Car, record: Path | None, exact: bool, live_port: str | 
 
     require("--record" if record is not None else "--live")
     from qcarlab.recording.live import LiveView, parse_live
-    from qcarlab.recording.writer import Recorder
+    from qcarlab.recording.process import open_recorder
 
     live = None
     if live_port is not None:
@@ -123,7 +131,7 @@ def make_recorder(qcar: Car, record: Path | None, exact: bool, live_port: str | 
     meta["world_source"] = getattr(world, "source", None) if world is not None and not isinstance(world, str) else None
     ident = qcar.identity()
     meta["identity"] = {"name": ident.name, "backend": ident.backend, "capabilities": ident.capabilities}
-    return Recorder(record, profile="exact" if exact else "compact", live=live, params=qcar.params, metadata=meta)
+    return open_recorder(record, profile="exact" if exact else "compact", live=live, params=qcar.params, metadata=meta)
 
 
 def _announce(line: str) -> None:

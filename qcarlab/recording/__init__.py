@@ -9,6 +9,8 @@
   commands and the lab's values);
 - :mod:`~qcarlab.recording.writer`: :class:`Recorder`, writing an MCAP file incrementally and/or
   streaming to the live view;
+- :mod:`~qcarlab.recording.process`: :class:`RecorderProcess`, the same Recorder in a process of
+  its own (what ``--record`` uses where it can: :func:`open_recorder`);
 - :mod:`~qcarlab.recording.car`: :class:`RecordingCar`, the decorator that records any car;
 - :mod:`~qcarlab.recording.reader`: reading a recording back (``qcarlab replay info``);
 - :mod:`~qcarlab.recording.rosbag`: reading a rosbag2 from a real QCar's ROS 2 stack;

@@ -21,6 +21,10 @@ the frame, and written when encoded (at most _Frames.WAITING images wait; then t
 Every message keeps its place and its exact time: the file is the same whichever thread encoded.
 A run killed outright (SIGKILL) also loses the images still being encoded (a few frames at most).
 
+A command's ``--record`` runs this Recorder in a process of its own where it can
+(:mod:`qcarlab.recording.process`: the same calls, the same file); in the lab's process it runs
+for a live view, on one core, and for Python code that makes one directly.
+
 Two profiles for the cameras (the rest is always lossless):
 
 - ``compact`` (default): colour as JPEG (quality 80, 4:2:0) every frame, depth as 16-bit
@@ -75,6 +79,7 @@ class Recorder:
         live: Any = None,
         params: QCarParams = DEFAULT_PARAMS,
         metadata: dict[str, Any] | None = None,
+        t0_ns: int | None = None,
     ):
         require("--record" if path is not None else "--live")
         import foxglove
@@ -94,7 +99,7 @@ class Recorder:
         self.exact = profile == "exact"
         self.params = params
         self.path = Path(path) if path is not None else None
-        self.t0_ns = time.time_ns()
+        self.t0_ns = time.time_ns() if t0_ns is None else int(t0_ns)  # (given: a RecorderProcess's child)
         self.ctx = foxglove.Context()
         self.writer = None
         if self.path is not None:

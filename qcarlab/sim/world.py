@@ -300,6 +300,13 @@ class World:
     params: QCarParams = DEFAULT_PARAMS
     _cache: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled without ``_cache`` (the sensors' rasters, tens of MB, built again on demand):
+        a world handed to another process (the recorder's, a grading worker) is its shapes."""
+        state = self.__dict__.copy()
+        state["_cache"] = {}
+        return state
+
     # --- geometry -------------------------------------------------------------------------------
     def obstacles_at(self, t: float) -> list[Circle]:
         """The moving obstacles (balls) at time ``t`` (s)."""
