@@ -4,6 +4,7 @@ choice of when to use it."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -175,3 +176,33 @@ def test_a_world_goes_to_the_child_as_its_shapes_not_its_rasters():
     assert len(data) < 100_000
     again = open_car("sim", world=pickle.loads(data), seed=0)
     assert np.array_equal(again.read_rgbd().color, first)  # the same world, rasters built again
+
+
+@needs_child
+def test_a_batch_cut_short_by_ctrl_c_is_finished_before_the_next(monkeypatch, tmp_path):
+    """Ctrl-C while the pipe is full: the next batch starts where the cut one stopped."""
+    rec = P.RecorderProcess(tmp_path / "run.mcap")
+    real_write, calls = os.write, []
+
+    def write(fd, data):  # the third write takes half (a full pipe), the fourth is interrupted
+        calls.append(len(data))
+        if len(calls) == 3:
+            return real_write(fd, bytes(data[: len(data) // 2]))
+        if len(calls) == 4:
+            raise KeyboardInterrupt  # (as os.write does when Ctrl-C comes while it waits: nothing written)
+        return real_write(fd, data)
+
+    monkeypatch.setattr(P.os, "write", write)
+    done = []
+    with pytest.raises(KeyboardInterrupt):
+        for k in range(5):
+            rec.log_values(k, {"k": k})
+            rec.flush()
+            done.append(k)
+    for k in range(5, 8):
+        rec.log_values(k, {"k": k})
+    rec.close()  # no error: the child read every batch whole
+    assert Recording(tmp_path / "run.mcap").complete
+    ks = [json.loads(data)["k"] for _, data in messages(tmp_path / "run.mcap")[C.LAB]]
+    cut = len(done)  # the value whose flush was interrupted: its batch was the one cut in half
+    assert cut < 4 and ks == [*range(cut + 1), 5, 6, 7]  # every value once, in order; none lost

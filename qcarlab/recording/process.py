@@ -107,6 +107,7 @@ class RecorderProcess:
         self.counts: dict[str, int] = {}  # messages written per topic (known once closed)
         self.closed = False
         self._calls: list[tuple] = []
+        self._rest = memoryview(b"")  # bytes of a batch not yet written to the pipe
         self._flushed_at = time.monotonic()
         self._rgbd_count = 0
         self._head = 0  # bytes of the ring handed out so far (the child counts the bytes it freed)
@@ -117,7 +118,8 @@ class RecorderProcess:
         self._freed, self._data, self._cap = spawned.freed, spawned.data, spawned.size
         meta = {"argv": sys.argv[1:]}
         meta.update(metadata or {})
-        self._send([("__init__", (str(self.path), profile, params, meta, self.t0_ns))])
+        self._calls.append(("__init__", (str(self.path), profile, params, meta, self.t0_ns)))
+        self.flush()
 
     # --- the Recorder's calls ------------------------------------------------------------------
     # (readouts, commands and truths go as flat tuples of numbers: pickling a Readout's NumPy vectors
@@ -168,10 +170,18 @@ class RecorderProcess:
         self.flush()
 
     def flush(self) -> None:
-        """Hand every queued call to the child now."""
-        if self._calls:
-            calls, self._calls = self._calls, []
-            self._send(calls)
+        """Hand every queued call to the child now. A Ctrl-C meanwhile loses nothing: the calls stay
+        queued until their batch is pickled, and a batch cut short is finished first next time."""
+        self._flushed_at = time.monotonic()
+        try:
+            self._write()  # (the rest of a batch a Ctrl-C cut short)
+            if self._calls:
+                data = pickle.dumps(self._calls, protocol=5)
+                self._rest = memoryview(_LEN.pack(len(data)) + data)
+                self._calls = []
+                self._write()
+        except OSError:  # the child is gone: its report says why
+            self._failed()
 
     def close(self) -> None:
         """Send the rest, let the child finish the file (summary, index), and take its counts; safe
@@ -187,7 +197,9 @@ class RecorderProcess:
             error = exc
         try:
             if error is None:
-                os.write(self._pipe, _LEN.pack(0))
+                self._write()  # (what a Ctrl-C cut short, when there was nothing more to send)
+                self._rest = memoryview(_LEN.pack(0))  # the end mark
+                self._write()
         except OSError:
             pass
         try:
@@ -225,16 +237,11 @@ class RecorderProcess:
         if len(calls) >= FLUSH_EVENTS or time.monotonic() - self._flushed_at >= FLUSH_PERIOD_S:
             self.flush()
 
-    def _send(self, calls: list[tuple]) -> None:
-        self._flushed_at = time.monotonic()
-        data = pickle.dumps(calls, protocol=5)
-        try:
-            os.write(self._pipe, _LEN.pack(len(data)))
-            view = memoryview(data)
-            while view:
-                view = view[os.write(self._pipe, view):]
-        except OSError:  # the child is gone: its report says why
-            self._failed()
+    def _write(self) -> None:
+        """Write ``_rest`` to the pipe; the progress is kept at every step, so an interrupted write
+        (Ctrl-C while the pipe is full) goes on where it stopped, and the child never sees half a batch."""
+        while self._rest:
+            self._rest = self._rest[os.write(self._pipe, self._rest):]
 
     def _failed(self) -> None:
         if self.closed:
