@@ -177,3 +177,19 @@ def test_linear_poly_fit_block_fits_the_line_not_the_blob_beside_it():
     white = white_line_mask(np.dstack([mask] * 3))
     assert white.shape == mask.shape and white[400].any()
     assert math.isfinite(fit.intercept)
+
+
+def test_white_mask_is_grey_pixels_at_or_above_the_adaptive_level():
+    """white_from_hsv = inRange(hsv, (0, 0, level), (179, s_max, 255)) with level from
+    white_level: the definition, checked on random HSV images (dim, bright, saturated)."""
+    from qcarlab.perception.lane import WHITE_S_MAX, WHITE_V_MIN, white_from_hsv, white_level
+
+    rng = np.random.default_rng(7)
+    for k in range(20):
+        hsv = np.dstack([rng.integers(0, 180, (60, 90)), rng.integers(0, 256, (60, 90)),
+                         rng.integers(40 + 5 * k, 256, (60, 90))]).astype(np.uint8)
+        grey = cv2.inRange(hsv, (0, 0, 0), (179, WHITE_S_MAX, 255))
+        level = white_level(hsv, grey, WHITE_V_MIN)
+        want = (cv2.inRange(hsv, (0, 0, level), (179, WHITE_S_MAX, 255)) if level <= 255
+                else np.zeros(hsv.shape[:2], np.uint8))
+        assert np.array_equal(white_from_hsv(hsv), want)
