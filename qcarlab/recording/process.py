@@ -157,6 +157,8 @@ class RecorderProcess:
         self._call("_scan", (scan.t, angles, scan.ranges))
 
     def rgbd(self, frame: Any) -> None:
+        if self.closed:  # (a recorder that failed: the error was raised once; the run's last calls go nowhere)
+            return
         k = self._rgbd_count
         self._rgbd_count += 1
         with_depth = self.exact or k % C.DEPTH_EVERY == 0  # (the Recorder's own rule: it counts the frames too)
@@ -165,13 +167,20 @@ class RecorderProcess:
         self.flush()  # (at once: the child encodes the image while it is still in the caches)
 
     def csi(self, frames: Any) -> None:
+        if self.closed:
+            return
         images = self._images(frames.as_list(), bgr=4)
         self._calls.append(("_csi", (frames.t, images, self._head)))
         self.flush()
 
     def flush(self) -> None:
-        """Hand every queued call to the child now. A Ctrl-C meanwhile loses nothing: the calls stay
-        queued until their batch is pickled, and a batch cut short is finished first next time."""
+        """Hand every queued call to the child now (nothing once closed). A Ctrl-C meanwhile loses
+        nothing: the calls stay queued until their batch is pickled, and a batch cut short is
+        finished first next time."""
+        if not self.closed:
+            self._flush()
+
+    def _flush(self) -> None:
         self._flushed_at = time.monotonic()
         try:
             self._write()  # (the rest of a batch a Ctrl-C cut short)
@@ -188,13 +197,13 @@ class RecorderProcess:
         to call twice."""
         if self.closed:
             return
-        self.closed = True
         proc = self._proc
         error = None
         try:
-            self.flush()
+            self._flush()
         except QcarlabError as exc:
             error = exc
+        self.closed = True
         try:
             if error is None:
                 self._write()  # (what a Ctrl-C cut short, when there was nothing more to send)
@@ -244,8 +253,6 @@ class RecorderProcess:
             self._rest = self._rest[os.write(self._pipe, self._rest):]
 
     def _failed(self) -> None:
-        if self.closed:
-            raise QcarlabError(f"--record {self.path}: the recording process is gone")
         self.closed = True
         report = _read_report(self._proc)
         self._proc.wait()
