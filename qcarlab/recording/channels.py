@@ -37,10 +37,12 @@ import json
 import math
 import struct
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from qcarlab.errors import InputError
 from qcarlab.record import to_jsonable
 
 # ------------------------------------------------------------------------------------ topics
@@ -90,6 +92,30 @@ JSON_SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
                        "angles": {"type": "string", "contentEncoding": "base64"}},
     }),
 }
+
+
+def check_profile(profile: str) -> str:
+    """``profile`` if it is one of PROFILES, else one line saying which are."""
+    if profile not in PROFILES:
+        raise InputError(f"recording profile must be one of {', '.join(PROFILES)}, got {profile!r}")
+    return profile
+
+
+def check_record_path(path: Path) -> Path:
+    """``path`` if a recording can be made there (not a folder, its folder exists), else one line."""
+    if path.is_dir():
+        raise InputError(f"--record {path}: is a folder; give a file name such as run.mcap")
+    if not path.parent.exists():
+        raise InputError(f"--record {path}: folder {path.parent} does not exist")
+    return path
+
+
+def check_bgr(image: Any) -> np.ndarray:
+    """``image`` as an array if it is a BGR uint8 image (H, W, 3), else one line saying what it is."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise InputError(f"recording: expected a BGR uint8 image, got {img.dtype} {img.shape}")
+    return img
 
 
 def stamp_ns(t0_ns: int, t: float) -> int:

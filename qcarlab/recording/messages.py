@@ -68,9 +68,7 @@ def laser_scan(scan: Any, ns: int) -> LaserScan:
 
 def color_image(image: np.ndarray, ns: int, frame_id: str, exact: bool) -> CompressedImage | RawImage:
     """A BGR uint8 image: JPEG (quality C.JPEG_QUALITY, 4:2:0) or, ``exact``, raw ``bgr8`` (lossless)."""
-    img = np.ascontiguousarray(image)
-    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-        raise InputError(f"recording: expected a BGR uint8 image, got {img.dtype} {img.shape}")
+    img = np.ascontiguousarray(C.check_bgr(image))
     if exact:
         h, w = img.shape[:2]
         return RawImage(timestamp=timestamp(ns), frame_id=frame_id, width=w, height=h, encoding="bgr8",

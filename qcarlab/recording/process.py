@@ -43,16 +43,17 @@ from typing import Any
 
 import numpy as np
 
+from qcarlab.car.base import Command, Readout, Truth
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import InputError, QcarlabError
 from qcarlab.recording import channels as C
 from qcarlab.recording import require
+from qcarlab.recording.writer import FLUSH_EVENTS, FLUSH_PERIOD_S
+from qcarlab.sensors import CSIFrames, LidarScan, RGBDFrame
 
 RING_BYTES = 16 << 20  # shared memory for images on their way to the child (about 18 colour frames)
 _HEADER = 64  # the ring's first bytes: the child's count of bytes freed (int64), then padding
 _ALIGN = 64  # every image starts on a cache line
-FLUSH_EVENTS = 256  # calls per batch, at most ...
-FLUSH_PERIOD_S = 0.02  # ... and at most this old (wall clock) when the next call comes
 _LEN = struct.Struct("<Q")  # the length of each pickled batch on the pipe; 0 = the end
 _WAIT_S = 0.0005  # polling step while the ring is full
 POLL_S, POLL_MAX_S = 0.001, 0.004  # the child's pauses between reads of its pipe (see _batches)
@@ -88,19 +89,13 @@ class RecorderProcess:
     def __init__(self, path: str | Path, *, profile: str = "compact", params: QCarParams = DEFAULT_PARAMS,
                  metadata: dict[str, Any] | None = None, t0_ns: int | None = None):
         require("--record")
-        if profile not in C.PROFILES:
-            raise InputError(f"recording profile must be one of {', '.join(C.PROFILES)}, got {profile!r}")
-        self.path = Path(path)
-        if self.path.is_dir():
-            raise InputError(f"--record {self.path}: is a folder; give a file name such as run.mcap")
-        if not self.path.parent.exists():
-            raise InputError(f"--record {self.path}: folder {self.path.parent} does not exist")
+        self.profile = C.check_profile(profile)
+        self.path = C.check_record_path(Path(path))
         try:  # refused now, in one line, rather than by the child later
             with open(self.path, "ab"):
                 pass
         except OSError as exc:
             raise InputError(f"--record {self.path}: cannot write ({exc.strerror or exc})") from None
-        self.profile = profile
         self.exact = profile == "exact"
         self.params = params
         self.t0_ns = time.time_ns() if t0_ns is None else int(t0_ns)
@@ -265,10 +260,7 @@ class RecorderProcess:
         the ring, side by side: (offset, shape, dtype) of each for the child. The frame takes one
         block of at most half the ring, so the child freeing the frames before it always makes room
         (wherever the block before it ended)."""
-        arrays = [np.asarray(i) for i in images]
-        for img in arrays[:bgr]:
-            if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-                raise InputError(f"recording: expected a BGR uint8 image, got {img.dtype} {img.shape}")
+        arrays = [C.check_bgr(i) for i in images[:bgr]] + [np.asarray(i) for i in images[bgr:]]
         sizes = [-(-a.nbytes // _ALIGN) * _ALIGN for a in arrays]
         size, cap = sum(sizes), self._cap
         if 2 * size > cap:
@@ -467,45 +459,32 @@ class _Child:
         self.angles: Any = None
 
     def open(self, path: str, profile: str, params: Any, meta: dict[str, Any], t0_ns: int) -> Any:
-        from qcarlab.recording.writer import Recorder, _Frames
+        from qcarlab.recording.writer import Recorder
 
         self.rec = Recorder(path, profile=profile, params=params, metadata=meta, t0_ns=t0_ns)
         self.rec._frames.THREADED = False  # this process is the helper: encode in order, here
-        assert isinstance(self.rec._frames, _Frames)
         return self.rec
 
     def call(self, name: str, args: tuple) -> None:
         if name == "_readout":
-            from qcarlab.car.base import Readout
-
             t, counts, tach, current, volts, g, a, steering, throttle, leds = args
             self.rec.readout(Readout(t, counts, tach, current, volts, np.asarray(g, dtype=float),
                                      np.asarray(a, dtype=float), steering, throttle, leds))
         elif name == "_command":
-            from qcarlab.car.base import Command
-
             t, throttle, steering, leds, stop = args
             self.rec.command(t, Command(throttle, steering, leds), stop)
         elif name == "truth":
-            from qcarlab.car.base import Truth
-
             self.rec.truth(Truth(*args))
         elif name == "_scan":
-            from qcarlab.sensors import LidarScan
-
             t, angles, ranges = args
             if angles is not None:
                 self.angles = angles
             self.rec.scan(LidarScan(t, self.angles, ranges))
         elif name == "_rgbd":
-            from qcarlab.sensors import RGBDFrame
-
             t, color, depth, end = args
             self.rec.rgbd(RGBDFrame(t, self._view(color), None if depth is None else self._view(depth)))
             self.freed[0] = end  # (encoded or copied: the ring's bytes can take another frame)
         elif name == "_csi":
-            from qcarlab.sensors import CSIFrames
-
             t, images, end = args
             self.rec.csi(CSIFrames(t, *(self._view(i) for i in images)))
             self.freed[0] = end

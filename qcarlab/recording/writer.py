@@ -93,9 +93,7 @@ class Recorder:
         self._speed = basic_speed_estimation
         self._estimator_cls = BicyclePoseEstimator
 
-        if profile not in C.PROFILES:
-            raise InputError(f"recording profile must be one of {', '.join(C.PROFILES)}, got {profile!r}")
-        self.profile = profile
+        self.profile = C.check_profile(profile)
         self.exact = profile == "exact"
         self.params = params
         self.path = Path(path) if path is not None else None
@@ -103,10 +101,7 @@ class Recorder:
         self.ctx = foxglove.Context()
         self.writer = None
         if self.path is not None:
-            if self.path.is_dir():
-                raise InputError(f"--record {self.path}: is a folder; give a file name such as run.mcap")
-            if not self.path.parent.exists():
-                raise InputError(f"--record {self.path}: folder {self.path.parent} does not exist")
+            C.check_record_path(self.path)
             try:
                 self.writer = foxglove.open_mcap(
                     self.path, allow_overwrite=True, context=self.ctx,
@@ -588,9 +583,7 @@ class _Frames:
         return self._use_thread
 
     def color(self, channel: Any, topic: str, image: Any, ns: int, frame_id: str, exact: bool) -> _Job:
-        img = np.asarray(image)
-        if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:  # refused here, in the caller's thread
-            raise InputError(f"recording: expected a BGR uint8 image, got {img.dtype} {img.shape}")
+        img = C.check_bgr(image)  # (refused here, in the caller's thread)
         if exact or not self._threaded():
             return _Job(channel, topic, ns, value=self._M.color_image(img, ns, frame_id, exact))
         return self._submit(channel, topic, ns, img, self._M.color_image, frame_id, exact)
