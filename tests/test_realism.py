@@ -253,3 +253,43 @@ def test_results_json_says_which_profile(cli, tmp_path):
     code, _, err = cli("stop-sign", "--realism", "ideal", "--out", str(tmp_path / "run"))
     assert code == 0, err
     assert json.loads((tmp_path / "run" / "results.json").read_text())["realism"] == "ideal"
+
+
+def _box_blur_reference(img: np.ndarray, b: int) -> np.ndarray:
+    """floor(mean + 1/2) of the 1 x b window around each pixel, mirrored at the ends (BORDER_REFLECT_101)."""
+    a = b // 2
+    padded = np.pad(img.astype(np.int64), ((0, 0), (a, b - 1 - a), (0, 0)), mode="reflect")
+    s = sum(padded[:, k : k + img.shape[1]] for k in range(b))
+    return ((2 * s + b) // (2 * b)).astype(np.uint8)
+
+
+@pytest.mark.parametrize("shape", [(48, 64, 3), (7, 300, 3), (3, 9, 3)])
+def test_motion_blur_is_the_box_mean_rounded_and_cv2_blur_for_odd_widths(shape):
+    import cv2
+
+    from qcarlab.sim.realism import MAX_BLUR_PX, box_blur
+
+    img = np.random.default_rng(7).integers(0, 256, shape, np.uint8)
+    for b in [2, 3, 4, 5, 6, 7, 8, 12, 16, 33, 64, 100, 255, 400]:
+        bb = min(b, shape[1], MAX_BLUR_PX)
+        out = box_blur(img.copy(), b)
+        np.testing.assert_array_equal(out, _box_blur_reference(img, bb), err_msg=f"b={b}")
+        if bb % 2:
+            np.testing.assert_array_equal(out, cv2.blur(img, (bb, 1)), err_msg=f"b={b}")
+        # a view that is not contiguous is blurred in place the same
+        big = np.zeros((shape[0], shape[1] * 2, 3), np.uint8)
+        view = big[:, ::2]
+        view[...] = img
+        box_blur(view, b)
+        np.testing.assert_array_equal(view, out)
+        assert not big[:, 1::2].any()
+
+
+def test_motion_blur_division_is_exact_for_every_window_sum():
+    """The kernel's float32 division (floor((S + b/2) / b + 1e-4)) against the integer one, every S of every b."""
+    from qcarlab.sim.realism import MAX_BLUR_PX
+
+    for b in range(2, MAX_BLUR_PX + 1):
+        s = np.arange(255 * b + 1)
+        got = ((s.astype(np.float32) + np.float32(0.5 * b)) * np.float32(1.0 / b) + np.float32(1e-4)).astype(np.int32)
+        np.testing.assert_array_equal(got, (2 * s + b) // (2 * b), err_msg=f"b={b}")

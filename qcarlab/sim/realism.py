@@ -282,5 +282,34 @@ class CameraEffects:
         if gain != 1.0:
             cv2.convertScaleAbs(img, dst=img, alpha=gain)
         if blur >= 2:
-            cv2.blur(img, (blur, 1), dst=img)
+            box_blur(img, blur)
         return img
+
+
+MAX_BLUR_PX = 255  # the kernel's window sums are uint16: 255 b < 2^16
+
+
+def box_blur(img: np.ndarray, b: int) -> np.ndarray:
+    """A 1 x ``b`` box filter along the rows of a (H, W, 3) uint8 image, in place (the motion
+    blur): out = floor(mean of the b pixels around + 1/2), mirrored at the ends as ``cv2.blur``
+    (:func:`~qcarlab.sim._kernels.box_blur_rows`; b is capped at W and at
+    MAX_BLUR_PX, a smear of 52 rad/s at the D435's 616 px focal length). For an odd b it is
+    ``cv2.blur``'s numbers exactly, and b = 3 and 5 go to ``cv2.blur``, which has a fast path for
+    them; for every other b ``cv2.blur`` took 0.4 ms a 640 x 480 frame, the kernel 0.09-0.14 ms.
+    (For an even b ``cv2.blur`` rounds some halves up by one more: an approximation of its own.)"""
+    import cv2
+
+    from qcarlab.sim import _kernels
+
+    h, w = img.shape[:2]
+    b = min(int(b), w, MAX_BLUR_PX)
+    if b < 2:
+        return img
+    out = img if img.flags.c_contiguous else np.ascontiguousarray(img)
+    if b in (3, 5):
+        cv2.blur(out, (b, 1), dst=out)
+    else:
+        _kernels.box_blur_rows(out.reshape(h, -1), b)
+    if out is not img:
+        img[...] = out
+    return img
