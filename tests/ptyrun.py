@@ -55,7 +55,9 @@ class PtyRun:
     def text(self) -> str:
         return ANSI.sub("", bytes(self.out).decode("utf-8", "replace")).replace("\r", "")
 
-    def wait_for(self, pattern: str, timeout: float = 8.0) -> None:
+    # generous: a CLI's start (numpy, OpenCV, the simulator's first calls) takes over 8 s on a CI
+    # machine whose both cores are busy; these bounds catch a hang, they do not time the start
+    def wait_for(self, pattern: str, timeout: float = 30.0) -> None:
         end = time.monotonic() + timeout
         while pattern not in self.text:
             if self.proc.poll() is not None or time.monotonic() > end:
@@ -67,7 +69,7 @@ class PtyRun:
         os.write(self.master, keys)
         time.sleep(then)
 
-    def finish(self, timeout: float = 8.0) -> int:
+    def finish(self, timeout: float = 30.0) -> int:
         try:
             rc = self.proc.wait(timeout)
         finally:

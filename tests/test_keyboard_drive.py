@@ -360,7 +360,7 @@ def test_lost_connection_restores_the_terminal_and_says_so():
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO,
     )
     try:
-        ready, _, _ = select.select([server.stdout], [], [], 8.0)
+        ready, _, _ = select.select([server.stdout], [], [], 30.0)  # a start under load, not a timing
         assert ready, "the server did not start"
         line = server.stdout.readline()
         uri = re.search(r"tcp://[0-9.]+:[0-9]+", line)
