@@ -117,9 +117,11 @@ def test_close_stops_and_releases_the_board(fake_quanser):
 def test_the_adapter_keeps_the_boards_watchdog_reloaded(fake_quanser):
     from qcarlab.car.quanser import QuanserCar
 
-    with QuanserCar(watchdog=0.2) as car:
+    # watchdog 0.5 s, reloaded every 0.1 s: a reload may come late by 0.4 s on a busy CI machine
+    # (with 0.2 s it flaked under load) and the test still sees the board expire if none came
+    with QuanserCar(watchdog=0.5) as car:
         car.write(0.2, 0.0)
-        time.sleep(1.0)  # five watchdog periods with no command: the adapter's thread reloads it
+        time.sleep(1.5)  # three watchdog periods with no command: the adapter's thread reloads it
         fake_quanser.STATE.expire_watchdog_if_due()
         assert not fake_quanser.STATE.watchdog["expired"] and fake_quanser.STATE.outputs[("pwm", 0)] == -0.2
 
