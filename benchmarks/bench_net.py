@@ -142,14 +142,14 @@ def _car(port: int, role: str = "control"):
 def _echo_server(conn) -> None:
     """The floor: a raw Python echo of the same bytes (16-byte header + 116-byte command back as a
     16-byte header + 204-byte readout), one thread, as little work as Python allows. It waits for
-    the next request as qcarlab's server does (looks for it for its `spin` s, then blocks),
+    the next request as qcarlab's server does (looks for it for ``CarServer.SPIN`` s, then blocks),
     so the floor does not pay a wake-up from sleep that ours does not: on a host whose wake-ups are
     slow a blocking echo measured 0.05-0.06 ms against our 0.021 ms (2026-12-03)."""
     import socket
 
     from qcarlab.net.server import CarServer
 
-    spin = _default_kw(CarServer.__init__, "spin")
+    spin = CarServer.SPIN
     srv = socket.create_server(("127.0.0.1", 0))
     conn.send(srv.getsockname()[1])
     c, _ = srv.accept()
@@ -161,13 +161,6 @@ def _echo_server(conn) -> None:
         if not n:
             return
         c.sendall(reply)
-
-
-def _default_kw(func, name: str):
-    """The default of keyword ``name`` of ``func`` (the spin times the echo copies from ours)."""
-    import inspect
-
-    return inspect.signature(func).parameters[name].default
 
 
 def _recv_spinning(sock, buf: bytearray, seconds: float) -> int:

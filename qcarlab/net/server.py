@@ -194,6 +194,8 @@ def is_loopback(host: str) -> bool:
 class CarServer:
     """Serve ``car`` on ``host:port`` (port 0 picks a free port; see :attr:`address`)."""
 
+    SPIN = 0.0002  # s to look for the controller's next request before blocking on it (``spin``)
+
     def __init__(
         self,
         car: Car,
@@ -209,7 +211,7 @@ class CarServer:
         hello_timeout: float = 2.0,
         io_timeout: float = 5.0,
         monitor_rate: float = 10.0,
-        spin: float = 0.0002,
+        spin: float = SPIN,
         prepare: bool = False,
         render_process: bool = False,
         priority: bool = True,
