@@ -41,6 +41,7 @@ _clock = time.perf_counter
 
 __all__ = [
     "BlockSpec",
+    "RaisedInBlock",
     "StudentBlock",
     "StudentBlockError",
     "load_block_file",
@@ -53,6 +54,34 @@ class StudentBlockError(QcarlabError):
     """A student's block raised or returned something unusable. Exit code 1 (the run failed)."""
 
     exit_code = 1
+
+
+class RaisedInBlock(Exception):
+    """What a student's block did in the student's own process (:mod:`qcarlab.sandbox`), as the
+    trusted side learns it: ``kind`` is ``exception``, ``not_implemented``, ``system_exit`` (then
+    ``message`` is the exit code), ``value`` (a value that cannot be passed back) or ``died`` (the
+    process ended: ``message`` says how); ``traceback`` is the student's frames only."""
+
+    def __init__(self, kind: str, type_name: str, message: str, traceback: str = ""):
+        super().__init__(message)
+        self.kind, self.type_name, self.message, self.traceback = kind, type_name, message, traceback
+
+
+#: Where the student's files are loaded: None = in this process (a lab run); a grader's task sets
+#: its sandboxed student process's loader (:meth:`qcarlab.sandbox.client.BlockHost.load`).
+_loader: Callable[[Path], dict[str, Any]] | None = None
+
+
+def load_with(loader: Callable[[Path], dict[str, Any]] | None) -> None:
+    """Load the student's files with ``loader`` (path -> {name: function or class}) from now on;
+    None: in this process again."""
+    global _loader
+    _loader = loader
+
+
+def _is_class(target: Any) -> bool:
+    """A class (a stateful block), here or in the student's process."""
+    return inspect.isclass(target) or getattr(target, "block_class", False) is True
 
 
 @dataclass(frozen=True)
@@ -180,7 +209,7 @@ class StudentBlock:
     def start(self) -> StudentBlock:
         """Ready for a run: instantiate a class (once), call its ``reset()`` if it has one."""
         self.calls, self.worst_s, self.total_s, self.over_budget = 0, 0.0, 0.0, 0
-        if inspect.isclass(self.target):
+        if _is_class(self.target):
             obj = self._guard(self.target, ())
             if not callable(obj):
                 raise StudentBlockError(f"block {self.spec.name} ({self.source}): the class has no __call__ method; "
@@ -189,7 +218,7 @@ class StudentBlock:
         else:
             self.fn = self.target
         reset = getattr(self.fn, "reset", None)
-        if inspect.isclass(self.target) and callable(reset):
+        if _is_class(self.target) and callable(reset):
             self._guard(reset, ())
         return self
 
@@ -201,6 +230,8 @@ class StudentBlock:
 
     def _failed(self, exc: BaseException) -> None:
         """Raise what the student's exception ``exc`` means for the run (see the module docstring)."""
+        if isinstance(exc, RaisedInBlock):
+            self._failed_remotely(exc)
         if isinstance(exc, NotImplementedError):
             raise InputError(f"{self.file}: {self.spec.name} is not filled in yet (sheet {self.spec.section}); "
                              "write its body, then run again") from None
@@ -212,6 +243,20 @@ class StudentBlock:
         raise StudentBlockError(student_traceback(exc, self.file)
                                 + f"\nblock {self.spec.name} ({self.source}) raised "
                                 f"{type(exc).__name__}: {exc}") from None
+
+    def _failed_remotely(self, exc: RaisedInBlock) -> None:
+        """As :meth:`_failed`, for what the block did in the student's own process."""
+        where = f"block {self.spec.name} ({self.source})"
+        if exc.kind == "not_implemented":
+            raise InputError(f"{self.file}: {self.spec.name} is not filled in yet (sheet {self.spec.section}); "
+                             "write its body, then run again") from None
+        if exc.kind == "system_exit":
+            raise StudentBlockError(f"{where} called sys.exit({exc.message}); a block returns its value instead") \
+                from None
+        if exc.kind in ("died", "value"):
+            raise StudentBlockError(f"{where}: {exc.message}") from None
+        tb = exc.traceback or "  (no line of your file in the traceback: the error came from a call your block made)"
+        raise StudentBlockError(f"{tb}\n{where} raised {exc.type_name}: {exc.message}") from None
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         fn = self.fn
@@ -293,6 +338,15 @@ def _import_file(path: Path) -> Any:
     return module
 
 
+def _members(path: Path) -> dict[str, Any]:
+    """The top-level functions and classes of a student's file, loaded in this process or, in a
+    graded task, in the student's own (see :func:`load_with`)."""
+    if _loader is not None:
+        return _loader(path)
+    module = _import_file(path)
+    return {k: v for k, v in vars(module).items() if inspect.isfunction(v) or inspect.isclass(v)}
+
+
 def is_stub(tree: ast.Module, name: str) -> bool:
     """True when ``name`` in the parsed module still has a template's body: only ``raise
     NotImplementedError`` (after its docstring), or a class whose ``__call__`` is like that."""
@@ -346,11 +400,11 @@ def _make(spec: BlockSpec, target: Any, path: Path, func: str) -> StudentBlock:
 def load_block_file(path: str | Path, specs: Mapping[str, BlockSpec], lab: str) -> dict[str, StudentBlock]:
     """Every top-level function or class of the file named like one of the lab's blocks."""
     p = Path(path)
-    module = _import_file(p)
+    members = _members(p)
     found = {}
     for name, spec in specs.items():
-        target = module.__dict__.get(name)
-        if target is not None and (inspect.isfunction(target) or inspect.isclass(target)):
+        target = members.get(name)
+        if target is not None:
             found[name] = _make(spec, target, p, name)
     if not found:
         raise InputError(f"{p}: defines none of the {lab} blocks ({', '.join(specs)}); "
@@ -399,8 +453,7 @@ def resolve_student_blocks(
         name, file, func = parse_block_option(text)
         if name not in specs:
             raise InputError(f"--block {text!r}: {lab} has no block {name!r} (its blocks: {', '.join(specs)})")
-        module = _import_file(file)
-        target = module.__dict__.get(func)
+        target = _members(file).get(func)
         if target is None:
             raise InputError(f"--block {text!r}: {file} has no function or class {func!r}")
         out[name] = _make(specs[name], target, file, func)

@@ -32,3 +32,10 @@ class NotBuiltError(QcarlabError):
     """A subcommand or capability that this version does not provide yet. Exit code 2."""
 
     exit_code = 2
+
+
+class GraderFault(QcarlabError):
+    """The grader's own failure while grading a task (its sandbox could not be set up, a helper
+    died): never the student's. The task is run again, never scored 0. Exit code 75 (EX_TEMPFAIL)."""
+
+    exit_code = 75

@@ -120,6 +120,11 @@ def grade_cmd(
                                                "criterion) for CI.", show_default=False)] = None,
     figures: Annotated[bool | None, typer.Option("--figures/--no-figures", help="Keep each run's figures "
                                                  "(default: with --out or --class).", show_default=False)] = None,
+    sandbox: Annotated[str, typer.Option(help="The student's code runs in a process of its own; sandboxed "
+                                         "(Linux namespaces, another user, a cgroup) when this machine can. "
+                                         "required: refuse to grade without the sandbox (for CI); auto: "
+                                         "grade anyway and mark those grades 'not sandboxed'; off: never.")]
+    = "auto",
     json_out: JsonOpt = False,
     debug: DebugOpt = False,
 ) -> None:
@@ -133,6 +138,8 @@ def grade_cmd(
     private/stop-sign-extra.yaml --class submissions/ --ray auto
     """
     limits = Limits(timeout, memory, max_output).check()
+    if sandbox not in ("required", "auto", "off"):
+        raise InputError(f"--sandbox must be required, auto or off, got {sandbox!r}")
     if jobs < 1 or jobs > 256:
         raise InputError(f"--jobs must be 1..256, got {jobs}")
     if submission is not None and class_dir is not None:
@@ -161,11 +168,13 @@ def grade_cmd(
         if out.exists() and not out.is_dir():
             raise InputError(f"--out {out}: exists and is not a folder")
     elif submission is not None:
-        students = [(submission.resolve().name, submission)]
+        students = [(submission.resolve().name, submission.resolve())]
     else:
         students = [("qcarlab", None)]
     keep = figures if figures is not None else (out is not None)
-    opts = Options(limits, car, keep, results)
+    sandboxed = _sandbox_state(sandbox, ray is not None, submission is not None or class_dir is not None,
+                               json_out)
+    opts = Options(limits, car, keep, results, sandbox)
     plan = make_plan(loaded, chosen, students, opts, commands)
     to_run = [p.job for p in plan if p.job is not None]
     advance, stop = _progress(len(to_run), not json_out and sys.stderr.isatty())
@@ -199,12 +208,14 @@ def grade_cmd(
         if problems:
             entry["submission_problems"] = problems
         entry.update(summary(rows))
+        entry["sandboxed"] = not any(r.get("sandbox") for r in rows)
         entry["tasks"] = rows
         report_students.append(entry)
     from qcarlab.grading.report import report_dict, write_gradebook, write_html, write_junit
 
     single = class_dir is None
     report = report_dict(loaded, report_students, single)
+    report["sandbox"] = sandboxed
     written = []
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -234,8 +245,26 @@ def grade_cmd(
         _print(loaded, report_students, single)
         if written:
             stdout.print("wrote " + ", ".join(str(w) for w in written), markup=False)
-    if any(st["passed"] != st["total"] for st in report_students):
+    errors = sum(st["errors"] for st in report_students)
+    if errors:
+        stderr.print(f"grade: {errors} task(s) not graded: the grader failed to run them (not the student's "
+                     "fault; see each task's problem); run again", markup=False)
+    if errors or any(st["passed"] != st["total"] for st in report_students):
         raise typer.Exit(1)
+
+
+def _sandbox_state(mode: str, on_ray: bool, student_code: bool, quiet: bool) -> dict[str, Any]:
+    """Whether the student's code will be sandboxed here (with --ray each worker decides and
+    the report marks each task); ``--sandbox required`` without it is refused (exit 2)."""
+    from qcarlab.sandbox.jail import probe
+
+    why = "switched off (--sandbox off)" if mode == "off" else (None if on_ray else probe())
+    if why is not None and mode == "required":
+        raise InputError(f"--sandbox required: {why}")
+    if why is not None and student_code and not quiet:
+        stderr.print(f"grade: the students' code is not sandboxed: {why}; the report marks these grades "
+                     "'not sandboxed'", markup=False)
+    return {"mode": mode, "sandboxed": why is None, "why": why}
 
 
 def _print(sheets: list[Sheet], students: list[dict[str, Any]], single: bool) -> None:

@@ -1,17 +1,25 @@
-"""The process a graded task runs in: ``python -m qcarlab.grading.child SPEC.json``.
+"""The trusted process of a graded task: ``python -m qcarlab.grading.child SPEC.json``.
 
 The grader (:mod:`qcarlab.grading.runner`) starts one of these per task, in a fresh folder, with
-no shell. It sets the task's limits (:mod:`qcarlab.grading.limits`) on itself first, then runs,
+no shell. It is qcarlab's side of the task: the simulator, the lab's diagram, the referee and the
+results writer run here, and **no student code ever does**. When the task has student code, it
+first starts the student's own process (:mod:`qcarlab.sandbox`: confined when ``SPEC["sandbox"]``
+is on), where the student's files are loaded and their blocks called; here they are remote blocks
+whose every value is checked. Then it sets the task's limits on itself (:mod:`.limits`) and runs,
 depending on ``SPEC["kind"]``:
 
-- ``scenario``: the lab command ``SPEC["argv"]`` exactly as ``qcarlab ...`` would, in this process
-  (the student's blocks come in through ``--block``). The student's ``params.yaml`` is cut to its
-  ``lab:`` section first (the tunables), so a submission cannot change the car's physics. The
-  command writes its results to ``$QCARLAB_RESULTS``.
+- ``scenario``: the lab command ``SPEC["argv"]`` exactly as ``qcarlab ...`` would (the student's
+  blocks come in through ``--block``). The student's ``params.yaml`` is cut to its ``lab:``
+  section first (the tunables), so a submission cannot change the car's physics. The command
+  writes its results to ``$QCARLAB_RESULTS``, a file of this task's folder, which the student's
+  process cannot see.
 - ``block``: the student's block ``SPEC["block"]`` from ``SPEC["file"]``, called on each case's
   inputs through :class:`qcarlab.blocks.StudentBlock` (so a wrong type, NaN, an exception or a
   ``sys.exit`` is one line naming the block); one JSON line per case is appended to
   ``SPEC["results"]`` as soon as it is known, so a case that hangs leaves the earlier ones graded.
+
+``sandbox.txt`` in the task's folder says how the student's process ran: ``sandboxed``, or
+``not sandboxed: WHY``. The grader's own failure (the sandbox could not be set up) exits 75.
 """
 
 from __future__ import annotations
@@ -79,7 +87,7 @@ def run_scenario(spec: dict[str, Any]) -> None:
 
 def run_block(spec: dict[str, Any]) -> None:
     from qcarlab.blocks import resolve_student_blocks
-    from qcarlab.errors import QcarlabError
+    from qcarlab.errors import GraderFault, QcarlabError
     from qcarlab.experiments.labs import find_lab
     from qcarlab.grading.checks import expand_args
 
@@ -94,6 +102,8 @@ def run_block(spec: dict[str, Any]) -> None:
 
     try:
         block = resolve_student_blocks(specs, lab.command, block=[f"{name}={spec['file']}:{name}"])[name]
+    except GraderFault:
+        raise
     except QcarlabError as exc:
         put({"load_error": _one_line(str(exc)), "detail": str(exc)})
         return
@@ -105,6 +115,8 @@ def run_block(spec: dict[str, Any]) -> None:
             for args in calls:
                 value = block(*expand_args(args))
             put({"value": _jsonable(value)})
+        except GraderFault:
+            raise
         except QcarlabError as exc:
             put({"error": _one_line(str(exc)), "detail": str(exc)})
 
@@ -114,16 +126,54 @@ def _one_line(text: str) -> str:
     return lines[-1].strip() if lines else text.strip()
 
 
+def student_process(spec: dict[str, Any], limits: Any) -> Any:
+    """The student's process for this task (None when the task runs no student code): confined
+    when ``spec["sandbox"]`` is ``required``, or ``auto`` and this machine can (see
+    :func:`qcarlab.sandbox.jail.probe`). Writes ``sandbox.txt``."""
+    from qcarlab.errors import GraderFault
+    from qcarlab.sandbox import jail
+    from qcarlab.sandbox.client import BlockHost, HostPlan
+
+    mode = spec.get("sandbox", "auto")
+    why = None if mode != "off" else "switched off (--sandbox off)"
+    if why is None:
+        why = jail.probe()
+        if why is not None and mode == "required":
+            raise GraderFault(f"--sandbox required: {why}")
+    Path("sandbox.txt").write_text("sandboxed" if why is None else f"not sandboxed: {why}", encoding="utf-8")
+    import qcarlab.cli  # noqa: F401 - loaded before the fork (the student's process has it: a warm start)
+
+    work = Path.cwd()
+    return BlockHost.start(HostPlan(work, work / "submission", work / "student-stdout.txt",
+                                    work / "student-stderr.txt", sandbox=why is None, memory_mb=limits.memory_mb,
+                                    output_bytes=limits.output_bytes, cpu_s=limits.cpu_s))
+
+
 def main(argv: list[str] | None = None) -> None:
     args = sys.argv[1:] if argv is None else argv
     spec = json.loads(Path(args[0]).read_text(encoding="utf-8"))
+    from qcarlab import blocks
+    from qcarlab.errors import GraderFault
     from qcarlab.grading.limits import Limits, apply
 
-    apply(Limits(**spec["limits"]))
-    if spec["kind"] == "scenario":
-        run_scenario(spec)
-    else:
-        run_block(spec)
+    limits = Limits(**spec["limits"])
+    host = None
+    try:
+        if spec.get("student"):
+            host = student_process(spec, limits)
+            blocks.load_with(host.load)
+        apply(limits)
+        if spec["kind"] == "scenario":
+            run_scenario(spec)
+        else:
+            run_block(spec)
+    except GraderFault as exc:
+        sys.stderr.write(f"qcarlab grader: error: {exc}\n")
+        sys.exit(GraderFault.exit_code)
+    finally:
+        blocks.load_with(None)
+        if host is not None:
+            host.close()
 
 
 if __name__ == "__main__":

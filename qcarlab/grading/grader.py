@@ -37,6 +37,7 @@ class Options:
     car: str | None = None  # tcp://HOST:PORT: run the commands on this car
     figures: bool = False  # keep each run's figures (for --out / the class report)
     results: Path | None = None  # grade saved runs of the scenario tasks: DIR/TASK-ID/results.json
+    sandbox: str = "auto"  # the student's process: "required", "auto" or "off" (qcarlab.sandbox)
 
 
 @dataclass
@@ -67,7 +68,7 @@ def _plan_one(student: str, sheet: Sheet, task: Task, sub: Submission | None, op
         return p
     if sub is not None:
         for name in task.student_blocks:
-            why = sub.block_problem(name)
+            why = sub.block_problem(name) or sub.borrowed(name)
             if why:
                 p.problem = why
                 return p
@@ -81,7 +82,7 @@ def _plan_one(student: str, sheet: Sheet, task: Task, sub: Submission | None, op
         p.job = Job(p.key, "block", limits, lab=sheet.lab, block=task.block, file=sub.defined()[task.block],
                     cases=[{"args": list(c.args), "calls": [list(a) for a in c.calls]} for c in task.criteria
                            if isinstance(c, CaseCriterion)],
-                    files=dict(sub.files), qcarlab=__version__)
+                    files=dict(sub.files), qcarlab=__version__, sandbox=opts.sandbox)
         p.command = f"{task.block}(...) from {p.job.file}"
         return p
     argv = task.argv(opts.car)
@@ -101,7 +102,7 @@ def _plan_one(student: str, sheet: Sheet, task: Task, sub: Submission | None, op
     json_words = ["--json"] if not commands.accepts(argv, "out") and commands.accepts(argv, "json_out") else []
     argv += json_words
     p.job = Job(p.key, "scenario", limits, argv=argv, params=params, files=dict(sub.files) if sub else {},
-                figures=opts.figures and commands.accepts(argv, "out"), qcarlab=__version__)
+                figures=opts.figures and commands.accepts(argv, "out"), qcarlab=__version__, sandbox=opts.sandbox)
     p.command = "qcarlab " + " ".join(shown)
     return p
 
@@ -184,7 +185,7 @@ def _grade_results(p: Planned, outcome: dict[str, Any], commands: Commands,
         return outcome["reason"], None
     data = outcome.get("results") or {}
     name, want, labels = commands.parse(p.task.argv())
-    problem = verify(data, name, want, None, labels) if "invocation" in data else None
+    problem = verify(data, name, want, None, labels)  # results without their invocation record are refused
     problem = problem or (_used(p.task, data) if p.submission is not None else None)
     if problem:
         return problem, None
@@ -227,9 +228,18 @@ def grade(p: Planned, outcome: dict[str, Any] | None, commands: Commands,
             problem, verdicts = _grade_saved(p, commands, results_dir)
         elif outcome is None:
             problem = "not run"
+        elif outcome.get("status") == "infrastructure":  # the grader's failure: not graded, never 0 points
+            row.update(status="error", problem=outcome.get("reason"), seconds=outcome.get("seconds"),
+                       criteria=[v.as_dict() for v in fail_all(task.criteria, str(outcome.get("reason")))])
+            return row
         else:
             row["seconds"] = outcome.get("seconds")
             row["_figures"] = outcome.get("figures") or {}
+            if "sandboxed" in outcome and not outcome["sandboxed"] and p.task.student_blocks:
+                row["sandbox"] = outcome.get("sandbox") or "not sandboxed"
+            printed = "".join(f"{outcome.get(k) or ''}" for k in ("student_stdout", "student_stderr")).strip()
+            if printed:
+                row["student_output"] = printed[-2000:]
             if task.kind == "block":
                 problem, verdicts = _grade_cases(task, outcome, row)
             else:
@@ -247,9 +257,12 @@ def grade(p: Planned, outcome: dict[str, Any] | None, commands: Commands,
 
 
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    graded = [r for r in rows if r["status"] != "skipped"]
+    """Passed and total over the graded tasks: not the skipped ones, nor those the grader failed
+    to run (``errors``: the grader's failure, to run again; they count neither for nor against)."""
+    graded = [r for r in rows if r["status"] not in ("skipped", "error")]
     return {"passed": sum(r["passed"] for r in graded), "total": len(graded),
-            "skipped": len(rows) - len(graded),
+            "skipped": sum(r["status"] == "skipped" for r in rows),
+            "errors": sum(r["status"] == "error" for r in rows),
             "points": round(sum(r["earned"] for r in graded), 6),
             "max_points": round(sum(r["points"] for r in graded), 6)}
 

@@ -97,19 +97,22 @@ def columns(students: list[dict[str, Any]]) -> list[str]:
 
 
 def write_gradebook(path: str | Path, students: list[dict[str, Any]]) -> Path:
-    """student, points per task, total, max_points (skipped tasks are empty)."""
+    """student, points per task, total, max_points, sandboxed (skipped tasks are empty; a task the
+    grader failed to run says "not graded")."""
     cols = columns(students)
     out = Path(path)
     with open(out, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
-        w.writerow(["student", *cols, "total", "max_points"])
+        w.writerow(["student", *cols, "total", "max_points", "sandboxed"])
         for st in students:
             got = {f"{r['sheet']}/{r['id']}": r for r in st["tasks"]}
             cells = []
             for c in cols:
                 r = got.get(c)
-                cells.append("" if r is None or r["status"] == "skipped" else f"{r['earned']:g}")
-            w.writerow([st["student"], *cells, f"{st['points']:g}", f"{st['max_points']:g}"])
+                cells.append("" if r is None or r["status"] == "skipped" else
+                             "not graded" if r["status"] == "error" else f"{r['earned']:g}")
+            w.writerow([st["student"], *cells, f"{st['points']:g}", f"{st['max_points']:g}",
+                        "yes" if st.get("sandboxed", True) else "no"])
     return out
 
 
@@ -164,13 +167,15 @@ def write_html(path: str | Path, title: str, students: list[dict[str, Any]], fig
             if r is None:
                 parts.append("<td></td>")
             else:
-                shown = "skipped" if r["status"] == "skipped" else f"{r['earned']:g}/{r['points']:g}"
+                shown = {"skipped": "skipped", "error": "not graded"}.get(r["status"], f"{r['earned']:g}/{r['points']:g}")
                 parts.append(f"<td class='{_cls(r)}' title='{e(r['problem'] or '')}'>{shown}</td>")
         parts.append(f"<td><b>{st['points']:g}</b>/{st['max_points']:g}</td></tr>")
     parts.append("</table>")
     for st in students:
         parts.append(f"<h2 id='s-{e(st['student'])}'>{e(st['student'])}: {st['points']:g} of "
                      f"{st['max_points']:g} points</h2>")
+        if not st.get("sandboxed", True):
+            parts.append("<p><b>not sandboxed</b>: this student's code ran without the sandbox; see each task</p>")
         if st.get("submission_problems"):
             parts.append("<p class='small'>" + "<br>".join(e(x) for x in st["submission_problems"]) + "</p>")
         for r in st["tasks"]:
@@ -182,6 +187,8 @@ def write_html(path: str | Path, title: str, students: list[dict[str, Any]], fig
                 parts.append(f"<p><b>{e(r['problem'])}</b></p>")
             if r.get("detail"):
                 parts.append(f"<pre>{e(r['detail'])}</pre>")
+            if r.get("student_output"):
+                parts.append(f"<p class='small'>your code printed:</p><pre>{e(r['student_output'])}</pre>")
             parts.append("<table><tr><th>criterion</th><th>value</th><th>result</th><th>points</th></tr>")
             for c in r["criteria"]:
                 v = c["value"]

@@ -1,19 +1,24 @@
-"""One graded task in its own process: :func:`execute` a :class:`Job`, get an outcome back.
+"""One graded task in its own processes: :func:`execute` a :class:`Job`, get an outcome back.
 
 The grader never runs a student's code in its own process and never through a shell. A job
-carries everything its process needs (the command's words, the submission's files as bytes, the
+carries everything its processes need (the command's words, the submission's files as bytes, the
 limits), so the same :func:`execute` runs it in a local thread pool or on a Ray worker on another
 machine. It makes a fresh folder, writes the submission's files into ``submission/``, and starts
-``python -m qcarlab.grading.child spec.json`` there in a new process group, stdout and stderr to
-files (or, given a :class:`~qcarlab.grading.warm.WarmStart`, forks the same task from a zygote that
-has loaded qcarlab already). It waits at most the wall-time limit, then kills the group. The outcome says what came
-back (the results, or each case's value) or, in one line, why nothing did:
+the task's trusted process, ``python -m qcarlab.grading.child spec.json``, there in a new process
+group, stdout and stderr to files (or, given a :class:`~qcarlab.grading.warm.WarmStart`, forks the
+same from a zygote that has loaded qcarlab already). That process runs the simulator and the
+referee and writes the results; the student's code runs in a process of its own that it starts
+(:mod:`qcarlab.sandbox`), which sees none of this folder but the submission. The grader waits at
+most the wall-time limit, then kills the group. The outcome says what came back (the results, or
+each case's value) or, in one line, why nothing did:
 
     did not finish within 5 s (stopped)          a hang (the whole process group is killed)
-    printed more than 10 MB (output is capped)   a print loop
-    ran out of memory (limit 3072 MB)            MemoryError, or a crash under the limit
+    ran out of memory: ... (limit 2048 MB ...)   the student's processes together, over the limit
     exited with code 3 and no results (os._exit?) an exit that skipped qcarlab's own
     qcarlab stop-sign: error: block stop_sign ... the student's exception, named by qcarlab
+
+What the student's code printed comes back apart (``student_stdout``, ``student_stderr``), never
+as the grader's reason.
 """
 
 from __future__ import annotations
@@ -54,6 +59,12 @@ class Job:
     files: dict[str, bytes] = field(default_factory=dict)  # the submission: name -> content
     figures: bool = False  # keep the figures (the command has --out)
     qcarlab: str = ""  # the grader's version; a worker with another one refuses the job
+    sandbox: str = "auto"  # the student's process: "required", "auto" (where this machine can) or "off"
+
+    @property
+    def student_code(self) -> bool:
+        """Whether the task runs any of the student's code (a block task, or --block in the command)."""
+        return self.kind == "block" or "--block" in self.argv
 
 
 def _signal_name(code: int) -> str:
@@ -116,7 +127,8 @@ def task_env(results: Path | None = None) -> dict[str, str]:
 
 
 def _spec(job: Job, work: Path, results: Path) -> dict[str, Any]:
-    spec: dict[str, Any] = {"kind": job.kind, "limits": job.limits, "results": str(results)}
+    spec: dict[str, Any] = {"kind": job.kind, "limits": job.limits, "results": str(results),
+                            "sandbox": job.sandbox, "student": job.student_code}
     if job.kind == "scenario":
         argv = list(job.argv)
         if job.figures:
@@ -131,12 +143,25 @@ def execute(job: Job, warm: WarmStart | None = None) -> dict[str, Any]:
     """Run ``job`` in its own process under its limits; the outcome as a JSON-able dict (figures as bytes).
 
     With ``warm`` (:class:`~qcarlab.grading.warm.WarmStart`) the process is forked from a zygote that
-    has loaded qcarlab already; without it (or when the zygote cannot), a fresh interpreter."""
+    has loaded qcarlab already; without it (or when the zygote cannot), a fresh interpreter. A task
+    that fails for the grader's own reasons (status ``infrastructure``: its process killed from
+    outside, the zygote gone, the sandbox not set up) is run once more, cold."""
     import qcarlab
 
     if job.qcarlab and job.qcarlab != qcarlab.__version__:
         return {"status": "error", "reason": f"this worker has qcarlab {qcarlab.__version__}, the grader "
                 f"{job.qcarlab}", "seconds": 0.0}
+    outcome = _attempt(job, warm)
+    if outcome["status"] == "infrastructure":
+        again = _attempt(job, None)
+        again["seconds"] = round(again["seconds"] + outcome["seconds"], 3)
+        if again["status"] == "infrastructure":
+            again["reason"] = f"not graded: the grader failed twice ({again['reason']}); run it again"
+        outcome = again
+    return outcome
+
+
+def _attempt(job: Job, warm: WarmStart | None) -> dict[str, Any]:
     limits = Limits(**job.limits)
     work = Path(tempfile.mkdtemp(prefix="qcarlab-grade-"))
     t0 = time.monotonic()
@@ -184,8 +209,17 @@ def _classify(job: Job, limits: Limits, rc: int, timed_out: bool, work: Path, re
               out_path: Path, err_path: Path) -> dict[str, Any]:
     stderr_tail, stdout_tail = _tail(err_path), _tail(out_path)
     outcome: dict[str, Any] = {"status": "ok", "reason": None, "rc": rc, "stderr": stderr_tail,
-                               "stdout": stdout_tail, "figures": {}}
-    capped = max(_size(out_path), _size(err_path)) >= limits.output_bytes
+                               "stdout": stdout_tail, "figures": {}, "sandboxed": True}
+    if job.student_code:
+        said = _tail(work / "sandbox.txt")
+        outcome.update(sandboxed=said == "sandboxed", sandbox=said or None,
+                       student_stdout=_tail(work / "student-stdout.txt"),
+                       student_stderr=_tail(work / "student-stderr.txt"))
+    infra = _infrastructure(rc, timed_out, stderr_tail)
+    if infra is not None:
+        outcome.update(status="infrastructure", reason=_clip(infra))
+        return outcome
+    capped = _size(out_path) >= limits.output_bytes or _size(err_path) >= limits.output_bytes
     if job.kind == "block":
         cases = []
         if results.exists():
@@ -226,7 +260,6 @@ def _classify(job: Job, limits: Limits, rc: int, timed_out: bool, work: Path, re
         sig = _signal_name(-rc)
         reason = {"SIGXCPU": f"used more than {limits.cpu_s} s of CPU (stopped)",
                   "SIGXFSZ": f"wrote more than {limits.output_mb:g} MB to a file (stopped)",
-                  "SIGKILL": f"was killed (SIGKILL: out of memory? the limit is {limits.memory_mb:g} MB)",
                   }.get(sig, f"crashed ({sig})")
     elif "MemoryError" in said or "Cannot allocate memory" in said:
         reason = f"{memory}: {said}"
@@ -246,6 +279,20 @@ def _classify(job: Job, limits: Limits, rc: int, timed_out: bool, work: Path, re
     if reason is not None:
         outcome.update(status="timeout" if timed_out else "error", reason=_clip(reason))
     return outcome
+
+
+def _infrastructure(rc: int, timed_out: bool, stderr_tail: str) -> str | None:
+    """Why the task failed for the grader's own reasons, or None. The trusted process runs no
+    student code, so its death by a signal (other than its own CPU and file-size limits) came from
+    outside: another process, the machine, a dead zygote."""
+    if timed_out:
+        return None
+    if rc == 75:  # GraderFault.exit_code
+        line = next((ln for ln in reversed(stderr_tail.splitlines()) if "error:" in ln), "")
+        return line.split("error:", 1)[1].strip() if line else "the grader's task process failed"
+    if rc < 0 and _signal_name(-rc) not in ("SIGXCPU", "SIGXFSZ"):
+        return f"the task's process was killed from outside ({_signal_name(-rc)})"
+    return None
 
 
 _SUBMISSION = re.compile(r"(?<![\w/.-])submission/")

@@ -78,6 +78,35 @@ class Submission:
         tree = self._tree(fname)
         return tree is not None and _is_stub(tree, name)
 
+    def borrowed(self, name: str) -> str | None:
+        """Why block ``name`` is not the student's own (None when it is): its file imports
+        qcarlab's reference ``name`` (``from qcarlab.control.stop_sign import stop_sign``, ``import
+        qcarlab.control.stop_sign``, ``qcarlab....stop_sign`` after ``import qcarlab``). A graded
+        block must be the student's code; a lab run of their own may use qcarlab's."""
+        fname = self.defined().get(name)
+        tree = self._tree(fname) if fname else None
+        if tree is None:
+            return None
+        imports_qcarlab = False
+        for node in ast.walk(tree):
+            hit = False
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "qcarlab":
+                imports_qcarlab = True
+                hit = any(a.name in (name, "*") for a in node.names) or (node.module or "").split(".")[-1] == name
+            elif isinstance(node, ast.Import):
+                mods = [a.name for a in node.names if a.name.split(".")[0] == "qcarlab"]
+                imports_qcarlab = imports_qcarlab or bool(mods)
+                hit = any(m.split(".")[-1] == name for m in mods)
+            if hit:
+                return (f"{fname} line {node.lineno}: imports qcarlab's own {name}; a graded block must be your "
+                        "code (qcarlab's reference blocks are for your own runs, not for grading)")
+        if imports_qcarlab:
+            for node in ast.walk(tree):
+                if isinstance(node, ast.Attribute) and node.attr == name:
+                    return (f"{fname} line {node.lineno}: uses qcarlab's own {name}; a graded block must be "
+                            "your code (qcarlab's reference blocks are for your own runs, not for grading)")
+        return None
+
     def block_problem(self, name: str) -> str | None:
         """Why the submission cannot be graded on block ``name`` (None when it can)."""
         fname = self.defined().get(name)
@@ -108,21 +137,31 @@ def read_submission(root: str | Path, names: list[str | None], student: str | No
         raise InputError(f"--submission {root}: not a folder")
     folder = folder_for(root, names)
     sub = Submission(student or root.resolve().name, folder)
+    if student is not None and root.is_symlink():  # a class's folder that is another student's
+        sub.problems.append(f"{root.name}: a symbolic link, refused (hand in a folder of your own)")
+        return sub
+    if folder != root and folder.is_symlink():
+        sub.problems.append(f"{folder.name}/: a symbolic link, refused (hand in the folder itself)")
+        return sub
     total = 0
     for path in sorted(folder.iterdir()):
-        if not path.is_file() or path.name.startswith("."):
+        if path.name.startswith("."):
             continue
         if not (path.suffix == ".py" or path.name in ("params.yaml", "answers.md")):
             continue
+        if path.is_symlink() or not path.is_file():  # never follow a link (to a classmate's file)
+            kind = "a symbolic link" if path.is_symlink() else "not a regular file"
+            sub.problems.append(f"{path.name}: {kind}, refused (hand in the file itself)")
+            continue
         try:
-            size = path.stat().st_size
+            data = _read_regular(path, MAX_FILE + 1)
+            size = len(data)
             if size > MAX_FILE:
                 sub.problems.append(f"{path.name}: larger than {MAX_FILE // 1024} KB, left out")
                 continue
             if total + size > MAX_TOTAL:
                 sub.problems.append(f"{path.name}: the submission is over {MAX_TOTAL // 2**20} MB, left out")
                 continue
-            data = path.read_bytes()
         except OSError as exc:
             sub.problems.append(f"{path.name}: unreadable ({exc.strerror or exc})")
             continue
@@ -132,6 +171,22 @@ def read_submission(root: str | Path, names: list[str | None], student: str | No
         else:
             sub.files[path.name] = data
     return sub
+
+
+def _read_regular(path: Path, limit: int) -> bytes:
+    """At most ``limit`` bytes of a regular file, opened without following a link (so a file
+    swapped for a link after it was listed is refused too)."""
+    import os
+    import stat
+
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(0, "not a regular file")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            return f.read(limit)
+    finally:
+        os.close(fd)
 
 
 def class_folders(root: str | Path) -> list[tuple[str, Path]]:

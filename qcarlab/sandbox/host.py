@@ -1,0 +1,116 @@
+"""The student's process: loads the student's files and calls their blocks when the trusted side asks.
+
+It runs confined (:mod:`qcarlab.sandbox.jail`) and answers one request at a time on its socket
+(:mod:`qcarlab.sandbox.codec`, never pickle)::
+
+    ("load", path)                    -> ("ok", {name: "function" | "class"})   the file's blocks
+    ("call", target, args)            -> ("ok", value)                          a function or an instance
+    ("new", class)                    -> ("ok", (instance, callable, methods))  a class's instance
+    ("get", instance, attribute)      -> ("ok", value)                          e.g. a controller's .state
+    any of them                       -> ("raised", kind, type, message, traceback)
+                                         ("input", message)                     the file cannot be loaded
+                                         ("value", message)                     a value that cannot be sent
+
+It holds nothing the grade depends on: every value it returns is checked by the trusted side, and
+everything it could change (its own copy of qcarlab, its files) is its own.
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+import socket
+import sys
+from pathlib import Path
+from typing import Any
+
+from qcarlab.sandbox import codec
+
+
+def _raised(exc: BaseException, file: str) -> tuple:
+    from qcarlab.blocks import student_traceback
+
+    if isinstance(exc, NotImplementedError):
+        kind = "not_implemented"
+    elif isinstance(exc, SystemExit):
+        kind = "system_exit"
+    else:
+        kind = "exception"
+    message = repr(exc.code) if isinstance(exc, SystemExit) else str(exc)
+    return ("raised", kind, type(exc).__name__, message[:2000], student_traceback(exc, Path(file)))
+
+
+def serve(sock: socket.socket) -> None:
+    """Answer requests until the trusted side closes the socket."""
+    from qcarlab.blocks import _import_file
+    from qcarlab.errors import QcarlabError
+
+    targets: dict[str, tuple[Any, str]] = {}  # id -> (function, class or instance; its file)
+    count = 0
+    while True:
+        try:
+            msg = codec.recv(sock)
+        except (EOFError, OSError, codec.CodecError):
+            return
+        op = msg[0] if isinstance(msg, (list, tuple)) and msg else None
+        file = str(msg[1]) if op == "load" else ""
+        try:
+            if op == "load":
+                path = str(msg[1])
+                try:
+                    module = _import_file(Path(path))
+                except QcarlabError as exc:
+                    reply: tuple = ("input", str(exc))
+                else:
+                    found = {}
+                    for name, value in vars(module).items():
+                        if inspect.isfunction(value) or inspect.isclass(value):
+                            targets[f"{path}::{name}"] = (value, path)
+                            found[name] = "class" if inspect.isclass(value) else "function"
+                    reply = ("ok", found)
+            elif op == "new":
+                cls, file = targets[msg[1]]
+                obj = cls()
+                count += 1
+                key = f"{msg[1]}#{count}"
+                targets[key] = (obj, file)
+                methods = [m for m in dir(obj) if not m.startswith("_") and callable(getattr(obj, m, None))]
+                reply = ("ok", (key, callable(obj), methods))
+            elif op == "call":
+                fn, file = targets[msg[1]]
+                if len(msg) > 3 and msg[3]:
+                    fn = getattr(fn, msg[3])
+                reply = ("ok", fn(*msg[2]))
+            elif op == "get":
+                obj, file = targets[msg[1]]
+                reply = ("ok", getattr(obj, msg[2]))
+            else:
+                return
+        except BaseException as exc:  # noqa: BLE001 - the student's code may raise anything
+            reply = _raised(exc, file)
+        try:
+            codec.send(sock, reply)
+        except codec.CodecError as exc:
+            codec.send(sock, ("value", f"{exc}"))
+        except OSError:
+            return
+
+
+def main(fd: int) -> None:
+    """The student's process after :func:`qcarlab.sandbox.jail.confine`: serve on ``fd``, then exit
+    (skipping the interpreter's teardown, so nothing of the student's runs at exit)."""
+    code = 0
+    try:
+        serve(socket.socket(fileno=fd))
+    except BaseException:  # noqa: BLE001
+        code = 1
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001
+                pass
+        os._exit(code)
+
+
+__all__ = ["main", "serve"]
