@@ -59,8 +59,8 @@ class StudentBlockError(QcarlabError):
 class RaisedInBlock(Exception):
     """What a student's block did in the student's own process (:mod:`qcarlab.sandbox`), as the
     trusted side learns it: ``kind`` is ``exception``, ``not_implemented``, ``system_exit`` (then
-    ``message`` is the exit code), ``value`` (a value that cannot be passed back) or ``died`` (the
-    process ended: ``message`` says how); ``traceback`` is the student's frames only."""
+    ``message`` is the exit code), ``value`` (a value that cannot be passed back), ``output`` (it printed
+    more than the cap) or ``died`` (the process ended: ``message`` says how); ``traceback`` is the student's frames only."""
 
     def __init__(self, kind: str, type_name: str, message: str, traceback: str = ""):
         super().__init__(message)
@@ -253,7 +253,7 @@ class StudentBlock:
         if exc.kind == "system_exit":
             raise StudentBlockError(f"{where} called sys.exit({exc.message}); a block returns its value instead") \
                 from None
-        if exc.kind in ("died", "value"):
+        if exc.kind in ("died", "value", "output"):
             raise StudentBlockError(f"{where}: {exc.message}") from None
         tb = exc.traceback or "  (no line of your file in the traceback: the error came from a call your block made)"
         raise StudentBlockError(f"{tb}\n{where} raised {exc.type_name}: {exc.message}") from None

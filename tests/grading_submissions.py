@@ -4,6 +4,11 @@
 sheet a folder as ``qcarlab template`` makes it (``params.yaml``, ``answers.md``), whose block
 files call qcarlab's own reference blocks. :func:`write_block` then replaces one block with a
 wrong or misbehaving one (a body given as text).
+
+A graded block that imports qcarlab's own block of its name is refused (the grader reads the
+imports); these stand-ins for a correct student load it with ``importlib`` instead, which that
+check does not see (the README's threat model says so): the tests need a right answer, not an
+honest student.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from qcarlab.experiments.labs import find_lab, write_template
 REFERENCE = {
     "basic-io": {
         "basic_speed_estimation.py": """
-            from qcarlab.control.speed import basic_speed_estimation as _reference
+            _reference = __import__("importlib").import_module("qcarlab.control.speed").basic_speed_estimation
 
             def basic_speed_estimation(counts_per_s):
                 return _reference(counts_per_s)
@@ -26,7 +31,7 @@ REFERENCE = {
     "path-following": {
         "pure_pursuit.py": """
             from qcarlab.constants import DEFAULT_PARAMS
-            from qcarlab.control.steering import pure_pursuit as _reference
+            _reference = __import__("importlib").import_module("qcarlab.control.steering").pure_pursuit
 
             def pure_pursuit(pose, target, lookahead, wheelbase):
                 return _reference(pose, target, lookahead, wheelbase, max_steering=DEFAULT_PARAMS.max_steering)
@@ -53,13 +58,13 @@ REFERENCE = {
     },
     "obstacle-avoidance": {
         "lidar_stop.py": """
-            from qcarlab.control.lidar_avoid import lidar_stop as _reference
+            _reference = __import__("importlib").import_module("qcarlab.control.lidar_avoid").lidar_stop
 
             def lidar_stop(distances, headings, desired_speed):
                 return _reference(distances, headings, desired_speed)
         """,
         "lidar_steer.py": """
-            from qcarlab.control.lidar_avoid import lidar_steer as _reference
+            _reference = __import__("importlib").import_module("qcarlab.control.lidar_avoid").lidar_steer
 
             def lidar_steer(distances, headings, desired_speed):
                 return _reference(distances, headings, desired_speed)

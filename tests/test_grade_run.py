@@ -140,7 +140,7 @@ def test_one_wrong_block_fails_exactly_the_tasks_that_use_it(cli, tmp_path):
     correct_submission(klass / "right", ("obstacle-avoidance",))
     correct_submission(klass / "mirrored_steer", ("obstacle-avoidance",))
     write_block(klass / "mirrored_steer" / "obstacle-avoidance", "lidar_steer.py", """
-        from qcarlab.control.lidar_avoid import lidar_steer as _reference
+        _reference = __import__("importlib").import_module("qcarlab.control.lidar_avoid").lidar_steer
 
         def lidar_steer(distances, headings, desired_speed):
             return -_reference(distances, headings, desired_speed)   # towards the obstacle

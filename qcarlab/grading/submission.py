@@ -21,6 +21,7 @@ from qcarlab.blocks import is_stub as _is_stub
 
 from qcarlab.errors import InputError
 
+_OWN = "a graded block must be your code (qcarlab's reference blocks are for your own runs, not for grading)"
 MAX_FILE = 2**20  # bytes per file the grader takes from a submission
 MAX_TOTAL = 8 * 2**20
 
@@ -79,32 +80,34 @@ class Submission:
         return tree is not None and _is_stub(tree, name)
 
     def borrowed(self, name: str) -> str | None:
-        """Why block ``name`` is not the student's own (None when it is): its file imports
-        qcarlab's reference ``name`` (``from qcarlab.control.stop_sign import stop_sign``, ``import
-        qcarlab.control.stop_sign``, ``qcarlab....stop_sign`` after ``import qcarlab``). A graded
-        block must be the student's code; a lab run of their own may use qcarlab's."""
-        fname = self.defined().get(name)
-        tree = self._tree(fname) if fname else None
-        if tree is None:
-            return None
-        imports_qcarlab = False
-        for node in ast.walk(tree):
-            hit = False
-            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "qcarlab":
-                imports_qcarlab = True
-                hit = any(a.name in (name, "*") for a in node.names) or (node.module or "").split(".")[-1] == name
-            elif isinstance(node, ast.Import):
-                mods = [a.name for a in node.names if a.name.split(".")[0] == "qcarlab"]
-                imports_qcarlab = imports_qcarlab or bool(mods)
-                hit = any(m.split(".")[-1] == name for m in mods)
-            if hit:
-                return (f"{fname} line {node.lineno}: imports qcarlab's own {name}; a graded block must be your "
-                        "code (qcarlab's reference blocks are for your own runs, not for grading)")
-        if imports_qcarlab:
+        """Why block ``name`` is not the student's own (None when it is): a file of the submission
+        imports qcarlab's reference ``name`` (``from qcarlab.control.stop_sign import stop_sign``,
+        ``import qcarlab.control.stop_sign``, or ``q.stop_sign`` of a module ``q`` imported from
+        qcarlab). A graded block must be the student's code; a lab run of their own may use
+        qcarlab's. (What this cannot see, a dynamic import, the README's threat model says.)"""
+        for fname in sorted(self.files):
+            tree = self._tree(fname) if fname.endswith(".py") else None
+            if tree is None:
+                continue
+            bound: set[str] = set()  # names the file binds to qcarlab's modules and objects
+            for node in ast.walk(tree):
+                hit = False
+                if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "qcarlab":
+                    bound.update(a.asname or a.name for a in node.names)
+                    hit = any(a.name in (name, "*") for a in node.names) or (node.module or "").split(".")[-1] == name
+                elif isinstance(node, ast.Import):
+                    mods = [a for a in node.names if a.name.split(".")[0] == "qcarlab"]
+                    bound.update(a.asname or a.name.split(".")[0] for a in mods)
+                    hit = any(a.name.split(".")[-1] == name for a in mods)
+                if hit:
+                    return f"{fname} line {node.lineno}: imports qcarlab's own {name}; {_OWN}"
             for node in ast.walk(tree):
                 if isinstance(node, ast.Attribute) and node.attr == name:
-                    return (f"{fname} line {node.lineno}: uses qcarlab's own {name}; a graded block must be "
-                            "your code (qcarlab's reference blocks are for your own runs, not for grading)")
+                    root = node.value
+                    while isinstance(root, ast.Attribute):
+                        root = root.value
+                    if isinstance(root, ast.Name) and root.id in bound:
+                        return f"{fname} line {node.lineno}: uses qcarlab's own {name}; {_OWN}"
         return None
 
     def block_problem(self, name: str) -> str | None:

@@ -7,10 +7,11 @@
 
 The lab, the simulator, the referee and the results stay in the trusted process; the student's
 process gets a block's arguments and gives back its value, decoded by :mod:`.codec` (plain values
-only) and checked by :class:`qcarlab.blocks.StudentBlock` like any student block's. Two forks
+only) and checked by :class:`qcarlab.blocks.StudentBlock` like any student block's. Three forks
 make it: ``A`` joins the task's cgroup and unshares the namespaces, then forks ``B``, the PID 1 of
-the new PID namespace, which confines itself (:func:`qcarlab.sandbox.jail.confine`) and serves
-(:mod:`.host`). ``A`` only waits for ``B`` and reports how it ended. Without the sandbox
+the new PID namespace, which confines itself (:func:`qcarlab.sandbox.jail.confine`) and forks
+``C``, which serves (:mod:`.host`); ``B`` reaps orphans until ``C`` ends. ``A`` only waits for
+``B`` and reports how it ended. Without the sandbox
 (``plan.sandbox`` False) ``A`` serves itself, under rlimits only.
 """
 
@@ -118,6 +119,9 @@ class BlockHost:
         if reply[0] == "ok" and len(reply) == 2:
             return reply[1]
         if reply[0] == "raised" and len(reply) == 5:
+            if reply[2] == "OSError" and str(reply[3]).startswith("[Errno 27]"):  # EFBIG: over RLIMIT_FSIZE
+                raise RaisedInBlock("output", "", f"printed more than {self.plan.output_bytes / 2**20:g} MB "
+                                    "(output is capped)")
             raise RaisedInBlock(*(str(x) for x in reply[1:]))
         if reply[0] == "input" and len(reply) == 2:
             raise InputError(str(reply[1]))
@@ -295,7 +299,7 @@ def _student_side(fd: int, out_fd: int, err_fd: int, confinement: Any, cgroup: A
             except BaseException as exc:  # noqa: BLE001 - nothing of the student's runs unconfined
                 os.write(2, f"qcarlab sandbox: {exc}\n".encode(errors="replace"))
                 os._exit(SETUP_FAILED)
-            host.main(fd)  # never returns
+            _init(fd, host.main)  # never returns
         os.close(fd)
         _, status = os.waitpid(b, 0)
         code = os.waitstatus_to_exitcode(status)
@@ -307,6 +311,29 @@ def _student_side(fd: int, out_fd: int, err_fd: int, confinement: Any, cgroup: A
             pass
     finally:
         os._exit(code & 0xFF)
+
+
+def _init(fd: int, serve: Any) -> None:
+    """B, the namespace's PID 1: fork C, which serves (the student's code runs as an ordinary
+    process, signals and all), reap every orphan until C ends, then end with C's status
+    (when PID 1 ends, the kernel kills what is left in the namespace)."""
+    c = os.fork()
+    if c == 0:
+        serve(fd)  # never returns
+    os.close(fd)
+    code = 1
+    while True:
+        try:
+            pid, status = os.waitpid(-1, 0)
+        except ChildProcessError:
+            break
+        except InterruptedError:
+            continue
+        if pid == c:
+            code = os.waitstatus_to_exitcode(status)
+            code = 128 - code if code < 0 else code
+            break
+    os._exit(code & 0xFF)
 
 
 def _rlimits(plan: HostPlan) -> None:
