@@ -7,7 +7,15 @@
         print(car.read().encoder_counts)
 """
 
-from qcarlab.car import open_car
+import os as _os
+
+# No image qcarlab decodes may be larger than this (a 30,000 x 30,000 px PNG of a few kB would take
+# gigabytes): qcarlab.media.check_image_size reads the size from the header first, and OpenCV
+# itself refuses larger images (its own setting, read at its first decode).
+MAX_IMAGE_PIXELS = 50_000_000
+_os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
+
+from qcarlab.car import open_car  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["open_car", "__version__"]

@@ -17,7 +17,8 @@ import numpy as np
 
 from qcarlab.errors import InputError
 
-__all__ = ["IMAGE_EXT", "VIDEO_EXT", "Source", "VideoOut", "expand_paths", "frames_of", "read_depth", "read_image"]
+__all__ = ["IMAGE_EXT", "VIDEO_EXT", "Source", "VideoOut", "check_image_size", "expand_paths", "frames_of",
+           "image_size", "read_depth", "read_image"]
 
 IMAGE_EXT = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
 VIDEO_EXT = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
@@ -61,6 +62,54 @@ def expand_paths(paths: Sequence[str | Path]) -> list[Source]:
     return out
 
 
+def image_size(data: bytes | np.ndarray) -> tuple[int, int] | None:
+    """(width, height) from an image file's header without decoding it (PNG, JPEG, BMP, GIF,
+    PNM); None for another format or a header that does not say."""
+    head = bytes(data[:65536])
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if head[:2] == b"BM" and len(head) >= 26:
+        return abs(int.from_bytes(head[18:22], "little", signed=True)), abs(int.from_bytes(head[22:26], "little",
+                                                                                              signed=True))
+    if head[:4] == b"GIF8" and len(head) >= 10:
+        return int.from_bytes(head[6:8], "little"), int.from_bytes(head[8:10], "little")
+    if head[:2] == b"\xff\xd8":  # JPEG: the first start-of-frame marker
+        i = 2
+        while i + 9 < len(head):
+            if head[i] != 0xFF:
+                i += 1
+                continue
+            marker = head[i + 1]
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+                return int.from_bytes(head[i + 7:i + 9], "big"), int.from_bytes(head[i + 5:i + 7], "big")
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7 or marker == 0xFF:
+                i += 1 if marker == 0xFF else 2
+                continue
+            i += 2 + int.from_bytes(head[i + 2:i + 4], "big")
+        return None
+    if head[:1] == b"P" and head[1:2] in b"123456" and len(head) > 2:
+        words: list[bytes] = []
+        for line in head[2:].split(b"\n"):
+            words += line.split(b"#", 1)[0].split()
+            if len(words) >= 2:
+                try:
+                    return int(words[0]), int(words[1])
+                except ValueError:
+                    return None
+    return None
+
+
+def check_image_size(data: bytes | np.ndarray, where: object) -> None:
+    """InputError, before any decoding, for an image whose header says it is larger than
+    :data:`qcarlab.MAX_IMAGE_PIXELS` (a few kB can claim 30,000 x 30,000 px)."""
+    from qcarlab import MAX_IMAGE_PIXELS
+
+    size = image_size(data)
+    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise InputError(f"{where}: the image is {size[0]} x {size[1]} px, over the {MAX_IMAGE_PIXELS / 1e6:g} "
+                         "megapixels qcarlab reads")
+
+
 def _as_bgr(img: np.ndarray, where: Path) -> np.ndarray:
     if img.dtype == np.uint16:
         img = (img // 257).astype(np.uint8)
@@ -79,6 +128,8 @@ def read_image(path: str | Path) -> np.ndarray:
     """A BGR uint8 image (grey, 16-bit and alpha images converted)."""
     p = Path(path)
     data = np.fromfile(str(p), np.uint8) if p.is_file() else None
+    if data is not None:
+        check_image_size(data, p)
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data is not None and data.size else None
     if img is None:
         raise InputError(f"{p}: cannot read this image (not an image file, or damaged)")
@@ -137,6 +188,8 @@ def read_depth(path: str | Path, shape: tuple[int, int] | None = None) -> np.nda
         d = d.astype(np.float32)
     elif p.suffix.lower() == ".png":
         data = np.fromfile(str(p), np.uint8) if p.is_file() else None
+        if data is not None:
+            check_image_size(data, p)
         d = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data is not None and data.size else None
         if d is None or d.ndim != 2 or d.dtype != np.uint16:
             raise InputError(f"{p}: a depth PNG is one 16-bit channel in millimetres")

@@ -76,6 +76,26 @@ def atomic_file(path: Path, mode: str = "w", **kw: Any):
         raise
 
 
+def inner_folder(base: Path, *parts: str) -> Path:
+    """``base/parts...`` made as real folders: a symbolic link planted on the way is removed, never
+    followed (``base`` itself is the user's choice and taken as it is)."""
+    path = Path(base)
+    path.mkdir(parents=True, exist_ok=True)
+    for part in parts:
+        path = path / part
+        if path.is_symlink() or (path.exists() and not path.is_dir()):
+            path.unlink()
+        path.mkdir(exist_ok=True)
+    return path
+
+
+def write_bytes(path: Path, data: bytes) -> Path:
+    """``data`` to ``path`` through :func:`atomic_file` (a symbolic link at ``path`` is replaced, not followed)."""
+    with atomic_file(path, "wb") as fh:
+        fh.write(data)
+    return path
+
+
 def write_json(path: Path, results: Mapping[str, Any]) -> Path:
     with atomic_file(path, "w", encoding="utf-8") as fh:
         fh.write(dumps(results) + "\n")

@@ -16,7 +16,7 @@ from qcarlab.grading.grader import Options, grade, make_plan, summary
 from qcarlab.grading.limits import Limits
 from qcarlab.grading.sheet import Sheet, find_sheet, load_sheet, select_tasks, shipped_sheets
 from qcarlab.grading.submission import class_folders
-from qcarlab.record import dumps, write_json
+from qcarlab.record import dumps, inner_folder, write_bytes, write_json
 
 
 class CliCommands:
@@ -53,18 +53,19 @@ def _check_sheet_commands(sheets: list[Sheet], commands: CliCommands) -> None:
                     raise InputError(f"{s.path}: task {t.id}: {exc}") from None
 
 
-def _write_artifacts(folder: Path, row: dict[str, Any]) -> list[str]:
+def _write_artifacts(out: Path, parts: tuple[str, ...], row: dict[str, Any]) -> list[str]:
+    """A task's results and figures in OUT/PARTS (no symbolic link followed on the way)."""
     written = []
     results = row.get("_results")
     figs = row.get("_figures") or {}
     if not figs and results is None:
         return written
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = inner_folder(out, *parts)
     if results is not None:
         write_json(folder / "results.json", results)
         written.append("results.json")
     for name, data in sorted(figs.items()):
-        (folder / name).write_bytes(data)
+        write_bytes(folder / Path(name).name, data)
         written.append(name)
     return written
 
@@ -221,8 +222,8 @@ def grade_cmd(
         out.mkdir(parents=True, exist_ok=True)
         for st in report_students:
             for r in st["tasks"]:
-                folder = out / (r["sheet"] if single else Path(st["student"]) / r["sheet"]) / r["id"]
-                _write_artifacts(folder, r)
+                parts = (r["sheet"], r["id"]) if single else (st["student"], r["sheet"], r["id"])
+                _write_artifacts(out, parts, r)
         written.append(write_json(out / "grade.json", report))
         if not single:
             written.append(write_gradebook(out / "gradebook.csv", report_students))

@@ -68,7 +68,7 @@ def _plan_one(student: str, sheet: Sheet, task: Task, sub: Submission | None, op
         return p
     if sub is not None:
         for name in task.student_blocks:
-            why = sub.block_problem(name) or sub.borrowed(name)
+            why = sub.borrowed(name) or sub.block_problem(name)
             if why:
                 p.problem = why
                 return p

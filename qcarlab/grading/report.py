@@ -76,10 +76,20 @@ def write_junit(path: str | Path, students: list[dict[str, Any]], single: bool) 
             suite.add_property("points", f"{sum(r['earned'] for r in rows):g}")
             suite.add_property("max_points", f"{sum(r['points'] for r in rows if r['status'] != 'skipped'):g}")
             xml.add_testsuite(suite)
+    import os
+    import tempfile
+
     out = Path(path)
     if out.parent != Path(""):
         out.parent.mkdir(parents=True, exist_ok=True)
-    xml.write(str(out), pretty=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent)
+    os.close(fd)
+    try:
+        xml.write(tmp, pretty=True)
+        os.replace(tmp, out)  # a symbolic link at ``out`` is replaced, never followed
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
     return out
 
 
@@ -100,8 +110,10 @@ def write_gradebook(path: str | Path, students: list[dict[str, Any]]) -> Path:
     """student, points per task, total, max_points, sandboxed (skipped tasks are empty; a task the
     grader failed to run says "not graded")."""
     cols = columns(students)
+    from qcarlab.record import atomic_file
+
     out = Path(path)
-    with open(out, "w", newline="", encoding="utf-8") as f:
+    with atomic_file(out, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
         w.writerow(["student", *cols, "total", "max_points", "sandboxed"])
         for st in students:
@@ -130,11 +142,18 @@ h2{border-top:2px solid #ddd;padding-top:1em} .small{color:#666;font-size:85%}
 
 
 def thumbnail(png: bytes, width: int = 480) -> tuple[str, bytes]:
-    """A figure scaled to ``width`` px as JPEG (mime, bytes); the PNG itself when it cannot be read."""
+    """A figure scaled to ``width`` px as JPEG (mime, bytes); the PNG itself when it cannot be read
+    or its header says it is over :data:`qcarlab.MAX_IMAGE_PIXELS` (it is then never decoded)."""
     try:
         import cv2
         import numpy as np
 
+        from qcarlab import MAX_IMAGE_PIXELS
+        from qcarlab.media import image_size
+
+        size = image_size(png)
+        if size is None or size[0] * size[1] > MAX_IMAGE_PIXELS:  # never decoded: shown as it is
+            return "image/png", png
         img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
         if img is None:
             return "image/png", png
@@ -214,7 +233,9 @@ def write_html(path: str | Path, title: str, students: list[dict[str, Any]], fig
             parts.append(f"<h3>answers.md ({e(sheet)})</h3><pre>{e(text)}</pre>")
     parts.append("</body></html>")
     out = Path(path)
-    out.write_text("".join(parts), encoding="utf-8")
+    from qcarlab.record import write_bytes
+
+    write_bytes(out, "".join(parts).encode("utf-8"))
     return out
 
 

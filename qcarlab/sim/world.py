@@ -683,7 +683,16 @@ def _load_ros(data: dict[str, Any], c: _Ctx, path: Path, params: QCarParams) -> 
     if mode not in ("trinary", "scale", "raw"):
         raise c.fail("mode", f"expected trinary, scale or raw, got {mode!r}")
     img_path = (path.parent / image) if not Path(image).is_absolute() else Path(image)
-    img = cv2.imread(str(img_path), cv2.IMREAD_GRAYSCALE) if img_path.is_file() else None
+    img = None
+    if img_path.is_file():
+        from qcarlab.media import check_image_size
+
+        data = np.fromfile(str(img_path), np.uint8)
+        try:
+            check_image_size(data, img_path)
+        except InputError as exc:
+            raise c.fail("image", str(exc)) from None
+        img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
     if img is None:
         raise c.fail("image", f"cannot read map image '{image}' (looked for {img_path})")
     if mode == "raw":
