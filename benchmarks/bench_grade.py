@@ -4,6 +4,14 @@
     python benchmarks/bench_grade.py --student       # one student, all five sheets, --jobs 1 and 2
     python benchmarks/bench_grade.py --class-size 20 --reps 2
     python benchmarks/bench_grade.py --student --cold    # also with every task a fresh interpreter
+    python benchmarks/bench_grade.py --sandbox --against /tmp/before   # the sandbox's cost (issue 26)
+
+``--sandbox`` alternates ``--sandbox required`` (the student's code in its own confined process)
+with ``--sandbox off`` (its own process, not confined) and, with ``--against DIR``, with the
+grader of the checkout in DIR (the code before the split: the student's code in the task's
+process), and prints the sandbox's cost per task (the wall-time difference over the tasks, at
+``--jobs 1``) and the graded tasks per hour of each (``--jobs 2``). Target (issue 26): at most
+0.2 s of extra wall time per task, and tasks per hour within 20 % of the code before.
 
 Tasks are forked from a warm zygote (qcarlab/grading/warm.py) unless ``QCARLAB_GRADE_COLD=1``;
 ``--cold`` measures both, alternated, so the warm start's saving is measured under the same load.
@@ -43,12 +51,15 @@ RAISES = "def stop_sign(distance_to_sign, desired_speed):\n    return desired_sp
 CPU: list[float] = []  # CPU seconds (user + system) of each grade run and all its task processes
 
 
-def grade(args: list[str], cold: bool = False) -> float:
-    """Wall seconds of one ``qcarlab grade`` run; its CPU seconds go to CPU."""
+def grade(args: list[str], cold: bool = False, against: str | None = None) -> float:
+    """Wall seconds of one ``qcarlab grade`` run (of the checkout ``against``, when given); its CPU
+    seconds go to CPU."""
     env = dict(os.environ)
     env.pop("QCARLAB_GRADE_COLD", None)
     if cold:
         env["QCARLAB_GRADE_COLD"] = "1"
+    if against:
+        env["PYTHONPATH"] = against + os.pathsep + env.get("PYTHONPATH", "")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "qcarlab", "grade", *args], capture_output=True, text=True, env=env)
@@ -107,6 +118,46 @@ def klass(size: int, reps: int, tmp: Path) -> None:
           f"gradebooks identical: {books[1] == books[2]}")
 
 
+def sandbox_cost(reps: int, tmp: Path, against: str | None) -> None:
+    """One student's five sheets (``--jobs 1``: the cost per task) and a class of 10 on the
+    stop-sign sheet (``--jobs 2``: tasks per hour), sandboxed, not, and the code before."""
+    sub = correct_submission(tmp / "student")
+    root = tmp / "class10"
+    for i in range(10):
+        correct_submission(root / f"student{i:02d}", ("stop-sign",))
+    configs = [("sandboxed", ["--sandbox", "required"], None), ("not sandboxed", ["--sandbox", "off"], None)]
+    if against:
+        configs.append(("code before", [], against))
+    runs = {"one": ([*FIVE, "--submission", str(sub), "--jobs", "1"], 25),
+            "class": (["stop-sign", "--class", str(root), "--jobs", "2"], 50)}
+    wall: dict[tuple[str, str], list[float]] = {(r, c[0]): [] for r in runs for c in configs}
+    for rep in range(reps):
+        for label, extra, where in configs if rep % 2 == 0 else configs[::-1]:
+            for run, (args, _) in runs.items():
+                before = load()
+                t = grade([*args, *extra, "--out", str(tmp / f"{run}-{len(wall[(run, label)])}-{label[:3]}")],
+                          against=where)
+                wall[(run, label)].append(t)
+                print(f"  {run:5s} {label:13s}: {t:6.1f} s wall, {CPU[-1]:6.1f} s CPU   ({before} -> {load()})",
+                      flush=True)
+    base = "code before" if against else "not sandboxed"
+    print(f"\nsandbox cost (medians of {reps}; {load()}):")
+    for label, _, _ in configs:
+        one = statistics.median(wall[("one", label)])
+        klass_s = statistics.median(wall[("class", label)])
+        extra = (one - statistics.median(wall[("one", base)])) / runs["one"][1]
+        per_hour = runs["class"][1] / klass_s * 3600
+        ratio = per_hour / (runs["class"][1] / statistics.median(wall[("class", base)]) * 3600)
+        print(f"  {label:13s}: one student, 25 tasks, --jobs 1: {one:6.1f} s ({extra:+.3f} s a task against {base}); "
+              f"class of 10, 50 tasks, --jobs 2: {klass_s:6.1f} s = {per_hour:,.0f} tasks an hour ({ratio:.2f}x)")
+    if against:
+        one_extra = (statistics.median(wall[("one", "sandboxed")]) - statistics.median(wall[("one", base)])) / 25
+        ratio = statistics.median(wall[("class", base)]) / statistics.median(wall[("class", "sandboxed")])
+        ok = one_extra <= 0.2 and ratio >= 0.8
+        print(f"target: <= 0.2 s a task and >= 0.8x the tasks an hour of the code before: "
+              f"{one_extra:+.3f} s, {ratio:.2f}x -> {'met' if ok else 'MISSED'}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--student", action="store_true", help="only the one-student measurement")
@@ -114,9 +165,14 @@ def main() -> None:
     ap.add_argument("--class-size", type=int, default=20)
     ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--cold", action="store_true", help="also measure with every task a fresh interpreter")
+    ap.add_argument("--sandbox", action="store_true", help="only the sandbox's cost: sandboxed, not, and --against")
+    ap.add_argument("--against", metavar="DIR", help="with --sandbox: also the grader of the checkout in DIR")
     a = ap.parse_args()
     print(f"{os.cpu_count()} cores; {load()}")
     with tempfile.TemporaryDirectory(prefix="bench-grade-") as tmp:
+        if a.sandbox:
+            sandbox_cost(a.reps, Path(tmp), a.against)
+            return
         if not a.class_only:
             student(a.reps, Path(tmp), a.cold)
         if not a.student:
