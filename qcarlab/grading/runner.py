@@ -126,9 +126,9 @@ def task_env(results: Path | None = None) -> dict[str, str]:
     return env
 
 
-def _spec(job: Job, work: Path, results: Path) -> dict[str, Any]:
+def _spec(job: Job, work: Path, results: Path, cpu: int | None) -> dict[str, Any]:
     spec: dict[str, Any] = {"kind": job.kind, "limits": job.limits, "results": str(results),
-                            "sandbox": job.sandbox, "student": job.student_code}
+                            "sandbox": job.sandbox, "student": job.student_code, "cpu": cpu}
     if job.kind == "scenario":
         argv = list(job.argv)
         if job.figures:
@@ -139,21 +139,24 @@ def _spec(job: Job, work: Path, results: Path) -> dict[str, Any]:
     return spec
 
 
-def execute(job: Job, warm: WarmStart | None = None) -> dict[str, Any]:
+def execute(job: Job, warm: WarmStart | None = None, cpu: int | None = None) -> dict[str, Any]:
     """Run ``job`` in its own process under its limits; the outcome as a JSON-able dict (figures as bytes).
 
     With ``warm`` (:class:`~qcarlab.grading.warm.WarmStart`) the process is forked from a zygote that
     has loaded qcarlab already; without it (or when the zygote cannot), a fresh interpreter. A task
     that fails for the grader's own reasons (status ``infrastructure``: its process killed from
-    outside, the zygote gone, the sandbox not set up) is run once more, cold."""
+    outside, the zygote gone, the sandbox not set up) is run once more, cold. ``cpu``: the core
+    the task's processes (the trusted one and the student's) are held to, so that a call of a
+    student's block is a hand-over on one core (some 7 us) rather than a wake-up on another (50-90
+    us on a VM); None: the core the task starts on."""
     import qcarlab
 
     if job.qcarlab and job.qcarlab != qcarlab.__version__:
         return {"status": "error", "reason": f"this worker has qcarlab {qcarlab.__version__}, the grader "
                 f"{job.qcarlab}", "seconds": 0.0}
-    outcome = _attempt(job, warm)
+    outcome = _attempt(job, warm, cpu)
     if outcome["status"] == "infrastructure":
-        again = _attempt(job, None)
+        again = _attempt(job, None, cpu)
         again["seconds"] = round(again["seconds"] + outcome["seconds"], 3)
         if again["status"] == "infrastructure":
             again["reason"] = f"not graded: the grader failed twice ({again['reason']}); run it again"
@@ -161,7 +164,7 @@ def execute(job: Job, warm: WarmStart | None = None) -> dict[str, Any]:
     return outcome
 
 
-def _attempt(job: Job, warm: WarmStart | None) -> dict[str, Any]:
+def _attempt(job: Job, warm: WarmStart | None, cpu: int | None) -> dict[str, Any]:
     limits = Limits(**job.limits)
     work = Path(tempfile.mkdtemp(prefix="qcarlab-grade-"))
     t0 = time.monotonic()
@@ -172,7 +175,7 @@ def _attempt(job: Job, warm: WarmStart | None) -> dict[str, Any]:
             (sub / Path(name).name).write_bytes(data)
         results = work / ("cases.jsonl" if job.kind == "block" else "results.json")
         spec_path = work / "spec.json"
-        spec_path.write_text(json.dumps(_spec(job, work, results)), encoding="utf-8")
+        spec_path.write_text(json.dumps(_spec(job, work, results, cpu)), encoding="utf-8")
         out_path, err_path = work / "stdout.txt", work / "stderr.txt"
         ran = warm.run(spec_path, work, out_path, err_path, {"QCARLAB_RESULTS": str(results)}, limits.timeout) \
             if warm is not None else None

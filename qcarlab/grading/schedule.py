@@ -14,6 +14,8 @@ timing except the wall-time limit).
 
 from __future__ import annotations
 
+import os
+import queue
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from typing import Any
@@ -48,8 +50,21 @@ def _run_local(jobs: list[Job], workers: int, done: Progress | None, warm: WarmS
             if done:
                 done(job, outcomes[i])  # type: ignore[arg-type]
         return outcomes  # type: ignore[return-value]
+    cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    slots: queue.SimpleQueue[int] = queue.SimpleQueue()
+    for slot in range(workers):
+        slots.put(slot)
+
+    def run(job: Job) -> dict[str, Any]:
+        """One job on a core of its own (slot k on core k, as long as there are cores)."""
+        slot = slots.get()
+        try:
+            return execute(job, warm, cores[slot % len(cores)] if cores else None)
+        finally:
+            slots.put(slot)
+
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="qcarlab-grade") as pool:
-        futures = {pool.submit(execute, job, warm): i for i, job in enumerate(jobs)}
+        futures = {pool.submit(run, job): i for i, job in enumerate(jobs)}
         for fut in as_completed(futures):
             i = futures[fut]
             try:

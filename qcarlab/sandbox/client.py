@@ -63,6 +63,7 @@ class BlockHost:
 
     def __init__(self, sock: socket.socket, pid: int, plan: HostPlan, cgroup: Any):
         self.sock, self.pid, self.plan, self.cgroup = sock, pid, plan, cgroup
+        self.channel = codec.Channel(sock, trusted_peer=False)
         self.status: int | None = None
         self.dead: str | None = None
 
@@ -103,8 +104,8 @@ class BlockHost:
         if self.dead is not None:
             raise RaisedInBlock("died", "", self.dead)
         try:
-            codec.send(self.sock, msg)
-            reply = codec.recv(self.sock)
+            self.channel.send(msg)
+            reply = self.channel.recv()
         except codec.CodecError as exc:  # (our own arguments always encode: this is their reply)
             self.dead = f"the process running your blocks sent something that is not a value ({exc})"
             self.kill()
@@ -137,15 +138,15 @@ class BlockHost:
             raise InputError(f"{path}: no such file (expected a Python file with your blocks)")
         if path.suffix != ".py":
             raise InputError(f"{path}: expected a Python file (.py)")
-        key = str(path.resolve())
         try:
-            found = self.request("load", key)
+            found = self.request("load", str(path.resolve()))
         except RaisedInBlock as exc:
             raise InputError(f"{path}: loading it {exc.message}") from None
-        if not isinstance(found, dict):
-            raise InputError(f"{path}: the process running your code did not list its blocks")
-        return {str(name): (RemoteClass if kind == "class" else RemoteFunction)(self, f"{key}::{name}")
-                for name, kind in found.items()}
+        blocks = {}
+        for name, entry in (found.items() if isinstance(found, dict) else ()):
+            if isinstance(entry, tuple) and len(entry) == 2 and type(entry[0]) is int:
+                blocks[str(name)] = (RemoteClass if entry[1] == "class" else RemoteFunction)(self, entry[0], str(name))
+        return blocks
 
     # ---------------------------------------------------------------- the end
     def wait(self, timeout: float = 2.0) -> int | None:
@@ -217,14 +218,14 @@ class RemoteFunction:
 
     block_class = False
 
-    def __init__(self, host: BlockHost, key: str):
-        self.host, self.key = host, key
+    def __init__(self, host: BlockHost, key: int, name: str):
+        self.host, self.key, self.name = host, key, name
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        return self.host.request("call", self.key, args, None, kwargs)
+        return self.host.request("call", self.key, args, None, kwargs or None)
 
     def __repr__(self) -> str:
-        return f"<student function {self.key.rpartition('::')[2]}>"
+        return f"<student function {self.name}>"
 
 
 class RemoteClass(RemoteFunction):
@@ -234,7 +235,7 @@ class RemoteClass(RemoteFunction):
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         key, is_callable, methods = self.host.request("new", self.key)
-        return RemoteInstance(self.host, str(key), [str(m) for m in methods]) if is_callable else NotCallable()
+        return RemoteInstance(self.host, int(key), [str(m) for m in methods]) if is_callable else NotCallable()
 
 
 class NotCallable:
@@ -244,17 +245,17 @@ class NotCallable:
 class RemoteInstance:
     """An instance of a student's class in their process: called like it, its methods and attributes read there."""
 
-    def __init__(self, host: BlockHost, key: str, methods: list[str]):
+    def __init__(self, host: BlockHost, key: int, methods: list[str]):
         self._host, self._key, self._methods = host, key, set(methods)
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        return self._host.request("call", self._key, args, None, kwargs)
+        return self._host.request("call", self._key, args, None, kwargs or None)
 
     def __getattr__(self, name: str) -> Any:
         if name.startswith("_"):
             raise AttributeError(name)
         if name in self._methods:
-            return lambda *args, **kwargs: self._host.request("call", self._key, args, name, kwargs)
+            return lambda *args, **kwargs: self._host.request("call", self._key, args, name, kwargs or None)
         try:
             return self._host.request("get", self._key, name)
         except RaisedInBlock as exc:

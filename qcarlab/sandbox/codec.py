@@ -1,7 +1,7 @@
-"""What crosses between the trusted side and the student's process: plain values, never pickles.
+"""What crosses between the trusted side and the student's process: plain values, never their pickles.
 
-Unpickling runs code, so nothing the student's process sends is ever unpickled. Both directions
-use this small tagged format instead, which can only ever decode to these values::
+Unpickling runs code, so nothing the student's process sends is ever unpickled: it replies in
+this small tagged format, which can only ever decode to these values::
 
     None, bool, int, float, str, bytes, list, tuple, dict (str keys),
     numpy.ndarray (numeric dtypes only, C order), and an object's public attributes
@@ -15,6 +15,7 @@ Arrays travel as their raw bytes (a 640x480 BGR frame is one 921,600-byte copy e
 from __future__ import annotations
 
 import math
+import pickle
 import socket
 import struct
 import types
@@ -47,56 +48,83 @@ def _result_types() -> dict[str, type]:
 
 
 # --------------------------------------------------------------------------------------------
-# encoding
+# encoding (a call of a block is a round trip: these run twice per call each side, so the common
+# values take one dictionary lookup and one struct.pack)
 # --------------------------------------------------------------------------------------------
+_HEADS: dict[tuple, bytes] = {}  # an array's header by (dtype, shape): a block sees the same few
+_TAG_F64 = struct.Struct("<cd")
+_TAG_I64 = struct.Struct("<cq")
+_TAG_LEN = struct.Struct("<cI")
+
+
 def encode(value: Any) -> bytes:
-    out = bytearray()
+    out: list[bytes] = []
     _enc(value, out, 0)
-    if len(out) > MAX_MESSAGE:
-        raise CodecError(f"a value of {len(out)} bytes is over the {MAX_MESSAGE // 2**20} MB limit")
-    return bytes(out)
+    data = b"".join(out)
+    if len(data) > MAX_MESSAGE:
+        raise CodecError(f"a value of {len(data)} bytes is over the {MAX_MESSAGE // 2**20} MB limit")
+    return data
 
 
-def _enc(v: Any, out: bytearray, depth: int) -> None:
-    if depth > MAX_DEPTH:
-        raise CodecError(f"a value nested deeper than {MAX_DEPTH}")
-    if v is None:
-        out += b"N"
-    elif v is True or v is False:
-        out += b"T" if v else b"F"
-    elif isinstance(v, np.ndarray):
-        if v.dtype.char not in DTYPES:
-            raise CodecError(f"an array of dtype {v.dtype} cannot be sent (numbers only)")
-        a = np.ascontiguousarray(v)
-        dt = a.dtype.str.encode()
-        out += b"A" + bytes([len(dt)]) + dt + bytes([a.ndim])
-        for n in a.shape:
-            out += _I64.pack(n)
-        data = a.tobytes()
-        out += _I64.pack(len(data)) + data
-    elif isinstance(v, (bool, np.bool_)):
-        out += b"T" if v else b"F"
-    elif isinstance(v, (int, np.integer)):
-        iv = int(v)
-        if -(2**63) <= iv < 2**63:
-            out += b"I" + _I64.pack(iv)
-        else:
-            text = str(iv).encode()
-            out += b"J" + _LEN.pack(len(text)) + text
-    elif isinstance(v, (float, np.floating)):
-        out += b"D" + _F64.pack(float(v))
-    elif isinstance(v, str):
-        data = v.encode("utf-8", "surrogatepass")
-        out += b"S" + _LEN.pack(len(data)) + data
-    elif isinstance(v, (bytes, bytearray, memoryview)):
-        data = bytes(v)
-        out += b"B" + _LEN.pack(len(data)) + data
-    elif isinstance(v, (list, tuple)):
-        out += (b"L" if isinstance(v, list) else b"U") + _LEN.pack(len(v))
+def _enc(v: Any, out: list[bytes], depth: int) -> None:
+    t = type(v)
+    if t is float:
+        out.append(_TAG_F64.pack(b"D", v))
+    elif t is tuple or t is list:
+        if depth > MAX_DEPTH:
+            raise CodecError(f"a value nested deeper than {MAX_DEPTH}")
+        out.append(_TAG_LEN.pack(b"U" if t is tuple else b"L", len(v)))
         for item in v:
             _enc(item, out, depth + 1)
+    elif v is None:
+        out.append(b"N")
+    elif t is bool:
+        out.append(b"T" if v else b"F")
+    elif t is int:
+        if -(2**63) <= v < 2**63:
+            out.append(_TAG_I64.pack(b"I", v))
+        else:
+            text = str(v).encode()
+            out.append(_TAG_LEN.pack(b"J", len(text)) + text)
+    elif t is str:
+        data = v.encode("utf-8", "surrogatepass")
+        out.append(_TAG_LEN.pack(b"S", len(data)))
+        out.append(data)
+    else:
+        _enc_other(v, out, depth)
+
+
+def _enc_other(v: Any, out: list[bytes], depth: int) -> None:
+    if depth > MAX_DEPTH:
+        raise CodecError(f"a value nested deeper than {MAX_DEPTH}")
+    if isinstance(v, np.ndarray):
+        head = _HEADS.get((v.dtype, v.shape))
+        if head is None:
+            if v.dtype.char not in DTYPES:
+                raise CodecError(f"an array of dtype {v.dtype} cannot be sent (numbers only)")
+            dt = v.dtype.str.encode()
+            head = b"A" + bytes([len(dt)]) + dt + bytes([v.ndim]) + b"".join(_I64.pack(n) for n in v.shape) \
+                + _I64.pack(v.nbytes)
+            if len(_HEADS) < 256:
+                _HEADS[(v.dtype, v.shape)] = head
+        out.append(head)
+        out.append(v.tobytes())  # C order, a copy
+    elif isinstance(v, (bool, np.bool_)):
+        out.append(b"T" if v else b"F")
+    elif isinstance(v, (int, np.integer)):
+        _enc(int(v), out, depth)
+    elif isinstance(v, (float, np.floating)):
+        out.append(_TAG_F64.pack(b"D", float(v)))
+    elif isinstance(v, str):
+        _enc(str(v), out, depth)
+    elif isinstance(v, (bytes, bytearray, memoryview)):
+        data = bytes(v)
+        out.append(_TAG_LEN.pack(b"B", len(data)))
+        out.append(data)
+    elif isinstance(v, (list, tuple)):
+        _enc(list(v) if isinstance(v, list) else tuple(v), out, depth)
     elif isinstance(v, dict):
-        out += b"M" + _LEN.pack(len(v))
+        out.append(_TAG_LEN.pack(b"M", len(v)))
         for k, item in v.items():
             _enc(str(k), out, depth + 1)
             _enc(item, out, depth + 1)
@@ -105,111 +133,131 @@ def _enc(v: Any, out: bytearray, depth: int) -> None:
             attrs = {f.name: getattr(v, f.name) for f in fields(v)}
         else:
             attrs = {k: a for k, a in getattr(v, "__dict__", {}).items() if not k.startswith("_") and not callable(a)}
-        name = type(v).__name__
-        out += b"O"
-        _enc(name, out, depth + 1)
+        out.append(b"O")
+        _enc(type(v).__name__, out, depth + 1)
         _enc(attrs, out, depth + 1)
 
 
 # --------------------------------------------------------------------------------------------
 # decoding
 # --------------------------------------------------------------------------------------------
-class _Reader:
-    def __init__(self, data: bytes):
-        self.data, self.i = memoryview(data), 0
-
-    def take(self, n: int) -> memoryview:
-        if n < 0 or self.i + n > len(self.data):
-            raise CodecError("a truncated value")
-        chunk = self.data[self.i: self.i + n]
-        self.i += n
-        return chunk
-
-    def u32(self) -> int:
-        return _LEN.unpack(self.take(4))[0]
-
-    def i64(self) -> int:
-        return _I64.unpack(self.take(8))[0]
+_DTYPES_SEEN: dict[bytes, np.dtype] = {}
+_F64_AT = struct.Struct("<d").unpack_from
+_I64_AT = struct.Struct("<q").unpack_from
+_U32_AT = struct.Struct("<I").unpack_from
 
 
 def decode(data: bytes) -> Any:
-    r = _Reader(data)
-    value = _dec(r, 0)
-    if r.i != len(r.data):
+    try:
+        value, end = _dec(data, 0, 0)
+    except (struct.error, IndexError, UnicodeDecodeError):
+        raise CodecError("a truncated or malformed value") from None
+    if end != len(data):
         raise CodecError("bytes left over after the value")
     return value
 
 
-def _dec(r: _Reader, depth: int) -> Any:
-    if depth > MAX_DEPTH:
-        raise CodecError(f"a value nested deeper than {MAX_DEPTH}")
-    tag = bytes(r.take(1))
-    if tag == b"N":
-        return None
-    if tag == b"T":
-        return True
-    if tag == b"F":
-        return False
-    if tag == b"I":
-        return r.i64()
-    if tag == b"J":
-        text = bytes(r.take(r.u32()))
-        if len(text) > 4300 or not text.lstrip(b"-").isdigit():
-            raise CodecError("a malformed integer")
-        return int(text)
-    if tag == b"D":
-        return _F64.unpack(r.take(8))[0]
-    if tag == b"S":
-        return str(bytes(r.take(r.u32())), "utf-8", "surrogatepass")
-    if tag == b"B":
-        return bytes(r.take(r.u32()))
-    if tag in (b"L", b"U"):
-        n = r.u32()
-        if n > MAX_ITEMS:
+def _span(data: bytes, i: int, n: int) -> int:
+    if i + n > len(data):
+        raise CodecError("a truncated value")
+    return i + n
+
+
+def _dec(data: bytes, i: int, depth: int) -> tuple[Any, int]:
+    tag = data[i]
+    i += 1
+    if tag == 68:  # D
+        return _F64_AT(data, i)[0], i + 8
+    if tag == 85 or tag == 76:  # U, L
+        if depth > MAX_DEPTH:
+            raise CodecError(f"a value nested deeper than {MAX_DEPTH}")
+        n = _U32_AT(data, i)[0]
+        i += 4
+        if n > MAX_ITEMS or n > len(data) - i:
             raise CodecError(f"a list of {n} items")
-        items = [_dec(r, depth + 1) for _ in range(n)]
-        return items if tag == b"L" else tuple(items)
-    if tag == b"M":
-        n = r.u32()
-        if n > MAX_ITEMS:
+        items = []
+        for _ in range(n):
+            item, i = _dec(data, i, depth + 1)
+            items.append(item)
+        return (tuple(items) if tag == 85 else items), i
+    if tag == 78:  # N
+        return None, i
+    if tag == 84:  # T
+        return True, i
+    if tag == 70:  # F
+        return False, i
+    if tag == 73:  # I
+        return _I64_AT(data, i)[0], i + 8
+    if tag == 83 or tag == 66 or tag == 74:  # S, B, J
+        n = _U32_AT(data, i)[0]
+        i += 4
+        end = _span(data, i, n)
+        raw = data[i:end]
+        if tag == 83:
+            return str(raw, "utf-8", "surrogatepass"), end
+        if tag == 66:
+            return bytes(raw), end
+        if n > 4300 or not raw.lstrip(b"-").isdigit():
+            raise CodecError("a malformed integer")
+        return int(raw), end
+    if tag == 77:  # M
+        if depth > MAX_DEPTH:
+            raise CodecError(f"a value nested deeper than {MAX_DEPTH}")
+        n = _U32_AT(data, i)[0]
+        i += 4
+        if n > MAX_ITEMS or n > len(data) - i:
             raise CodecError(f"a mapping of {n} items")
         out = {}
         for _ in range(n):
-            k = _dec(r, depth + 1)
+            k, i = _dec(data, i, depth + 1)
             if not isinstance(k, str):
                 raise CodecError("a mapping key that is not text")
-            out[k] = _dec(r, depth + 1)
-        return out
-    if tag == b"A":
-        dt = bytes(r.take(r.take(1)[0])).decode("ascii", "replace")
-        try:
-            dtype = np.dtype(dt)
-        except TypeError:
-            raise CodecError(f"an unknown dtype {dt!r}") from None
-        if dtype.char not in DTYPES:
-            raise CodecError(f"an array of dtype {dt!r}")
-        ndim = r.take(1)[0]
+            out[k], i = _dec(data, i, depth + 1)
+        return out, i
+    if tag == 65:  # A
+        n = data[i]
+        end = _span(data, i + 1, n)
+        dt = bytes(data[i + 1:end])
+        dtype = _DTYPES_SEEN.get(dt)
+        if dtype is None:
+            try:
+                dtype = np.dtype(dt.decode("ascii", "replace"))
+            except TypeError:
+                raise CodecError(f"an unknown dtype {dt!r}") from None
+            if dtype.char not in DTYPES:
+                raise CodecError(f"an array of dtype {dt!r}")
+            if len(_DTYPES_SEEN) < 64:
+                _DTYPES_SEEN[dt] = dtype
+        ndim = data[end]
+        i = end + 1
         if ndim > 8:
             raise CodecError(f"an array of {ndim} dimensions")
-        shape = tuple(r.i64() for _ in range(ndim))
-        if any(n < 0 for n in shape):
+        shape = []
+        for _ in range(ndim):
+            shape.append(_I64_AT(data, i)[0])
+            i += 8
+        if any(k < 0 for k in shape):
             raise CodecError("an array with a negative dimension")
-        nbytes = r.i64()
+        nbytes = _I64_AT(data, i)[0]
+        i += 8
         if nbytes != math.prod(shape) * dtype.itemsize:
             raise CodecError("an array whose bytes do not match its shape")
-        return np.frombuffer(bytearray(r.take(nbytes)), dtype=dtype).reshape(shape)  # writable, our own copy
-    if tag == b"O":
-        name, attrs = _dec(r, depth + 1), _dec(r, depth + 1)
+        end = _span(data, i, nbytes)
+        array = np.frombuffer(bytearray(data[i:end]), dtype=dtype).reshape(shape)  # writable, our own copy
+        return array, end
+    if tag == 79:  # O
+        name, i = _dec(data, i, depth + 1)
+        attrs, i = _dec(data, i, depth + 1)
         if not isinstance(name, str) or not isinstance(attrs, dict):
             raise CodecError("a malformed object")
         cls = _result_types().get(name)
         if cls is not None:
             try:
-                return cls(**{f.name: _tuples(attrs[f.name]) for f in fields(cls)})
+                return cls(**{f.name: _tuples(attrs[f.name]) for f in fields(cls)}), i
             except (KeyError, TypeError, ValueError):
                 pass
-        return types.SimpleNamespace(**attrs)
-    raise CodecError(f"an unknown tag {tag!r}")
+        return types.SimpleNamespace(**attrs), i
+    raise CodecError(f"an unknown tag {bytes([tag])!r}")
 
 
 def _tuples(v: Any) -> Any:
@@ -219,30 +267,55 @@ def _tuples(v: Any) -> Any:
 # --------------------------------------------------------------------------------------------
 # framing on a stream socket
 # --------------------------------------------------------------------------------------------
-def send(sock: socket.socket, value: Any) -> None:
-    data = encode(value)
-    sock.sendall(_LEN.pack(len(data)) + data if len(data) < 65536 else _LEN.pack(len(data)))
-    if len(data) >= 65536:
-        sock.sendall(data)
+class Channel:
+    """Values over a stream socket: a 4-byte little-endian length, then the value. Reads what
+    the socket has (usually a whole message in one call) into a buffer of its own.
 
+    The two directions differ: the trusted side's requests are pickled (fast, in C; it is the
+    student's process that unpickles them, and a pickle from the trusted side is no risk to it),
+    the student's replies are this module's plain values, decoded by :func:`decode` (a pickle
+    from the student's process would run their code in the trusted one). ``trusted_peer`` says
+    which end this is: True in the student's process (its peer, qcarlab, is trusted)."""
 
-def recv(sock: socket.socket) -> Any:
-    """The next value; EOFError when the other side closed (or died)."""
-    n = _LEN.unpack(_exactly(sock, 4))[0]
-    if n > MAX_MESSAGE:
-        raise CodecError(f"a message of {n} bytes is over the {MAX_MESSAGE // 2**20} MB limit")
-    return decode(_exactly(sock, n))
+    def __init__(self, sock: socket.socket, trusted_peer: bool):
+        self.sock, self.trusted_peer = sock, trusted_peer
+        self.buf = bytearray()
+        self.chunk = bytearray(1 << 16)
 
+    def send(self, value: Any) -> None:
+        data = encode(value) if self.trusted_peer else pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
+        if len(data) < 65536:
+            self.sock.sendall(_LEN.pack(len(data)) + data)
+        else:  # (not copied again to prepend the length)
+            self.sock.sendall(_LEN.pack(len(data)))
+            self.sock.sendall(data)
 
-def _exactly(sock: socket.socket, n: int) -> bytes:
-    buf = bytearray(n)
-    view, got = memoryview(buf), 0
-    while got < n:
-        k = sock.recv_into(view[got:], n - got)
+    def recv(self) -> Any:
+        """The next value; EOFError when the other side closed (or died)."""
+        buf = self.buf
+        while len(buf) < 4:
+            self._more()
+        n = _U32_AT(buf, 0)[0]
+        if n > MAX_MESSAGE:
+            raise CodecError(f"a message of {n} bytes is over the {MAX_MESSAGE // 2**20} MB limit")
+        while len(buf) < 4 + n:
+            self._more(4 + n - len(buf))
+        data = bytes(buf[4:4 + n])
+        del buf[:4 + n]
+        return pickle.loads(data) if self.trusted_peer else decode(data)
+
+    def _more(self, want: int = 0) -> None:
+        if want > len(self.chunk):  # a large value: straight into a buffer of its size
+            big = bytearray(want)
+            k = self.sock.recv_into(big)
+            if k == 0:
+                raise EOFError("the other side closed the connection")
+            self.buf += memoryview(big)[:k]
+            return
+        k = self.sock.recv_into(self.chunk)
         if k == 0:
             raise EOFError("the other side closed the connection")
-        got += k
-    return bytes(buf)
+        self.buf += memoryview(self.chunk)[:k]
 
 
-__all__ = ["CodecError", "decode", "encode", "recv", "send"]
+__all__ = ["Channel", "CodecError", "decode", "encode"]

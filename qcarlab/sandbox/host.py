@@ -3,9 +3,10 @@
 It runs confined (:mod:`qcarlab.sandbox.jail`) and answers one request at a time on its socket
 (:mod:`qcarlab.sandbox.codec`, never pickle)::
 
-    ("load", path)                    -> ("ok", {name: "function" | "class"})   the file's blocks
-    ("call", target, args)            -> ("ok", value)                          a function or an instance
-    ("new", class)                    -> ("ok", (instance, callable, methods))  a class's instance
+    ("load", path)                    -> ("ok", {name: (id, "function" | "class")})   the file's blocks
+    ("call", id, args, method, kwargs) -> ("ok", value)                         a function, an instance
+                                                                                (or its method)
+    ("new", id)                       -> ("ok", (instance id, callable, methods))  a class's instance
     ("get", instance, attribute)      -> ("ok", value)                          e.g. a controller's .state
     any of them                       -> ("raised", kind, type, message, traceback)
                                          ("input", message)                     the file cannot be loaded
@@ -45,11 +46,11 @@ def serve(sock: socket.socket) -> None:
     from qcarlab.blocks import _import_file
     from qcarlab.errors import QcarlabError
 
-    targets: dict[str, tuple[Any, str]] = {}  # id -> (function, class or instance; its file)
-    count = 0
+    channel = codec.Channel(sock, trusted_peer=True)
+    targets: list[tuple[Any, str]] = []  # id -> (function, class or instance; its file)
     while True:
         try:
-            msg = codec.recv(sock)
+            msg = channel.recv()
         except (EOFError, OSError, codec.CodecError):
             return
         op = msg[0] if isinstance(msg, (list, tuple)) and msg else None
@@ -65,22 +66,20 @@ def serve(sock: socket.socket) -> None:
                     found = {}
                     for name, value in vars(module).items():
                         if inspect.isfunction(value) or inspect.isclass(value):
-                            targets[f"{path}::{name}"] = (value, path)
-                            found[name] = "class" if inspect.isclass(value) else "function"
+                            found[name] = (len(targets), "class" if inspect.isclass(value) else "function")
+                            targets.append((value, path))
                     reply = ("ok", found)
+            elif op == "call":
+                fn, file = targets[msg[1]]
+                if msg[3]:
+                    fn = getattr(fn, msg[3])
+                reply = ("ok", fn(*msg[2], **msg[4]) if msg[4] else fn(*msg[2]))
             elif op == "new":
                 cls, file = targets[msg[1]]
                 obj = cls()
-                count += 1
-                key = f"{msg[1]}#{count}"
-                targets[key] = (obj, file)
+                targets.append((obj, file))
                 methods = [m for m in dir(obj) if not m.startswith("_") and callable(getattr(obj, m, None))]
-                reply = ("ok", (key, callable(obj), methods))
-            elif op == "call":
-                fn, file = targets[msg[1]]
-                if len(msg) > 3 and msg[3]:
-                    fn = getattr(fn, msg[3])
-                reply = ("ok", fn(*msg[2]))
+                reply = ("ok", (len(targets) - 1, callable(obj), methods))
             elif op == "get":
                 obj, file = targets[msg[1]]
                 reply = ("ok", getattr(obj, msg[2]))
@@ -89,9 +88,9 @@ def serve(sock: socket.socket) -> None:
         except BaseException as exc:  # noqa: BLE001 - the student's code may raise anything
             reply = _raised(exc, file)
         try:
-            codec.send(sock, reply)
+            channel.send(reply)
         except codec.CodecError as exc:
-            codec.send(sock, ("value", f"{exc}"))
+            channel.send(("value", f"{exc}"))
         except OSError:
             return
 
