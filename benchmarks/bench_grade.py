@@ -28,6 +28,7 @@ stop_sign that raises.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import resource
 import statistics
@@ -131,12 +132,16 @@ def sandbox_cost(reps: int, tmp: Path, against: str | None) -> None:
     runs = {"one": ([*FIVE, "--submission", str(sub), "--jobs", "1"], 25),
             "class": (["stop-sign", "--class", str(root), "--jobs", "2"], 50)}
     wall: dict[tuple[str, str], list[float]] = {(r, c[0]): [] for r in runs for c in configs}
+    per_task: dict[tuple[str, str], list[float]] = {}  # (config, task) -> its seconds in grade.json
     for rep in range(reps):
         for label, extra, where in configs if rep % 2 == 0 else configs[::-1]:
             for run, (args, _) in runs.items():
                 before = load()
-                t = grade([*args, *extra, "--out", str(tmp / f"{run}-{len(wall[(run, label)])}-{label[:3]}")],
-                          against=where)
+                out = tmp / f"{run}-{len(wall[(run, label)])}-{label[:3]}"
+                t = grade([*args, *extra, "--out", str(out)], against=where)
+                if run == "one":
+                    for task in json.loads((out / "grade.json").read_text())["tasks"]:
+                        per_task.setdefault((label, f"{task['sheet']}/{task['id']}"), []).append(task["seconds"] or 0.0)
                 wall[(run, label)].append(t)
                 print(f"  {run:5s} {label:13s}: {t:6.1f} s wall, {CPU[-1]:6.1f} s CPU   ({before} -> {load()})",
                       flush=True)
@@ -150,6 +155,13 @@ def sandbox_cost(reps: int, tmp: Path, against: str | None) -> None:
         ratio = per_hour / (runs["class"][1] / statistics.median(wall[("class", base)]) * 3600)
         print(f"  {label:13s}: one student, 25 tasks, --jobs 1: {one:6.1f} s ({extra:+.3f} s a task against {base}); "
               f"class of 10, 50 tasks, --jobs 2: {klass_s:6.1f} s = {per_hour:,.0f} tasks an hour ({ratio:.2f}x)")
+    tasks = sorted({task for _, task in per_task})
+    extra_by_task = sorted(((statistics.median(per_task[("sandboxed", k)]) - statistics.median(per_task[(base, k)]), k)
+                            for k in tasks if ("sandboxed", k) in per_task and (base, k) in per_task), reverse=True)
+    print("  the tasks the sandbox costs most (median seconds in grade.json, sandboxed - " + base + "):")
+    for d, k in extra_by_task[:4]:
+        print(f"    {k}: {d:+.3f} s ({statistics.median(per_task[(base, k)]):.3f} -> "
+              f"{statistics.median(per_task[('sandboxed', k)]):.3f} s)")
     if against:
         one_extra = (statistics.median(wall[("one", "sandboxed")]) - statistics.median(wall[("one", base)])) / 25
         ratio = statistics.median(wall[("class", base)]) / statistics.median(wall[("class", "sandboxed")])

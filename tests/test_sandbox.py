@@ -14,6 +14,7 @@ import json
 import os
 import socket
 import subprocess
+import sys
 import textwrap
 import threading
 from pathlib import Path
@@ -60,12 +61,26 @@ def grade_class(cli, tmp_path: Path, students: dict[str, str], *extra: str) -> d
     root = tmp_path / "class"
     for name, source in students.items():
         student(root, name, source)
-    code, out, err = cli("grade", sheet, "--class", root, "--out", tmp_path / "grades", "--jobs", "2",
-                         "--sandbox", "required", "--timeout", "60", "--memory", "1024", "--json", *extra)
-    assert code in (0, 1), err
-    report = json.loads(out)
+    done = installed("grade", sheet, "--class", root, "--out", tmp_path / "grades", "--jobs", "2",
+                     "--sandbox", "required", "--timeout", "60", "--memory", "1024", "--json", *extra, cwd=tmp_path)
+    assert done.returncode in (0, 1), done.stderr
+    report = json.loads(done.stdout)
     assert report["sandbox"]["sandboxed"] is True
     return {s["student"]: {t["id"]: t for t in s["tasks"]} | {"_entry": s} for s in report["students"]}
+
+
+def installed(*args: object, cwd: Path) -> subprocess.CompletedProcess:
+    """``qcarlab ARGS`` as an instructor's CI runs it: the installed qcarlab (in CI a non-editable
+    install), from a folder that is not the checkout."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    return subprocess.run([sys.executable, "-m", "qcarlab", *map(str, args)], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+def installed_file(module: str, cwd: Path) -> Path:
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    return Path(subprocess.run([sys.executable, "-c", f"import {module} as m; print(m.__file__)"], cwd=cwd, env=env,
+                               capture_output=True, text=True, check=True).stdout.strip())
 
 
 def attack(body: str, **paths: Path) -> str:
@@ -134,13 +149,15 @@ def test_forging_the_results_patching_qcarlab_and_reading_the_sheets_change_noth
             raise SystemExit(0)  # a leak is loud: the test sees it
     """, sheet=tmp_path / "private" / "sheet.yaml", classmate=tmp_path / "class" / "alice" / "stop-sign" / "stop_sign.py",
         out=outputs, port=PORT)
-    checks_before = Path(__import__("qcarlab.grading.checks").grading.checks.__file__).read_bytes()
+    modules = {m: installed_file(m, tmp_path) for m in ("qcarlab.grading.checks", "qcarlab.record",
+                                                          "qcarlab.sim.vehicle")}
+    before = {m: f.read_bytes() for m, f in modules.items()}
     by = grade_class(cli, tmp_path, {"alice": HONEST, "mallory": forger})
     honest(by["alice"])
     deserved(by["mallory"])
     assert "LEAKED" not in (by["mallory"]["block"].get("student_output") or "")
     assert not accepted
-    assert Path(__import__("qcarlab.grading.checks").grading.checks.__file__).read_bytes() == checks_before
+    assert {m: f.read_bytes() for m, f in modules.items()} == before  # the installed qcarlab, untouched
     assert not (outputs / "planted").exists()
     server.close()
 

@@ -140,6 +140,12 @@ def student_process(spec: dict[str, Any], limits: Any) -> Any:
         why = jail.probe()
         if why is not None and mode == "required":
             raise GraderFault(f"--sandbox required: {why}")
+    import os
+
+    if not hasattr(os, "fork"):  # Windows: the student's code runs in this process (and says so)
+        Path("sandbox.txt").write_text(f"not sandboxed: {why}; the student's code ran in the task's own process",
+                                       encoding="utf-8")
+        return None
     Path("sandbox.txt").write_text("sandboxed" if why is None else f"not sandboxed: {why}", encoding="utf-8")
     import qcarlab.cli  # noqa: F401 - loaded before the fork (the student's process has it: a warm start)
 
@@ -180,7 +186,8 @@ def main(argv: list[str] | None = None) -> None:
     try:
         if spec.get("student"):
             host = student_process(spec, limits)
-            blocks.load_with(host.load)
+            if host is not None:
+                blocks.load_with(host.load)
         apply(limits)
         if spec["kind"] == "scenario":
             run_scenario(spec)
