@@ -227,7 +227,7 @@ def test_a_symlink_to_a_classmates_file_is_refused_in_one_line(cli, tmp_path):
     (mallory / "stop_sign.py").symlink_to(alice / "stop_sign.py")
     sheet = tmp_path / "sheet.yaml"
     sheet.write_text(SHEET)
-    code, out, err = cli("grade", sheet, "--class", root, "--task", "block", "--json")
+    code, out, err = cli("grade", sheet, "--class", root, "--task", "block", "--out", tmp_path / "g", "--json")
     entry = {s["student"]: s for s in json.loads(out)["students"]}
     assert entry["alice"]["passed"] == 1 and entry["mallory"]["passed"] == 0
     assert entry["mallory"]["submission_problems"] == ["stop_sign.py: a symbolic link, refused (hand in the file itself)"]

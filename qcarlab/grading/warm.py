@@ -345,12 +345,9 @@ def _task(request: dict[str, Any], inherited: list[int]) -> None:
     except BaseException:  # noqa: BLE001
         code = 1
     finally:
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except Exception:  # noqa: BLE001
-                pass
-        os._exit(code & 0xFF)
+        from qcarlab.sandbox.host import exit_now
+
+        exit_now(code)
 
 
 def main(argv: list[str] | None = None) -> None:

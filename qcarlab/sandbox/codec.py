@@ -163,18 +163,23 @@ def _span(data: bytes, i: int, n: int) -> int:
     return i + n
 
 
+def _count(data: bytes, i: int, depth: int, what: str) -> tuple[int, int]:
+    """A list's or mapping's item count at ``i`` (each item is at least one byte of what is left)."""
+    if depth > MAX_DEPTH:
+        raise CodecError(f"a value nested deeper than {MAX_DEPTH}")
+    n = _U32_AT(data, i)[0]
+    if n > MAX_ITEMS or n > len(data) - i - 4:
+        raise CodecError(f"a {what} of {n} items")
+    return n, i + 4
+
+
 def _dec(data: bytes, i: int, depth: int) -> tuple[Any, int]:
     tag = data[i]
     i += 1
     if tag == 68:  # D
         return _F64_AT(data, i)[0], i + 8
     if tag == 85 or tag == 76:  # U, L
-        if depth > MAX_DEPTH:
-            raise CodecError(f"a value nested deeper than {MAX_DEPTH}")
-        n = _U32_AT(data, i)[0]
-        i += 4
-        if n > MAX_ITEMS or n > len(data) - i:
-            raise CodecError(f"a list of {n} items")
+        n, i = _count(data, i, depth, "list")
         items = []
         for _ in range(n):
             item, i = _dec(data, i, depth + 1)
@@ -201,12 +206,7 @@ def _dec(data: bytes, i: int, depth: int) -> tuple[Any, int]:
             raise CodecError("a malformed integer")
         return int(raw), end
     if tag == 77:  # M
-        if depth > MAX_DEPTH:
-            raise CodecError(f"a value nested deeper than {MAX_DEPTH}")
-        n = _U32_AT(data, i)[0]
-        i += 4
-        if n > MAX_ITEMS or n > len(data) - i:
-            raise CodecError(f"a mapping of {n} items")
+        n, i = _count(data, i, depth, "mapping")
         out = {}
         for _ in range(n):
             k, i = _dec(data, i, depth + 1)

@@ -104,12 +104,18 @@ def main(fd: int) -> None:
     except BaseException:  # noqa: BLE001
         code = 1
     finally:
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except Exception:  # noqa: BLE001
-                pass
-        os._exit(code)
+        exit_now(code)
 
 
-__all__ = ["main", "serve"]
+def exit_now(code: int) -> None:
+    """Flush stdout and stderr, then end this process at once (``os._exit``: no interpreter teardown,
+    no atexit handler, nothing of a forked parent's runs again)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:  # noqa: BLE001
+            pass
+    os._exit(code & 0xFF)
+
+
+__all__ = ["exit_now", "main", "serve"]
