@@ -76,8 +76,8 @@ def test_warm_tasks_fail_like_cold_ones(cli, tmp_path, monkeypatch):
     assert "raised ZeroDivisionError" in warm["raises"][1]
     assert warm["hangs"][1] == "did not finish within 8 s (stopped)"
     block = "block basic_speed_estimation (basic_speed_estimation.py:basic_speed_estimation): "
-    assert warm["hogs_memory"][1].startswith(block + "ran out of memory"), warm["hogs_memory"]
-    assert "(the limit is 1024 MB" in warm["hogs_memory"][1]
+    assert "ran out of memory" in warm["hogs_memory"][1] and "the limit is 1024 MB" in warm["hogs_memory"][1], \
+        warm["hogs_memory"]  # (the cgroup killed it, or, without one, MemoryError under its address-space limit)
     assert warm["calls_os_exit"][1] == block + "the process running your blocks exited with code 3 (os._exit in " \
         "your code?)"
     assert warm["prints_megabytes"][1] == block + "printed more than 1 MB (output is capped)"

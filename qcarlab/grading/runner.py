@@ -185,6 +185,10 @@ def _attempt(job: Job, warm: WarmStart | None, cpu: int | None) -> dict[str, Any
         return _relative(outcome, str(sub) + os.sep)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+        if job.student_code and sys.platform.startswith("linux"):
+            from qcarlab.sandbox.cgroup import sweep
+
+            sweep()  # the student's cgroup of a task killed at its time limit
 
 
 def _cold(spec_path: Path, work: Path, out_path: Path, err_path: Path, results: Path,

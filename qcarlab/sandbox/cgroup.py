@@ -140,4 +140,23 @@ class Cgroup:
                     time.sleep(0.002)
 
 
-__all__ = ["Cgroup"]
+def sweep(prefix: str = "qcarlab-") -> None:
+    """Remove the cgroups of student processes whose trusted process is gone (``PREFIX<pid>`` under
+    this process's own cgroups: a task killed at its time limit cannot remove its own)."""
+    own = _own()
+    parents = [(ROOT / c / own[c].lstrip("/"), False) for c in ("memory", "pids") if c in own]
+    if "" in own and (ROOT / "cgroup.controllers").exists():
+        parents.append((ROOT / own[""].lstrip("/"), True))
+    for parent, v2 in parents:
+        try:
+            children = [d for d in parent.iterdir() if d.name.startswith(prefix) and d.is_dir()]
+        except OSError:
+            continue
+        for d in children:
+            pid = d.name[len(prefix):]
+            if pid.isdigit() and Path(f"/proc/{pid}").exists():
+                continue  # its task is still running
+            Cgroup([d], v2).remove()
+
+
+__all__ = ["Cgroup", "sweep"]
