@@ -1,0 +1,150 @@
+"""The commands a student types, timed whole, beside the code before (issue 28's targets).
+
+    python benchmarks/bench_commands.py                          # every command, 3 runs each
+    python benchmarks/bench_commands.py --against /tmp/before    # alternated with the checkout in DIR
+    python benchmarks/bench_commands.py --only stop-sign --reps 5
+
+Each run is a fresh ``python -m qcarlab ARGS --json`` with the defaults (``--json`` only to read
+the simulated duration from the results; the table it replaces costs nothing measurable), timed
+by the wall clock from the start of the process to its end, imports and all. The real-time
+factor is the simulated seconds over those wall seconds. ``serve`` is the time from starting
+``qcarlab serve --port 0`` until a client's first readout comes back. With ``--against DIR`` the
+same runs of the checkout in DIR (``PYTHONPATH=DIR``, the same interpreter and packages)
+alternate with ours, so a change of the machine's load hits both. A figure a run did not
+measure says "not measured", never "met".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _common import load_note, machine  # noqa: E402
+
+# name -> (the words after "qcarlab", target: real-time factor, or wall seconds for --help)
+COMMANDS = {
+    "--help": (["--help"], ("wall", 0.3)),
+    "path-follow butterfly --size 2": (["path-follow", "butterfly", "--size", "2"], ("rtf", 80.0)),
+    "stop-sign": (["stop-sign"], ("rtf", 10.0)),
+    "avoid --world hallway --duration 60": (["avoid", "--world", "hallway", "--duration", "60"], ("rtf", 60.0)),
+    "lane-follow --duration 60": (["lane-follow", "--duration", "60"], ("rtf", 30.0)),
+    "serve ready": (None, ("wall", 1.0)),
+}
+
+
+def env_for(against: str | None) -> dict[str, str]:
+    env = dict(os.environ)
+    env.pop("PYTHONPATH", None)
+    if against:
+        env["PYTHONPATH"] = against
+    return env
+
+
+def run_command(words: list[str], against: str | None, cwd: Path) -> tuple[float, float | None]:
+    """(wall seconds, simulated seconds or None) of one fresh ``qcarlab WORDS``."""
+    json_words = [] if words == ["--help"] else ["--json"]
+    t0 = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "qcarlab", *words, *json_words], capture_output=True, text=True,
+                          env=env_for(against), cwd=cwd)
+    wall = time.perf_counter() - t0
+    if done.returncode not in (0, 1):
+        raise SystemExit(f"qcarlab {' '.join(words)} failed ({done.returncode}): {done.stderr[-400:]}")
+    if not json_words:
+        return wall, None
+    return wall, float(json.loads(done.stdout)["duration_s"])
+
+
+def serve_ready(against: str | None, cwd: Path) -> float:
+    """Seconds from starting ``qcarlab serve --port 0`` to a client's first readout."""
+    from qcarlab.car.tcp import TcpCar
+
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "qcarlab", "serve", "--port", "0"], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=env_for(against), cwd=cwd)
+    try:
+        port = None
+        while port is None:
+            line = proc.stdout.readline()
+            if not line:
+                raise SystemExit("qcarlab serve ended before it printed its address")
+            for word in line.replace(",", " ").split():
+                if word.startswith("tcp://") and ":" in word[6:]:
+                    port = int(word.rsplit(":", 1)[1].strip(".)"))
+        while True:
+            try:
+                with TcpCar("127.0.0.1", port) as car:
+                    car.read()
+                return time.perf_counter() - t0
+            except Exception:  # noqa: BLE001 - not answering yet
+                if time.perf_counter() - t0 > 60:
+                    raise SystemExit("qcarlab serve did not answer within 60 s") from None
+                time.sleep(0.01)
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--only", action="append", help="a command's name (repeatable), e.g. stop-sign")
+    ap.add_argument("--against", metavar="DIR", help="also the checkout in DIR, alternating")
+    a = ap.parse_args()
+    chosen = {k: v for k, v in COMMANDS.items() if not a.only or k in a.only or k.split()[0] in a.only}
+    sides = [("ours", None)] + ([("before", a.against)] if a.against else [])
+    print(machine())
+    print(load_note(), flush=True)
+    cwd = Path.cwd()
+    walls: dict[tuple[str, str], list[float]] = {}
+    sims: dict[tuple[str, str], float] = {}
+    for rep in range(a.reps):
+        for label, where in sides if rep % 2 == 0 else sides[::-1]:
+            for name, (words, _) in chosen.items():
+                if words is None:
+                    wall, sim = serve_ready(where, cwd), None
+                else:
+                    wall, sim = run_command(words, where, cwd)
+                walls.setdefault((name, label), []).append(wall)
+                if sim is not None:
+                    sims[(name, label)] = sim
+                rtf = f", {sim / wall:6.1f}x real time" if sim else ""
+                print(f"  {label:6s} {name:38s} {wall:6.2f} s{rtf}   ({load_note()})", flush=True)
+    print(f"\nmedians of {a.reps} ({load_note()}):")
+    print(f"  {'command':38s} " + " | ".join(f"{label:>22s}" for label, _ in sides) + " | target")
+    for name, (_, (kind, target)) in chosen.items():
+        cells, verdict = [], "not measured"
+        for label, _ in sides:
+            got = walls.get((name, label))
+            if not got:
+                cells.append(f"{'not measured':>22s}")
+                continue
+            wall = statistics.median(got)
+            if kind == "rtf":
+                value = sims[(name, label)] / wall
+                cells.append(f"{value:8.1f}x ({wall:5.2f} s)".rjust(22))
+                ok = value >= target
+            else:
+                value = wall
+                cells.append(f"{wall:8.2f} s".rjust(22))
+                ok = value <= target
+            if label == "ours":
+                verdict = "met" if ok else "MISSED"
+        shown = f">= {target:g}x" if kind == "rtf" else f"<= {target:g} s"
+        print(f"  {name:38s} " + " | ".join(cells) + f" | {shown}: {verdict}")
+
+
+if __name__ == "__main__":
+    main()
