@@ -139,6 +139,12 @@ def find_objects(mask: np.ndarray, min_area: int = MIN_AREA, shape_check: bool =
         raise InputError(f"find_objects: expected a 2-D mask, got shape {m.shape}")
     if m.dtype != np.uint8:
         m = (m != 0).astype(np.uint8)
+    x0 = y0 = 0
+    if not shape_check:  # label only the box around the red pixels (same blobs, same order): a tenth of the work
+        x0, y0, bw, bh = cv2.boundingRect(m)
+        if bw == 0:
+            return None
+        m = m[y0:y0 + bh, x0:x0 + bw]
     n, labels, stats, centroids = cv2.connectedComponentsWithStats(m, connectivity=8)
     if n <= 1:
         return None
@@ -157,7 +163,7 @@ def find_objects(mask: np.ndarray, min_area: int = MIN_AREA, shape_check: bool =
                                  letters=False):
                 continue
         cu, cv = centroids[best]
-        return ImageObject((float(cu), float(cv)), (x, y, w, h), area)
+        return ImageObject((float(cu) + x0, float(cv) + y0), (x + x0, y + y0, w, h), area)
     return None
 
 

@@ -17,7 +17,11 @@ images. ROS maps keep their own cells; vector worlds are drawn at :data:`RASTER_
 from __future__ import annotations
 
 import math
+import os
+import pickle
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -211,6 +215,10 @@ def floor_runs(world: World, px_per_m: float, levels: int = 6) -> FloorRuns:
     key = ("floor_runs", float(px_per_m), int(levels))
     if key in world._cache:
         return world._cache[key]
+    cached = _disk_cache_load(world, key)
+    if cached is not None:
+        world._cache[key] = cached
+        return cached
     pyr, (x0, y1, ppm) = floor_pyramid(world, px_per_m, levels)
     parts, squares, table, off = [], [], [], 0
     for lev in pyr:
@@ -225,7 +233,74 @@ def floor_runs(world: World, px_per_m: float, levels: int = 6) -> FloorRuns:
     out = FloorRuns(np.ascontiguousarray(np.concatenate(parts)), np.array(table, np.int64).reshape(-1, 3),
                     float(x0), float(y1), float(ppm), np.ascontiguousarray(np.concatenate(squares, axis=1)))
     world._cache[key] = out
+    _disk_cache_save(world, key, out)
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# the floor's rasters on disk: a world's are drawn once per machine, not once per run
+# --------------------------------------------------------------------------------------------
+CACHE_ENV = "QCARLAB_CACHE"  #: a folder for the cache ("off": none); default ~/.cache/qcarlab
+KEEP = 24  #: floors kept on disk (about 17 MB each for a 6 x 6 m floor), the most recently drawn
+
+
+def _cache_folder() -> Path | None:
+    where = os.environ.get(CACHE_ENV, "")
+    if where.lower() == "off":
+        return None
+    if where:
+        return Path(where)
+    base = os.environ.get("XDG_CACHE_HOME") or (Path.home() / ".cache")
+    return Path(base) / "qcarlab"
+
+
+def _floor_fingerprint(world: World, key: tuple) -> str:
+    """What the floor's rasters are drawn from (the world's floor, markings, regions and grid,
+    qcarlab's version, the resolution), hashed: two worlds that draw the same floor share it."""
+    import hashlib
+
+    from qcarlab import __version__
+
+    code = b"".join(Path(m.__file__).read_bytes() for m in (sys.modules[__name__], sys.modules[World.__module__]))
+    what = (__version__, hashlib.sha256(code).hexdigest(), key, world.floor_size, world.floor_origin,
+            world.floor_color, world.markings, world.regions, world.grid)  # (the code that draws it too)
+    return hashlib.sha256(pickle.dumps(what, protocol=4)).hexdigest()[:32]
+
+
+def _disk_cache_load(world: World, key: tuple) -> FloorRuns | None:
+    folder = _cache_folder()
+    if folder is None:
+        return None
+    try:
+        path = folder / f"floor-{_floor_fingerprint(world, key)}.npz"
+        with np.load(path, allow_pickle=False) as z:
+            return FloorRuns(z["texels"], z["levels"], float(z["frame"][0]), float(z["frame"][1]),
+                             float(z["frame"][2]), z["squares"])
+    except (OSError, KeyError, ValueError, TypeError, pickle.PicklingError):
+        return None  # not there yet, or unreadable: drawn again (and written again)
+
+
+def _disk_cache_save(world: World, key: tuple, runs: FloorRuns) -> None:
+    import tempfile
+
+    folder = _cache_folder()
+    if folder is None:
+        return
+    tmp = None
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"floor-{_floor_fingerprint(world, key)}.npz"
+        fd, tmp = tempfile.mkstemp(prefix=".floor-", suffix=".npz", dir=folder)
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, texels=runs.texels, levels=runs.levels, frame=np.array([runs.x0, runs.y1, runs.ppm]),
+                     squares=runs.squares)
+        os.replace(tmp, path)  # whole or not at all, also with runs writing it at once
+        kept = sorted(folder.glob("floor-*.npz"), key=lambda f: f.stat().st_mtime, reverse=True)
+        for old in kept[KEEP:]:  # those of worlds (or of code) not drawn for a while
+            old.unlink(missing_ok=True)
+    except (OSError, TypeError, pickle.PicklingError):
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)  # a read-only or full home: drawn each run, as before
 
 
 @dataclass(frozen=True)
