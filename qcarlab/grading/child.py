@@ -127,9 +127,9 @@ def _one_line(text: str) -> str:
 
 
 def student_process(spec: dict[str, Any], limits: Any) -> Any:
-    """The student's process for this task (None when the task runs no student code): confined
-    when ``spec["sandbox"]`` is ``required``, or ``auto`` and this machine can (see
-    :func:`qcarlab.sandbox.jail.probe`). Writes ``sandbox.txt``."""
+    """The student's process for this task: confined when ``spec["sandbox"]`` is ``required``, or
+    ``auto`` and this machine can (see :func:`qcarlab.sandbox.jail.probe`); None where there is no
+    fork (Windows: the student's code then runs here, marked not sandboxed). Writes ``sandbox.txt``."""
     from qcarlab.errors import GraderFault
     from qcarlab.sandbox import jail
     from qcarlab.sandbox.client import BlockHost, HostPlan
