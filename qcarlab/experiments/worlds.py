@@ -14,13 +14,20 @@ import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import InputError
-from qcarlab.sim.camera import stitch_panorama
 from qcarlab.sim.render import render_topdown, world_to_pixel
 from qcarlab.sim.world import World, list_worlds
 from qcarlab.sim.world import load_world as _load_world
 
 __all__ = ["check_start", "label_views", "list_worlds", "load_world", "render_topdown", "stitch_panorama",
            "topdown_map"]
+
+
+def stitch_panorama(*args: Any, **kwargs: Any) -> Any:
+    """:func:`qcarlab.sim.camera.stitch_panorama` (imported when used: the camera loads numba,
+    which a run without cameras does not need)."""
+    from qcarlab.sim.camera import stitch_panorama as stitch
+
+    return stitch(*args, **kwargs)
 
 
 def load_world(name_or_path: str | Path | World, params: QCarParams = DEFAULT_PARAMS) -> World:

@@ -22,7 +22,6 @@ import cv2
 import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS
-from qcarlab.sim.raster import floor_texture
 from qcarlab.sim.world import World, load_world
 
 __all__ = ["render_topdown", "world_to_pixel"]
@@ -81,6 +80,8 @@ def render_topdown(
         return np.round(world_to_pixel(w, p, ppm) * _ONE).astype(np.int32)
 
     # the floor texture, placed and scaled into the frame
+    from qcarlab.sim.raster import floor_texture  # (it loads numba's kernels: only when a map is drawn)
+
     tex, (tx0, ty1, tppm) = floor_texture(w, min(ppm, 200.0))
     s = ppm / tppm
     A = np.array([[s, 0.0, (tx0 - x0) * ppm + 0.5 * s - 0.5], [0.0, s, (y1 - ty1) * ppm + 0.5 * s - 0.5]])
