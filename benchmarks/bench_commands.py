@@ -22,6 +22,7 @@ import os
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -107,7 +108,9 @@ def main() -> None:
     sides = [("ours", None)] + ([("before", a.against)] if a.against else [])
     print(machine())
     print(load_note(), flush=True)
-    cwd = Path.cwd()
+    # a folder that holds no qcarlab: ``python -m`` puts the working folder first on the path, so
+    # run from a checkout it would import that checkout's qcarlab whatever PYTHONPATH says
+    cwd = Path(tempfile.mkdtemp(prefix="bench-commands-"))
     walls: dict[tuple[str, str], list[float]] = {}
     sims: dict[tuple[str, str], float] = {}
     for rep in range(a.reps):

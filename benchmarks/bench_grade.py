@@ -63,7 +63,10 @@ def grade(args: list[str], cold: bool = False, against: str | None = None) -> fl
         env["PYTHONPATH"] = against + os.pathsep + env.get("PYTHONPATH", "")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "qcarlab", "grade", *args], capture_output=True, text=True, env=env)
+    # from a folder that holds no qcarlab: ``python -m`` puts the working folder first on the path, so
+    # run from a checkout it would import that checkout's qcarlab whatever PYTHONPATH says
+    done = subprocess.run([sys.executable, "-m", "qcarlab", "grade", *args], capture_output=True, text=True, env=env,
+                          cwd=tempfile.gettempdir())
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     CPU.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
