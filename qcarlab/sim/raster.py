@@ -20,8 +20,10 @@ import math
 import os
 import pickle
 import sys
-from dataclasses import dataclass
+import tempfile
+from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -213,12 +215,13 @@ def floor_runs(world: World, px_per_m: float, levels: int = 6) -> FloorRuns:
     a straight line through the texture, so where the radius allows the kernel fills a run of
     pixels with one colour instead of blending each (the same result as blending them)."""
     key = ("floor_runs", float(px_per_m), int(levels))
-    if key in world._cache:
-        return world._cache[key]
-    cached = _disk_cache_load(world, key)
-    if cached is not None:
-        world._cache[key] = cached
-        return cached
+    if key not in world._cache:
+        inputs = (world.floor_size, world.floor_origin, world.floor_color, world.markings, world.regions, world.grid)
+        world._cache[key] = on_disk(FloorRuns, key, inputs, lambda: _floor_runs(world, px_per_m, levels))
+    return world._cache[key]
+
+
+def _floor_runs(world: World, px_per_m: float, levels: int) -> FloorRuns:
     pyr, (x0, y1, ppm) = floor_pyramid(world, px_per_m, levels)
     parts, squares, table, off = [], [], [], 0
     for lev in pyr:
@@ -232,19 +235,17 @@ def floor_runs(world: World, px_per_m: float, levels: int = 6) -> FloorRuns:
         off += w * h
     out = FloorRuns(np.ascontiguousarray(np.concatenate(parts)), np.array(table, np.int64).reshape(-1, 3),
                     float(x0), float(y1), float(ppm), np.ascontiguousarray(np.concatenate(squares, axis=1)))
-    world._cache[key] = out
-    _disk_cache_save(world, key, out)
     return out
 
 
 # --------------------------------------------------------------------------------------------
-# the floor's rasters on disk: a world's are drawn once per machine, not once per run
+# the rasters on disk: a world's are drawn once per machine, not once per run
 # --------------------------------------------------------------------------------------------
 CACHE_ENV = "QCARLAB_CACHE"  #: a folder for the cache ("off": none); default ~/.cache/qcarlab
-KEEP = 24  #: floors kept on disk (about 17 MB each for a 6 x 6 m floor), the most recently drawn
+KEEP = 48  #: files kept on disk (a floor is about 17 MB, a raster 2-9 MB), the most recently made
 
 
-def _cache_folder() -> Path | None:
+def cache_folder() -> Path | None:
     where = os.environ.get(CACHE_ENV, "")
     if where.lower() == "off":
         return None
@@ -254,53 +255,49 @@ def _cache_folder() -> Path | None:
     return Path(base) / "qcarlab"
 
 
-def _floor_fingerprint(world: World, key: tuple) -> str:
-    """What the floor's rasters are drawn from (the world's floor, markings, regions and grid,
-    qcarlab's version, the resolution), hashed: two worlds that draw the same floor share it."""
+def on_disk(cls: type, key: tuple, inputs: tuple, build: Any) -> Any:
+    """``build()`` (a dataclass of arrays and numbers, ``cls``), kept in :func:`cache_folder` under
+    a hash of ``key``, ``inputs`` (what it is made from: the world's parts it reads) and the
+    source of the code that makes it (this module and the world's) and qcarlab's version, so a
+    change of any of them makes it anew. Read back exactly (``.npz``, no pickle); a file that
+    cannot be read is made again; without a writable folder, made each time as before."""
+    folder = cache_folder()
+    if folder is None:
+        return build()
+    try:
+        path = folder / f"{key[0]}-{_fingerprint(key, inputs)}.npz"
+    except (TypeError, pickle.PicklingError):
+        return build()
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return cls(**{f.name: z[f.name] if z[f.name].ndim else z[f.name].item() for f in fields(cls)})
+    except (OSError, KeyError, ValueError, TypeError):
+        pass  # not there yet, or unreadable: made (and written) again
+    out = build()
+    tmp = None
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{key[0]}-", suffix=".npz", dir=folder)
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **{fl.name: getattr(out, fl.name) for fl in fields(cls)})
+        os.replace(tmp, path)  # whole or not at all, also with runs writing it at once
+        kept = sorted(folder.glob("*.npz"), key=lambda p: p.stat().st_mtime, reverse=True)
+        for old in kept[KEEP:]:  # those of worlds (or of code) not used for a while
+            old.unlink(missing_ok=True)
+    except OSError:
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)  # a read-only or full home: made each run, as before
+    return out
+
+
+def _fingerprint(key: tuple, inputs: tuple) -> str:
     import hashlib
 
     from qcarlab import __version__
 
     code = b"".join(Path(m.__file__).read_bytes() for m in (sys.modules[__name__], sys.modules[World.__module__]))
-    what = (__version__, hashlib.sha256(code).hexdigest(), key, world.floor_size, world.floor_origin,
-            world.floor_color, world.markings, world.regions, world.grid)  # (the code that draws it too)
+    what = (__version__, hashlib.sha256(code).hexdigest(), key, inputs)
     return hashlib.sha256(pickle.dumps(what, protocol=4)).hexdigest()[:32]
-
-
-def _disk_cache_load(world: World, key: tuple) -> FloorRuns | None:
-    folder = _cache_folder()
-    if folder is None:
-        return None
-    try:
-        path = folder / f"floor-{_floor_fingerprint(world, key)}.npz"
-        with np.load(path, allow_pickle=False) as z:
-            return FloorRuns(z["texels"], z["levels"], float(z["frame"][0]), float(z["frame"][1]),
-                             float(z["frame"][2]), z["squares"])
-    except (OSError, KeyError, ValueError, TypeError, pickle.PicklingError):
-        return None  # not there yet, or unreadable: drawn again (and written again)
-
-
-def _disk_cache_save(world: World, key: tuple, runs: FloorRuns) -> None:
-    import tempfile
-
-    folder = _cache_folder()
-    if folder is None:
-        return
-    tmp = None
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        path = folder / f"floor-{_floor_fingerprint(world, key)}.npz"
-        fd, tmp = tempfile.mkstemp(prefix=".floor-", suffix=".npz", dir=folder)
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, texels=runs.texels, levels=runs.levels, frame=np.array([runs.x0, runs.y1, runs.ppm]),
-                     squares=runs.squares)
-        os.replace(tmp, path)  # whole or not at all, also with runs writing it at once
-        kept = sorted(folder.glob("floor-*.npz"), key=lambda f: f.stat().st_mtime, reverse=True)
-        for old in kept[KEEP:]:  # those of worlds (or of code) not drawn for a while
-            old.unlink(missing_ok=True)
-    except (OSError, TypeError, pickle.PicklingError):
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)  # a read-only or full home: drawn each run, as before
 
 
 @dataclass(frozen=True)
@@ -397,8 +394,13 @@ def build_raster(world: World, z: float | None = None, res: float | None = None)
     shapes cut by the horizontal plane at that height, sign plates included; ROS map walls always.
     """
     key = ("raster", z, res)
-    if key in world._cache:
-        return world._cache[key]
+    if key not in world._cache:
+        inputs = (world.solids, world.signs, world.grid, world.floor_size, world.floor_origin)
+        world._cache[key] = on_disk(Raster, key, inputs, lambda: _build_raster(world, z, res))
+    return world._cache[key]
+
+
+def _build_raster(world: World, z: float | None, res: float | None) -> Raster:
     solids: list[Solid] = []
     for s in world.static_solids():
         if z is None:
@@ -490,7 +492,6 @@ def build_raster(world: World, z: float | None = None, res: float | None = None)
         verts=np.vstack(verts).astype(np.float64) if verts else np.zeros((0, 2)),
         circles=np.array(circles, np.float64).reshape(-1, 3),
     )
-    world._cache[key] = out
     return out
 
 
