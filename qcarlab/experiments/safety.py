@@ -17,6 +17,7 @@ nearest solid ``c`` m away, the next full check waits until the footprint may ha
 from __future__ import annotations
 
 import math
+import sys
 from typing import Any
 
 import numpy as np
@@ -54,7 +55,8 @@ class Clearance:
         self.n_poly = len(self.pieces)
         self.circles = np.asarray(circles, dtype=float).reshape(-1, 3)
         self.world = world
-        self._first_edge = np.cumsum([0] + [len(p) for p in starts[:-1]]) if starts else np.zeros(0, int)
+        self._first_edge = np.cumsum([0] + [len(p) for p in starts[:-1]]).astype(np.int64) if starts \
+            else np.zeros(0, np.int64)
         self._corners = np.array([[self.a, self.b], [-self.a, self.b], [-self.a, -self.b], [self.a, -self.b]])
 
     def _to_body(self, pts: np.ndarray, x: float, y: float, c: float, s: float) -> np.ndarray:
@@ -67,7 +69,13 @@ class Clearance:
     def __call__(self, x: float, y: float, yaw: float, t: float = 0.0) -> tuple[float, tuple[float, float] | None]:
         c, s = math.cos(yaw), math.sin(yaw)
         best, where = math.inf, None
-        if len(self.p0):
+        if len(self.p0) and "numba" in sys.modules:  # compiled (numba is loaded already: the sensors use it)
+            from qcarlab.sim._kernels import polygon_clearance
+
+            best, k = polygon_clearance(self.p0, self.p1, self._first_edge, self.n_poly, self._corners, self.a, self.b,
+                                        x, y, c, s)
+            where = self.pieces[k] if k >= 0 else None
+        elif len(self.p0):
             A = self._to_body(self.p0, x, y, c, s)
             B = self._to_body(self.p1, x, y, c, s)
             m, h = (A + B) / 2.0, (B - A) / 2.0

@@ -1942,3 +1942,57 @@ def box_blur_rows(img, b):
                 off += 3 << k
         for j in range(n):
             row[j] = np.uint8(np.int32((np.float32(acc[j]) + half) * inv + eps))
+
+
+# --------------------------------------------------------------------------------------------
+# the referee's collision check (qcarlab.experiments.safety.Clearance), edge by edge
+# --------------------------------------------------------------------------------------------
+@njit(**_JIT)
+def _point_rect(qx, qy, a, b):
+    return math.hypot(max(abs(qx) - a, 0.0), max(abs(qy) - b, 0.0))
+
+
+@njit(**_JIT)
+def polygon_clearance(p0, p1, first, n_poly, corners, a, b, x, y, c, s):
+    """(distance, polygon) from the car's footprint (half sizes ``a`` x ``b``, centred on (x, y),
+    heading cos ``c``, sin ``s``) to the nearest of the polygons whose edges run p0[i] -> p1[i],
+    polygon k owning edges first[k] .. first[k+1]-1: Clearance's numpy arithmetic one edge at a
+    time, the same operations in the same order (so the same numbers, bit for bit)."""
+    n = p0.shape[0]
+    best, where = math.inf, -1
+    for k in range(n_poly):
+        e0 = first[k]
+        e1 = first[k + 1] if k + 1 < n_poly else n
+        dmin = math.inf
+        hits = 0
+        for i in range(e0, e1):
+            dx, dy = p0[i, 0] - x, p0[i, 1] - y
+            ax, ay = c * dx + s * dy, -s * dx + c * dy
+            dx, dy = p1[i, 0] - x, p1[i, 1] - y
+            bx, by = c * dx + s * dy, -s * dx + c * dy
+            mx, my = (ax + bx) / 2.0, (ay + by) / 2.0
+            hx, hy = (bx - ax) / 2.0, (by - ay) / 2.0
+            sep = (abs(mx) > a + abs(hx)) or (abs(my) > b + abs(hy)) \
+                or (abs(hx * my - hy * mx) > a * abs(hy) + b * abs(hx))
+            d = min(_point_rect(ax, ay, a, b), _point_rect(bx, by, a, b))
+            abx, aby = bx - ax, by - ay
+            l2 = max(abx * abx + aby * aby, 1e-18)
+            dc = math.inf
+            for j in range(4):
+                cx, cy = corners[j, 0], corners[j, 1]
+                u = ((cx - ax) * abx + (cy - ay) * aby) / l2
+                u = min(max(u, 0.0), 1.0)
+                dc = min(dc, math.hypot(ax + u * abx - cx, ay + u * aby - cy))
+            d = min(d, dc)
+            if not sep:
+                d = 0.0
+            if d < dmin:
+                dmin = d
+            if (ay > 0.0) != (by > 0.0):
+                if ax + (0.0 - ay) * abx / aby > 0.0:
+                    hits += 1
+        if hits % 2 == 1:
+            dmin = 0.0
+        if dmin < best:
+            best, where = dmin, k
+    return best, where

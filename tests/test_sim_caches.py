@@ -1,8 +1,9 @@
-"""The floor's rasters are drawn once per machine: cached on disk, keyed by what draws them."""
+"""The simulator's precomputed rasters kept on disk, and the referee's compiled collision check."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from qcarlab.sim import raster
 from qcarlab.sim.world import load_world
@@ -42,3 +43,28 @@ def test_a_cached_raster_is_the_built_one(tmp_path, monkeypatch):
             a, b = getattr(built, f.name), getattr(loaded, f.name)
             assert type(a) is type(b) and np.array_equal(a, b) and getattr(a, "dtype", None) == getattr(b, "dtype", None), f.name
     assert len(list(tmp_path.glob("raster-*.npz"))) == 2
+
+
+def test_the_compiled_collision_check_gives_the_numpy_ones_numbers():
+    """Clearance runs numba's kernel once numba is loaded (the sensors load it), else numpy: the
+    same distances and pieces, bit for bit, on random poses in every kind of world."""
+    import sys
+
+    pytest.importorskip("numba")
+    from qcarlab.constants import DEFAULT_PARAMS
+    from qcarlab.experiments.safety import Clearance
+
+    rng = np.random.default_rng(7)
+    for name in ("hallway", "obstacles", "track", "stop-sign"):
+        world = load_world(name)
+        check = Clearance(world, DEFAULT_PARAMS)
+        x0, y0, x1, y1 = world.bounds
+        poses = np.column_stack((rng.uniform(x0, x1, 400), rng.uniform(y0, y1, 400), rng.uniform(-4, 4, 400)))
+        fast = [check(x, y, yaw, 1.0) for x, y, yaw in poses]
+        numba_module = sys.modules.pop("numba")
+        try:
+            slow = [check(x, y, yaw, 1.0) for x, y, yaw in poses]
+        finally:
+            sys.modules["numba"] = numba_module
+        assert fast == slow, name
+        assert any(d == 0.0 for d, _ in fast) and any(d > 0.1 for d, _ in fast)
