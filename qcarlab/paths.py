@@ -43,6 +43,7 @@ __all__ = [
 ]
 
 FORMATS = ("csv", "npy", "yaml")
+MAX_POINTS = 100_000  #: points of a built-in path at most (a lab's path has tens to thousands)
 _SUFFIX_FORMAT = {".csv": "csv", ".txt": "csv", ".npy": "npy", ".yaml": "yaml", ".yml": "yaml"}
 
 
@@ -76,8 +77,8 @@ def line(length: float = 3.0, points: int = 4) -> np.ndarray:
     if isinstance(points, bool) or not isinstance(points, (int, np.integer, float)) or int(points) != points:
         raise InputError(f"path 'line': points must be a whole number >= 2, got {points!r}")
     n = int(points)
-    if n < 2:
-        raise InputError(f"path 'line': points must be a whole number >= 2, got {points!r}")
+    if not 2 <= n <= MAX_POINTS:
+        raise InputError(f"path 'line': points must be a whole number from 2 to {MAX_POINTS:,}, got {points!r}")
     y = np.linspace(0.0, -length, n)
     return np.column_stack([np.zeros(n), y]) + 0.0
 
@@ -100,6 +101,9 @@ def circle(radius: float = 1.5, step: float = 0.1) -> np.ndarray:
     step = _positive("step", "circle", step)
     if step >= math.pi:
         raise InputError(f"path 'circle': step must be below pi rad, got {step!r}")
+    if 2.0 * math.pi / step > MAX_POINTS:
+        raise InputError(f"path 'circle': step {step!r} rad makes more than {MAX_POINTS:,} points; "
+                         f"give at least {2.0 * math.pi / MAX_POINTS:.2g} rad")
     theta = np.arange(_colon_count(2.0 * math.pi, step)) * step
     pts = np.column_stack([radius * (1.0 - np.cos(theta)), -radius * np.sin(theta)])
     return np.vstack([[0.0, 0.0], pts]) + 0.0

@@ -59,7 +59,7 @@ def test_out_writes_results_and_log(cli, tmp_path):
         (("--throttle", "nan"), "throttle must be a finite number"),
         (("--steering", "inf"), "steering must be a finite number"),
         (("--leds", "brake,fog"), "unknown lamp 'fog'"),
-        (("--duration", "-1"), "--duration must be a positive"),
+        (("--duration", "-1"), "--duration must be in (0, 3600] s"),
         (("--throttle", "abc"), "--throttle"),
         (("--car", "udp://x"), "expected 'sim' or 'tcp://HOST:PORT'"),
         (("--rate", "0"), "--rate"),

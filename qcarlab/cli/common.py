@@ -37,8 +37,14 @@ StartOpt = Annotated[
 SeedOpt = Annotated[int, typer.Option("--seed", min=0, help="Seed of the simulator's noise; same seed, same numbers.")]
 def check_out(out: Path | None) -> Path | None:
     """Refuse an --out that cannot be a folder before the run starts, not after it."""
-    if out is not None and out.exists() and not out.is_dir():
-        raise typer.BadParameter(f"{out} exists and is not a folder")
+    if out is None:
+        return out
+    try:
+        if out.exists() and not out.is_dir():
+            raise typer.BadParameter(f"{out} exists and is not a folder")
+    except OSError as exc:  # a name longer than the file system allows, a folder we may not look into
+        shown = str(out) if len(str(out)) <= 60 else str(out)[:57] + "..."
+        raise typer.BadParameter(f"{shown}: {exc.strerror or exc}") from None
     return out
 
 

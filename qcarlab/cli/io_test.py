@@ -90,8 +90,8 @@ def io_test_cmd(
 
     Example: qcarlab io-test --on-floor --throttle 0.1 --duration 2 --json
     """
-    if not duration > 0 or duration != duration or duration == float("inf"):
-        raise InputError(f"--duration must be a positive number of seconds, got {duration}")
+    if not 0.0 < duration <= 3600.0:  # (NaN fails the comparison too)
+        raise InputError(f"--duration must be in (0, 3600] s, got {duration}")
     lamp_state = parse_lamps(leds)
     check_rate(rate)
     mine = student_blocks(BasicIOLab, use, block)

@@ -108,6 +108,8 @@ def path_gen_cmd(
         raise InputError(f"--format must be one of {', '.join(paths.FORMATS)}, got {fmt!r}")
     if shape not in paths.BUILTIN:
         raise InputError(f"unknown path '{shape}' (built-in paths: {SHAPES})")
+    if name is not None and (not name.strip() or any(c in name for c in "/\\\0") or name in (".", "..")):
+        raise InputError(f"--name must be a file name without a folder (no / or \\), got {name!r}; the folder is --out")
     path = paths.builtin(shape, **_shape_options(shape, length, points, radius, step, size, width, height))
     summary = paths.summary(path)
     from qcarlab.record import prepare_out_dir

@@ -242,6 +242,10 @@ def follow_path(car: Car, path: np.ndarray, cfg: FollowConfig, on_tick=None, *,
     world = world if world is not None else getattr(car, "world", None)  # a local simulator's
     cfg.check()
     route = repeat_laps(np.asarray(path, dtype=float), cfg.laps)
+    shortest = max(cfg.goal_tolerance, cfg.lookahead) + 0.05  # where the lab's end zone begins at 0
+    if Polyline(route).length <= shortest:
+        raise InputError(f"the path is {Polyline(route).length:.3f} m long; a path to follow must be longer than the "
+                         f"look-ahead or the goal tolerance + 0.05 m ({shortest:.2f} m here)")
     truth0 = car.truth()
     if cfg.pose == "truth" and truth0 is None:
         raise InputError("--pose truth needs the simulator (a real car has no ground truth)")
