@@ -44,6 +44,7 @@ __all__ = [
 
 FORMATS = ("csv", "npy", "yaml")
 MAX_POINTS = 100_000  #: points of a built-in path at most (a lab's path has tens to thousands)
+MAX_COORD = 10_000.0  #: m: a path's coordinates at most (a lab room is metres; a campus is kilometres)
 _SUFFIX_FORMAT = {".csv": "csv", ".txt": "csv", ".npy": "npy", ".yaml": "yaml", ".yml": "yaml"}
 
 
@@ -256,6 +257,11 @@ def validate_path(data: Any, source: str = "path") -> np.ndarray:
     bad = ~np.isfinite(p).all(axis=1)
     if bad.any():
         raise InputError(f"{source} point {int(np.argmax(bad)) + 1}: not a finite number")
+    far = (np.abs(p) > MAX_COORD).any(axis=1)
+    if far.any():
+        k = int(np.argmax(far))
+        raise InputError(f"{source} point {k + 1}: ({p[k, 0]:.6g}, {p[k, 1]:.6g}) m is beyond +-{MAX_COORD:,.0f} m "
+                         "(a path is in metres, around the car)")
     if len(p) < 2:
         raise InputError(f"{source}: a path needs at least 2 points, got {len(p)}")
     idx, _ = _distinct_index(p)

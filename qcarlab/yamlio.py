@@ -11,13 +11,21 @@ from typing import Any
 
 from qcarlab.errors import InputError
 
+MAX_BYTES = 64 * 2**20  #: a world, a sheet or a parameter file is kilobytes; a ROS map's YAML is a few lines
+
 
 def parse_yaml(text: str, source: str) -> Any:
     """``yaml.safe_load`` whose syntax errors become one line naming ``source`` and the line."""
     import yaml
 
+    if len(text) > MAX_BYTES:
+        raise InputError(f"{source}: {len(text):,} characters; a YAML file qcarlab reads is at most "
+                         f"{MAX_BYTES // 2**20} MB")
     try:
         return yaml.safe_load(text)
+    except RecursionError:
+        raise InputError(f"{source}: nested too deep to read (lists or mappings inside each other "
+                         "some thousand levels)") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
@@ -32,4 +40,6 @@ def load_yaml(path: str | Path, what: str = "file") -> Any:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise InputError(f"{p}: cannot read {what} ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{p}: the {what} is not UTF-8 text (byte {exc.start}); save it as UTF-8") from None
     return parse_yaml(text, str(p))

@@ -45,3 +45,31 @@ def test_path_gen_never_writes_outside_its_folder(cli, tmp_path):
 def test_an_out_folder_name_too_long_for_the_file_system_is_one_line(cli, tmp_path):
     code, out, err = cli("path-gen", "circle", "--out", tmp_path / ("a" * 300))
     assert code == 2 and "File name too long" in one_error_line(err)
+
+
+def test_a_parameter_file_not_utf8_or_nested_thousands_deep_is_one_line(cli, tmp_path):
+    utf16 = tmp_path / "p16.yaml"
+    utf16.write_bytes("lab:\n  kp: 0.5\n".encode("utf-16"))
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("lab: " + "[" * 3000 + "]" * 3000 + "\n")
+    code, _, err = cli("stop-sign", "--params", utf16)
+    assert code == 2 and "p16.yaml: the parameter file is not UTF-8 text" in one_error_line(err)
+    code, _, err = cli("stop-sign", "--params", deep)
+    assert code == 2 and "deep.yaml: nested too deep to read" in one_error_line(err)
+
+
+def test_a_template_where_it_cannot_be_written_and_a_path_of_huge_numbers(cli, tmp_path):
+    code, _, err = cli("template", "stop-sign", "--out", "/proc/qcarlab-not-here")
+    assert code == 2 and "cannot write the workspace there" in one_error_line(err)
+    huge = tmp_path / "huge.csv"
+    huge.write_text("x,y\n0,0\n1e308,-1e308\n")
+    code, _, err = cli("path-follow", huge)
+    assert code == 2 and "huge.csv point 2: (1e+308, -1e+308) m is beyond +-10,000 m" in one_error_line(err)
+
+
+def test_a_ros_map_whose_header_claims_a_huge_image_is_refused_before_decoding(cli, tmp_path):
+    (tmp_path / "map.pgm").write_bytes(b"P5\n100000 100000\n255\n" + b"\x00" * 64)
+    (tmp_path / "map.yaml").write_text("image: map.pgm\nresolution: 0.05\norigin: [0, 0, 0]\nnegate: 0\n"
+                                       "occupied_thresh: 0.65\nfree_thresh: 0.196\n")
+    code, _, err = cli("lidar-scan", "--world", tmp_path / "map.yaml")
+    assert code == 2 and "100000 x 100000 px, over the 50 megapixels" in one_error_line(err)

@@ -208,12 +208,15 @@ def write_template(lab: Lab, out: str | Path, force: bool = False) -> list[Path]
     clash = [name for name in files if (folder / name).exists()]
     if clash and not force:
         raise InputError(f"--out {folder}: would overwrite {', '.join(clash)} (your work?); use --force to replace")
-    folder.mkdir(parents=True, exist_ok=True)
     written = []
-    for name, text in files.items():
-        path = folder / name
-        path.write_text(text, encoding="utf-8")
-        written.append(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, text in files.items():
+            path = folder / name
+            path.write_text(text, encoding="utf-8")
+            written.append(path)
+    except OSError as exc:
+        raise InputError(f"--out {folder}: cannot write the workspace there ({exc.strerror or exc})") from None
     return written
 
 
