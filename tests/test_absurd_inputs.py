@@ -73,3 +73,12 @@ def test_a_ros_map_whose_header_claims_a_huge_image_is_refused_before_decoding(c
                                        "occupied_thresh: 0.65\nfree_thresh: 0.196\n")
     code, _, err = cli("lidar-scan", "--world", tmp_path / "map.yaml")
     assert code == 2 and "100000 x 100000 px, over the 50 megapixels" in one_error_line(err)
+
+
+@pytest.mark.parametrize("command", [("stop-sign", "--car"), ("io-test", "--car"), ("ping",), ("grade", "stop-sign", "--car")])
+def test_car_addresses_are_checked_alike_by_every_command(cli, command):
+    for address, says in (("tcp://[::1", "unclosed '[' in the address"),
+                          ("tcp://::1:18960", "IPv6 addresses go in brackets"),
+                          ("tcp://", "expected tcp://HOST:PORT")):
+        code, _, err = cli(*command, address)
+        assert code == 2 and says in one_error_line(err), (command, address, err)

@@ -31,11 +31,35 @@ def parse_car_uri(uri: str) -> tuple[str, str | None, int | None]:
     for scheme in ("tcp", "tcps"):
         if text.startswith(f"{scheme}://"):
             rest = text[len(scheme) + 3 :].rstrip("/")
+            _check_authority(rest, uri, scheme)
             host, sep, port_text = rest.rpartition(":")
             if not sep or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
                 raise InputError(f"car address {uri!r}: expected {scheme}://HOST:PORT with a port in 1-65535")
             return scheme, host.strip("[]"), int(port_text)
     raise InputError(f"car address {uri!r}: expected 'sim' or 'tcp://HOST:PORT' (or 'replay:FILE', a recording)")
+
+
+_HOST_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-._")
+
+
+def _check_authority(authority: str, uri: str, scheme: str) -> None:
+    """HOST:PORT with HOST a name, an IPv4 address or a bracketed IPv6 address ([::1]:18960)."""
+    if authority.startswith("["):
+        close = authority.find("]")
+        if close < 0:
+            raise InputError(f"car address {uri!r}: unclosed '[' in the address; IPv6 addresses are written "
+                             f"{scheme}://[::1]:PORT")
+        inner, rest = authority[1:close], authority[close + 1 :]
+        if not inner or not all(c in "0123456789abcdefABCDEF:.%" or c.isalnum() for c in inner) or ":" not in inner:
+            raise InputError(f"car address {uri!r}: {inner!r} is not an IPv6 address")
+        if not rest.startswith(":"):
+            raise InputError(f"car address {uri!r}: expected {scheme}://[IPV6]:PORT")
+        return
+    host = authority.rpartition(":")[0]
+    if "]" in authority or ":" in host:
+        raise InputError(f"car address {uri!r}: IPv6 addresses go in brackets: {scheme}://[::1]:PORT")
+    if host and not set(host) <= _HOST_CHARS:
+        raise InputError(f"car address {uri!r}: {host!r} is not a host name or address")
 
 
 def open_car(

@@ -154,8 +154,12 @@ def grade_cmd(
     for option, path in (("--out", out), ("--junit", junit)):
         if path is not None and path.exists() and (path.is_dir() if option == "--junit" else not path.is_dir()):
             raise InputError(f"{option} {path}: exists and is {'a folder' if option == '--junit' else 'not a folder'}")
-    if car is not None and not car.startswith("tcp://"):
-        raise InputError(f"--car {car!r}: expected tcp://HOST:PORT (the simulator is the default)")
+    if car is not None:
+        from qcarlab.car import parse_car_uri
+
+        if not car.startswith(("tcp://", "tcps://")):
+            raise InputError(f"--car {car!r}: expected tcp://HOST:PORT (the simulator is the default)")
+        parse_car_uri(car)  # a malformed address: one line now, not a failure in every task
     loaded = [load_sheet(find_sheet(s)) for s in sheets]
     names = [s.name for s in loaded]
     if len(set(names)) != len(names):
