@@ -14,6 +14,10 @@ import os as _os
 # itself refuses larger images (its own setting, read at its first decode).
 MAX_IMAGE_PIXELS = 50_000_000
 _os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
+# A damaged image or video is one line of ours ("cannot read this image"), not OpenCV's and
+# ffmpeg's own warnings besides it (read when OpenCV loads; qcarlab.media also sets OpenCV's level).
+_os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+_os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 
 from qcarlab.car import open_car  # noqa: E402
 

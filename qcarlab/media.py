@@ -17,6 +17,11 @@ import numpy as np
 
 from qcarlab.errors import InputError
 
+try:  # also when OpenCV was loaded before qcarlab (its environment variables were read then)
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+except AttributeError:  # pragma: no cover - an OpenCV without its logging module
+    pass
+
 __all__ = ["IMAGE_EXT", "VIDEO_EXT", "Source", "VideoOut", "check_image_size", "expand_paths", "frames_of",
            "image_size", "read_depth", "read_image"]
 

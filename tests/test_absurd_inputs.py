@@ -82,3 +82,22 @@ def test_car_addresses_are_checked_alike_by_every_command(cli, command):
                           ("tcp://", "expected tcp://HOST:PORT")):
         code, _, err = cli(*command, address)
         assert code == 2 and says in one_error_line(err), (command, address, err)
+
+
+def test_a_damaged_image_or_video_is_our_one_line_without_opencvs_noise(tmp_path):
+    """Run as a user runs it (a fresh process: OpenCV and ffmpeg write to the real stderr)."""
+    import os
+    import struct
+    import subprocess
+    import sys
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", 64, 48, 8, 2, 0, 0, 0)
+    png = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", len(ihdr)) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    (tmp_path / "bad.png").write_bytes(png + b"garbage" * 20)
+    (tmp_path / "bad.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42" + b"junk" * 100)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_")}
+    for name, says in (("bad.png", "cannot read this image"), ("bad.mp4", "cannot open this video")):
+        done = subprocess.run([sys.executable, "-m", "qcarlab", "detect", "lanes", str(tmp_path / name)],
+                              capture_output=True, text=True, env=env, timeout=120)
+        assert done.returncode == 2 and says in one_error_line(done.stderr), done.stderr
