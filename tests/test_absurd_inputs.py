@@ -101,3 +101,14 @@ def test_a_damaged_image_or_video_is_our_one_line_without_opencvs_noise(tmp_path
         done = subprocess.run([sys.executable, "-m", "qcarlab", "detect", "lanes", str(tmp_path / name)],
                               capture_output=True, text=True, env=env, timeout=120)
         assert done.returncode == 2 and says in one_error_line(done.stderr), done.stderr
+
+
+def test_replay_info_of_a_recording_cut_before_its_first_message_says_so(cli, tmp_path):
+    pytest.importorskip("mcap")
+    rec = tmp_path / "r.mcap"
+    code, _, err = cli("io-test", "--duration", "0.5", "--record", rec)
+    assert code == 0, err
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(rec.read_bytes()[:100])
+    code, out, err = cli("replay", "info", cut)
+    assert code == 2 and "cut.mcap: the recording was cut off before its first message" in one_error_line(err)

@@ -292,6 +292,9 @@ class Recording:
             except Exception:
                 if self.complete:
                     raise
+        if not topics and not self.complete:
+            raise InputError(f"{self.path}: the recording was cut off before its first message (an interrupted "
+                             "write or a partial copy): nothing to show")
         first = min((e["first_ns"] for e in topics.values()), default=0)
         last = max((e["last_ns"] for e in topics.values()), default=0)
         out_topics = {}
