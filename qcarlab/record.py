@@ -60,11 +60,23 @@ def prepare_out_dir(out: str | Path) -> Path:
     return path
 
 
+def _umask() -> int:
+    """This process's umask, read without changing it (Linux: /proc/self/status), else 022."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0o022
+
+
 @contextlib.contextmanager
 def atomic_file(path: Path, mode: str = "w", **kw: Any):
     """Open a temporary file beside ``path``; on success it replaces ``path`` in one rename."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())  # as open() would make it (mkstemp's is 0600)
         with os.fdopen(fd, mode, **kw) as fh:
             yield fh
             fh.flush()

@@ -112,3 +112,13 @@ def test_replay_info_of_a_recording_cut_before_its_first_message_says_so(cli, tm
     cut.write_bytes(rec.read_bytes()[:100])
     code, out, err = cli("replay", "info", cut)
     assert code == 2 and "cut.mcap: the recording was cut off before its first message" in one_error_line(err)
+
+
+def test_results_and_log_have_the_modes_of_the_figures_beside_them(cli, tmp_path):
+    import stat
+
+    out = tmp_path / "run"
+    code, _, err = cli("io-test", "--duration", "0.5", "--out", out)
+    assert code == 0, err
+    modes = {f.name: stat.S_IMODE(f.stat().st_mode) for f in out.iterdir()}
+    assert modes["results.json"] == modes["log.csv"] and modes["results.json"] & 0o044 == 0o044, modes
