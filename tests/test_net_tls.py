@@ -239,3 +239,19 @@ def test_serve_tls_and_ping_tcps_from_the_command_line(cert):
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=60)
     assert proc.returncode == 0
+
+
+def test_a_private_key_others_can_read_draws_a_warning(cert, tmp_path, netlog):
+    import os
+    import shutil as sh
+
+    crt, key = tmp_path / "c.crt", tmp_path / "c.key"
+    sh.copy(cert[0], crt)
+    sh.copy(cert[1], key)
+    os.chmod(key, 0o600)
+    server_context(crt, key)
+    assert not [ln for ln in netlog if "private key" in ln]
+    os.chmod(key, 0o644)
+    server_context(crt, key)
+    assert any(f"{key}: the private key can be read by other users of this machine (mode 644); chmod 600" in ln
+               for ln in netlog), netlog

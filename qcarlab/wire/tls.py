@@ -46,6 +46,17 @@ def server_context(cert: str | Path, key: str | Path | None = None) -> ssl.SSLCo
                          f"its private key ({exc.reason or exc})") from None
     except OSError as exc:
         raise InputError(f"--tls-cert {cert_path}: cannot read ({exc.strerror or exc})") from None
+    secret = key_path or cert_path
+    try:
+        mode = secret.stat().st_mode
+    except OSError:
+        mode = 0
+    if mode & 0o044:  # group or others may read the private key
+        import logging
+
+        logging.getLogger("qcarlab.net").warning(
+            f"{secret}: the private key can be read by other users of this machine (mode {mode & 0o777:o}); "
+            f"chmod 600 {secret}")
     return ctx
 
 
