@@ -88,6 +88,24 @@ def atomic_file(path: Path, mode: str = "w", **kw: Any):
         raise
 
 
+IN_PROGRESS = "run-in-progress.txt"  #: in a run's --out folder from its start until its results are saved
+
+
+def mark_in_progress(out: str | Path, command: str) -> None:
+    """Create ``out`` and put :data:`IN_PROGRESS` in it (what runs, since when, which process)."""
+    import datetime
+
+    folder = prepare_out_dir(out)
+    text = (f"{command}\nstarted {datetime.datetime.now().isoformat(timespec='seconds')}, process {os.getpid()}\n"
+            "While this file is here, the run has not saved its results: the files beside it are an earlier "
+            "run's (or this run's, cut short).\n")
+    try:
+        with atomic_file(folder / IN_PROGRESS, "w", encoding="utf-8") as fh:
+            fh.write(text)
+    except OSError as exc:
+        raise InputError(f"--out {folder}: cannot write there ({exc.strerror or exc})") from None
+
+
 def inner_folder(base: Path, *parts: str) -> Path:
     """``base/parts...`` made as real folders: a symbolic link planted on the way is removed, never
     followed (``base`` itself is the user's choice and taken as it is)."""

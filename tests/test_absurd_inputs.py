@@ -122,3 +122,37 @@ def test_results_and_log_have_the_modes_of_the_figures_beside_them(cli, tmp_path
     assert code == 0, err
     modes = {f.name: stat.S_IMODE(f.stat().st_mode) for f in out.iterdir()}
     assert modes["results.json"] == modes["log.csv"] and modes["results.json"] & 0o044 == 0o044, modes
+
+
+def test_a_run_killed_before_saving_never_leaves_an_earlier_runs_results_looking_like_its_own(cli, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "runs" / "drive"
+    code, _, err = cli("io-test", "--on-floor", "--throttle", "0.1", "--duration", "0.5", "--out", out)
+    assert code == 0 and not (out / "run-in-progress.txt").exists(), err
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.Popen([sys.executable, "-m", "qcarlab", "io-test", "--on-floor", "--throttle", "0.1",
+                             "--duration", "60", "--realtime", "--out", str(out)], env=env, cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while not (out / "run-in-progress.txt").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    marker = (out / "run-in-progress.txt").read_text()
+    assert "io-test" in marker and "has not saved its results" in marker
+    sheet = tmp_path / "sheet.yaml"
+    sheet.write_text("title: t\nlab: io-test\ntasks:\n  - id: drive\n    command: qcarlab io-test --on-floor "
+                     "--throttle 0.1 --duration 0.5\n    criteria:\n      mean_speed_mps: {min: 0.0}\n")
+    code, stdout, err = cli("grade", sheet, "--results", tmp_path / "runs", "--json")
+    import json
+
+    problem = json.loads(stdout)["tasks"][0]["problem"]
+    assert code == 1 and "a run started there after these results and did not save its own" in problem

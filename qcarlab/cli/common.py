@@ -48,9 +48,21 @@ def check_out(out: Path | None) -> Path | None:
     return out
 
 
+def check_run_out(out: Path | None) -> Path | None:
+    """:func:`check_out`, then mark the folder as holding a run in progress (removed when the run's
+    results are saved), so a run killed before saving never leaves an earlier run's results there
+    looking like its own."""
+    out = check_out(out)
+    if out is not None:
+        from qcarlab.record import mark_in_progress
+
+        mark_in_progress(out, "qcarlab " + " ".join(sys.argv[1:]))
+    return out
+
+
 OutOpt = Annotated[
     Path | None,
-    typer.Option("--out", help="Folder for results.json, the CSV log and the figures.", callback=check_out),
+    typer.Option("--out", help="Folder for results.json, the CSV log and the figures.", callback=check_run_out),
 ]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the results as JSON on stdout, nothing else.")]
 RealtimeOpt = Annotated[

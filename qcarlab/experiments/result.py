@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from qcarlab.record import prepare_out_dir, write_csv, write_json
+from qcarlab.record import IN_PROGRESS, prepare_out_dir, write_csv, write_json
 
 
 @dataclass
@@ -38,4 +38,5 @@ class Result:
             draw(folder / filename)
             written.append(folder / filename)
         written.append(write_json(folder / "results.json", self.metrics))
+        (folder / IN_PROGRESS).unlink(missing_ok=True)  # saved: the folder is this run's
         return written

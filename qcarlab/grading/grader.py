@@ -136,6 +136,11 @@ def make_plan(sheets: list[Sheet], tasks: list[Task], students: list[tuple[str, 
 # --------------------------------------------------------------------------------------------
 def _saved(task: Task, folder: Path) -> tuple[dict | None, str]:
     """DIR/TASK-ID/results.json (what --out DIR/TASK-ID writes) or DIR/TASK-ID.json."""
+    from qcarlab.record import IN_PROGRESS
+
+    if (folder / task.id / IN_PROGRESS).exists():
+        return None, (f"{folder / task.id}: a run started there after these results and did not save its own "
+                      f"({IN_PROGRESS}): run the task again")
     for path in (folder / task.id / "results.json", folder / f"{task.id}.json"):
         if path.exists():
             try:
