@@ -164,3 +164,37 @@ def test_stats():
     assert s["min"] == pytest.approx(1.0) and s["max"] == pytest.approx(3.0) and s["avg"] == pytest.approx(2.0)
     assert s["jitter"] == pytest.approx(1.5)  # mean |difference| of consecutive samples
     assert _stats([])["avg"] is None
+
+
+def test_the_server_listens_only_once_it_can_answer(cli, monkeypatch):
+    """While the car gets ready (sensors, compiled physics) nothing listens: a client is refused at
+    once rather than left waiting in the backlog, and the first one after start() is answered."""
+    import time
+
+    from qcarlab.car.sim import SimCar
+
+    car = SimCar()
+    slow = car.prepare_sensors
+
+    def prepare() -> None:
+        time.sleep(1.0)
+        slow()
+
+    monkeypatch.setattr(car, "prepare_sensors", prepare)
+    probe = socket.socket()
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    server = CarServer(car, "127.0.0.1", port, prepare=True)
+    started = threading.Thread(target=server.start)
+    started.start()
+    try:
+        time.sleep(0.3)  # bound, still preparing
+        with pytest.raises(ConnectionRefusedError):
+            socket.create_connection(("127.0.0.1", port), timeout=2).close()
+        started.join(30)
+        code, out, err = cli("ping", f"tcp://127.0.0.1:{port}", "--count", "2")
+        assert code == 0, err
+    finally:
+        started.join(30)
+        server.stop()

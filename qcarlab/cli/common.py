@@ -48,21 +48,9 @@ def check_out(out: Path | None) -> Path | None:
     return out
 
 
-def check_run_out(out: Path | None) -> Path | None:
-    """:func:`check_out`, then mark the folder as holding a run in progress (removed when the run's
-    results are saved), so a run killed before saving never leaves an earlier run's results there
-    looking like its own."""
-    out = check_out(out)
-    if out is not None:
-        from qcarlab.record import mark_in_progress
-
-        mark_in_progress(out, "qcarlab " + " ".join(sys.argv[1:]))
-    return out
-
-
 OutOpt = Annotated[
     Path | None,
-    typer.Option("--out", help="Folder for results.json, the CSV log and the figures.", callback=check_run_out),
+    typer.Option("--out", help="Folder for results.json, the CSV log and the figures.", callback=check_out),
 ]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the results as JSON on stdout, nothing else.")]
 RealtimeOpt = Annotated[
@@ -123,10 +111,21 @@ TopicsOpt = Annotated[str | None, typer.Option(
     "scan=/scan,color=/camera/color/image_raw,depth=/camera/depth/image_rect_raw.", show_default=False)]
 
 
+def mark_run_start(out: Path | None) -> None:
+    """Mark --out as holding a run in progress (removed when the run's results are saved), so a run
+    killed before saving never leaves an earlier run's results there looking like its own. (Done
+    when the command runs, not when its options are parsed: the grader parses commands too.)"""
+    if out is not None:
+        from qcarlab.record import mark_in_progress
+
+        mark_in_progress(out, "qcarlab " + " ".join(sys.argv[1:]))
+
+
 def recordable(command):
     """Give a driving command --record, --record-exact, --live, --live-port, --topics and
     --realism (one decorator line under ``@app.command``); the car it opens is then recorded or
-    replayed, and a simulated one has the realism profile asked for (``lab`` by default)."""
+    replayed, and a simulated one has the realism profile asked for (``lab`` by default). Its
+    --out is marked as holding a run in progress (:func:`mark_run_start`)."""
     import functools
     import inspect
     from typing import get_type_hints
@@ -139,6 +138,7 @@ def recordable(command):
         from qcarlab.cli import recording
 
         token, opened = _realism_choice.set(realism), _opened_realism.set(None)
+        mark_run_start(kwargs.get("out"))
         try:
             with recording.request(record, record_exact, live, live_port, topics):
                 return command(*args, **kwargs)

@@ -345,7 +345,8 @@ class CarServer:
         return self._bound is not None and address_is_loopback(self._bound[0])
 
     def start(self) -> CarServer:
-        """Bind, listen and start serving in background threads; returns self."""
+        """Bind, get the car ready (its sensors, the compiled physics), then listen and start serving in
+        background threads; returns self. Nothing listens before the car can answer."""
         if self._started:
             return self
         listener = self._bind()
@@ -367,6 +368,7 @@ class CarServer:
                 _log(logging.WARNING, "could not prepare the sensors: %s", _one_line(str(exc)))
         if self.worker is None and not self.lockstep and callable(getattr(self.car, "warm_physics", None)):
             self.car.warm_physics()  # a first-use cost paid now, not under the drive lock later
+        listener.listen(128)  # ready: a client that connects from now on is answered at once
         self._listener = listener
         self._bound = (bound[0], bound[1])
         self._wake_r, self._wake_w = socket.socketpair()
@@ -402,9 +404,16 @@ class CarServer:
         if not infos:
             raise InputError(f"--host {self.host!r}: unknown host name")
         family, _, _, _, sockaddr = infos[0]
-        try:  # bind the resolved numeric address: that address, not the name, decides what is loopback
-            return socket.create_server(sockaddr, family=family, backlog=128)
+        # bind the resolved numeric address (that address, not the name, decides what is loopback); it
+        # listens only when start() has the car ready to answer, so no client waits in the backlog
+        sock = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            if os.name == "posix":
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind(sockaddr)
+            return sock
         except OSError as exc:
+            sock.close()
             if exc.errno == errno.EADDRINUSE:
                 raise CarError(f"cannot listen on {where}: the port is in use (another qcarlab serve?); pick another --port") from None
             if exc.errno in (errno.EACCES, errno.EPERM):
