@@ -66,6 +66,14 @@ class RaisedInBlock(Exception):
         super().__init__(message)
         self.kind, self.type_name, self.message, self.traceback = kind, type_name, message, traceback
 
+    @classmethod
+    def of(cls, exc: BaseException, file: Path) -> RaisedInBlock:
+        """What the student's exception ``exc`` (raised by their code in ``file``) was, as data."""
+        if isinstance(exc, SystemExit):
+            return cls("system_exit", "SystemExit", repr(exc.code))
+        kind = "not_implemented" if isinstance(exc, NotImplementedError) else "exception"
+        return cls(kind, type(exc).__name__, str(exc)[:2000], student_traceback(exc, file))
+
 
 #: Where the student's files are loaded: None = in this process (a lab run); a grader's task sets
 #: its sandboxed student process's loader (:meth:`qcarlab.sandbox.client.BlockHost.load`).
@@ -229,34 +237,22 @@ class StudentBlock:
             self._failed(exc)
 
     def _failed(self, exc: BaseException) -> None:
-        """Raise what the student's exception ``exc`` means for the run (see the module docstring)."""
-        if isinstance(exc, RaisedInBlock):
-            self._failed_remotely(exc)
-        if isinstance(exc, NotImplementedError):
-            raise InputError(f"{self.file}: {self.spec.name} is not filled in yet (sheet {self.spec.section}); "
-                             "write its body, then run again") from None
+        """Raise what the student's exception ``exc`` means for the run (see the module docstring):
+        raised here, or in the student's own process (:class:`RaisedInBlock`)."""
         if isinstance(exc, (KeyboardInterrupt, QcarlabError)):
             raise exc
-        if isinstance(exc, SystemExit):
-            raise StudentBlockError(f"block {self.spec.name} ({self.source}) called sys.exit({exc.code!r}); "
-                                    "a block returns its value instead") from None
-        raise StudentBlockError(student_traceback(exc, self.file)
-                                + f"\nblock {self.spec.name} ({self.source}) raised "
-                                f"{type(exc).__name__}: {exc}") from None
-
-    def _failed_remotely(self, exc: RaisedInBlock) -> None:
-        """As :meth:`_failed`, for what the block did in the student's own process."""
+        what = exc if isinstance(exc, RaisedInBlock) else RaisedInBlock.of(exc, self.file)
         where = f"block {self.spec.name} ({self.source})"
-        if exc.kind == "not_implemented":
+        if what.kind == "not_implemented":
             raise InputError(f"{self.file}: {self.spec.name} is not filled in yet (sheet {self.spec.section}); "
                              "write its body, then run again") from None
-        if exc.kind == "system_exit":
-            raise StudentBlockError(f"{where} called sys.exit({exc.message}); a block returns its value instead") \
+        if what.kind == "system_exit":
+            raise StudentBlockError(f"{where} called sys.exit({what.message}); a block returns its value instead") \
                 from None
-        if exc.kind in ("died", "value", "output"):
-            raise StudentBlockError(f"{where}: {exc.message}") from None
-        tb = exc.traceback or "  (no line of your file in the traceback: the error came from a call your block made)"
-        raise StudentBlockError(f"{tb}\n{where} raised {exc.type_name}: {exc.message}") from None
+        if what.kind in ("died", "value", "output"):
+            raise StudentBlockError(f"{where}: {what.message}") from None
+        raise StudentBlockError(f"{what.traceback or _NO_LINE}\n{where} raised {what.type_name}: {what.message}") \
+            from None
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         fn = self.fn
@@ -287,6 +283,9 @@ class StudentBlock:
                 "budget_s": self.budget_s}
 
 
+_NO_LINE = "  (no line of your file in the traceback: the error came from a call your block made)"
+
+
 def student_traceback(exc: BaseException, file: Path) -> str:
     """The traceback of ``exc`` cut to the frames in the student's ``file`` (file:line and code)."""
     want = str(Path(file).resolve())
@@ -297,18 +296,23 @@ def student_traceback(exc: BaseException, file: Path) -> str:
             if frame.line:
                 lines.append(f"    {frame.line.strip()}")
     if not lines:
-        return "  (no line of your file in the traceback: the error came from a call your block made)"
+        return _NO_LINE
     return "\n".join(["traceback (your code only):"] + lines)
 
 
 # --------------------------------------------------------------------------------------------
 # loading a student's file
 # --------------------------------------------------------------------------------------------
-def _import_file(path: Path) -> Any:
+def check_block_file(path: Path) -> None:
+    """A student's file must be a Python file that is there (one line otherwise)."""
     if not path.is_file():
         raise InputError(f"{path}: no such file (expected a Python file with your blocks)")
     if path.suffix != ".py":
         raise InputError(f"{path}: expected a Python file (.py)")
+
+
+def _import_file(path: Path) -> Any:
+    check_block_file(path)
     name = f"qcarlab_student_{abs(hash(str(path.resolve())))}"
     spec = importlib.util.spec_from_file_location(name, path)
     if spec is None or spec.loader is None:

@@ -134,3 +134,41 @@ def test_outputs_replace_a_planted_link_and_never_write_through_it(tmp_path):
 
 def test_options_default_to_auto():
     assert Options().sandbox == "auto" and runner.Job(("a", "b", "c"), "block", {}).sandbox == "auto"
+
+
+def test_a_block_in_the_students_process_fails_as_one_run_here_would(tmp_path):
+    """The same one-line messages whether the block raised in this process or in the student's:
+    NotImplementedError (not filled in), sys.exit, an exception with the student's own lines."""
+    import os
+
+    from qcarlab.blocks import StudentBlock, StudentBlockError
+    from qcarlab.experiments.labs import find_lab
+    from qcarlab.sandbox.client import BlockHost, HostPlan
+
+    if not hasattr(os, "fork"):
+        pytest.skip("the student's process is forked")
+    spec = {b.name: b for b in find_lab("stop-sign").blocks}["stop_sign"]
+    src = tmp_path / "submission"
+    src.mkdir()
+    (src / "stop_sign.py").write_text(
+        "import sys\n\ndef stop_sign(d, v):\n    if d > 1:\n        raise NotImplementedError('far')\n"
+        "    if d < 0:\n        sys.exit(3)\n    return 1 / 0\n")
+    local_ns: dict = {}
+    exec(compile((src / "stop_sign.py").read_text(), str(src / "stop_sign.py"), "exec"), local_ns)
+    host = BlockHost.start(HostPlan(tmp_path, src, tmp_path / "o.txt", tmp_path / "e.txt", sandbox=False))
+    try:
+        remote = host.load(src / "stop_sign.py")["stop_sign"]
+        said = []
+        for target in (local_ns["stop_sign"], remote):
+            block = StudentBlock(spec, target, "stop_sign.py:stop_sign", src / "stop_sign.py").start()
+            got = []
+            for d in (2.0, -1.0, 0.5):
+                with pytest.raises((InputError, StudentBlockError)) as exc:
+                    block(d, 0.5)
+                got.append(str(exc.value))
+            said.append(got)
+    finally:
+        host.close()
+    assert said[0] == said[1]
+    assert "stop_sign is not filled in yet" in said[0][0] and "called sys.exit(3)" in said[0][1]
+    assert "stop_sign.py:8 in stop_sign" in said[0][2] and said[0][2].endswith("raised ZeroDivisionError: division by zero")

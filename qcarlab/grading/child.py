@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -140,8 +141,6 @@ def student_process(spec: dict[str, Any], limits: Any) -> Any:
         why = jail.probe()
         if why is not None and mode == "required":
             raise GraderFault(f"--sandbox required: {why}")
-    import os
-
     if not hasattr(os, "fork"):  # Windows: the student's code runs in this process (and says so)
         Path("sandbox.txt").write_text(f"not sandboxed: {why}; the student's code ran in the task's own process",
                                        encoding="utf-8")
@@ -161,8 +160,6 @@ def _hold_to_one_core(cpu: int | None) -> None:
     runs on. A block call is then a hand-over between two processes on one core, some 7 us,
     where a wake-up on the other core costs 50-90 us on a VM (a 75 s path-follow run makes
     15,000 calls). Nothing is lost: the task's two processes never compute at the same time."""
-    import os
-
     if not hasattr(os, "sched_setaffinity"):
         return
     try:

@@ -14,6 +14,8 @@ of the lab's blocks each file defines, and which are still the template's stub.
 from __future__ import annotations
 
 import ast
+import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -179,9 +181,6 @@ def read_submission(root: str | Path, names: list[str | None], student: str | No
 def _read_regular(path: Path, limit: int) -> bytes:
     """At most ``limit`` bytes of a regular file, opened without following a link (so a file
     swapped for a link after it was listed is refused too)."""
-    import os
-    import stat
-
     fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
     try:
         if not stat.S_ISREG(os.fstat(fd).st_mode):

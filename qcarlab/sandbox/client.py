@@ -23,9 +23,9 @@ import socket
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
-from qcarlab.blocks import RaisedInBlock
+from qcarlab.blocks import RaisedInBlock, check_block_file
 from qcarlab.errors import GraderFault, InputError
 from qcarlab.sandbox import codec
 
@@ -67,10 +67,6 @@ class BlockHost:
         self.status: int | None = None
         self.dead: str | None = None
 
-    @property
-    def sandboxed(self) -> bool:
-        return self.plan.sandbox
-
     @classmethod
     def start(cls, plan: HostPlan) -> BlockHost:
         """Fork the student's process (see the module docstring); it loads nothing until asked."""
@@ -107,16 +103,12 @@ class BlockHost:
             self.channel.send(msg)
             reply = self.channel.recv()
         except codec.CodecError as exc:  # (our own arguments always encode: this is their reply)
-            self.dead = f"the process running your blocks sent something that is not a value ({exc})"
-            self.kill()
-            raise RaisedInBlock("died", "", self.dead) from None
+            self._broken(f"the process running your blocks sent something that is not a value ({exc})")
         except (EOFError, OSError):
             self.dead = self.death()
             raise RaisedInBlock("died", "", self.dead) from None
         if not isinstance(reply, tuple) or not reply:
-            self.dead = "replied with something that is not a reply"
-            self.kill()
-            raise RaisedInBlock("died", "", self.dead)
+            self._broken("replied with something that is not a reply")
         if reply[0] == "ok" and len(reply) == 2:
             return reply[1]
         if reply[0] == "raised" and len(reply) == 5:
@@ -128,16 +120,17 @@ class BlockHost:
             raise InputError(str(reply[1]))
         if reply[0] == "value" and len(reply) == 2:
             raise RaisedInBlock("value", "", f"returned a value that cannot be passed back: {reply[1]}")
-        self.dead = "replied with something that is not a reply"
+        self._broken("replied with something that is not a reply")
+
+    def _broken(self, why: str) -> NoReturn:
+        """The student's process broke the protocol: it is ended, and every later call fails with ``why``."""
+        self.dead = why
         self.kill()
-        raise RaisedInBlock("died", "", self.dead)
+        raise RaisedInBlock("died", "", why) from None
 
     def load(self, path: Path) -> dict[str, Any]:
         """The top-level functions and classes of the student's file ``path``, as remote blocks."""
-        if not path.is_file():
-            raise InputError(f"{path}: no such file (expected a Python file with your blocks)")
-        if path.suffix != ".py":
-            raise InputError(f"{path}: expected a Python file (.py)")
+        check_block_file(path)
         try:
             found = self.request("load", str(path.resolve()))
         except RaisedInBlock as exc:

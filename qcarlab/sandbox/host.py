@@ -29,16 +29,10 @@ from qcarlab.sandbox import codec
 
 
 def _raised(exc: BaseException, file: str) -> tuple:
-    from qcarlab.blocks import student_traceback
+    from qcarlab.blocks import RaisedInBlock
 
-    if isinstance(exc, NotImplementedError):
-        kind = "not_implemented"
-    elif isinstance(exc, SystemExit):
-        kind = "system_exit"
-    else:
-        kind = "exception"
-    message = repr(exc.code) if isinstance(exc, SystemExit) else str(exc)
-    return ("raised", kind, type(exc).__name__, message[:2000], student_traceback(exc, Path(file)))
+    what = RaisedInBlock.of(exc, Path(file))
+    return ("raised", what.kind, what.type_name, what.message, what.traceback)
 
 
 def serve(sock: socket.socket) -> None:

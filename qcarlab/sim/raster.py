@@ -16,6 +16,8 @@ images. ROS maps keep their own cells; vector worlds are drawn at :data:`RASTER_
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
 import os
 import pickle
@@ -290,14 +292,17 @@ def on_disk(cls: type, key: tuple, inputs: tuple, build: Any) -> Any:
     return out
 
 
-def _fingerprint(key: tuple, inputs: tuple) -> str:
-    import hashlib
-
+@functools.lru_cache(maxsize=1)
+def _code_hash() -> str:
+    """The hash of qcarlab's version and the source of the code that makes the cached rasters (read once)."""
     from qcarlab import __version__
 
     code = b"".join(Path(m.__file__).read_bytes() for m in (sys.modules[__name__], sys.modules[World.__module__]))
-    what = (__version__, hashlib.sha256(code).hexdigest(), key, inputs)
-    return hashlib.sha256(pickle.dumps(what, protocol=4)).hexdigest()[:32]
+    return hashlib.sha256(__version__.encode() + code).hexdigest()
+
+
+def _fingerprint(key: tuple, inputs: tuple) -> str:
+    return hashlib.sha256(pickle.dumps((_code_hash(), key, inputs), protocol=4)).hexdigest()[:32]
 
 
 @dataclass(frozen=True)
