@@ -261,9 +261,9 @@ def grade_cmd(
 def _sandbox_state(mode: str, on_ray: bool, student_code: bool, quiet: bool) -> dict[str, Any]:
     """Whether the student's code will be sandboxed here (with --ray each worker decides and
     the report marks each task); ``--sandbox required`` without it is refused (exit 2)."""
-    from qcarlab.sandbox.jail import probe
+    from qcarlab.sandbox.jail import unavailable
 
-    why = "switched off (--sandbox off)" if mode == "off" else (None if on_ray else probe())
+    why = None if on_ray and mode != "off" else unavailable(mode)
     if why is not None and mode == "required":
         raise InputError(f"--sandbox required: {why}")
     if why is not None and student_code and not quiet:

@@ -136,11 +136,9 @@ def student_process(spec: dict[str, Any], limits: Any) -> Any:
     from qcarlab.sandbox.client import BlockHost, HostPlan
 
     mode = spec.get("sandbox", "auto")
-    why = None if mode != "off" else "switched off (--sandbox off)"
-    if why is None:
-        why = jail.probe()
-        if why is not None and mode == "required":
-            raise GraderFault(f"--sandbox required: {why}")
+    why = jail.unavailable(mode)
+    if why is not None and mode == "required":
+        raise GraderFault(f"--sandbox required: {why}")
     if not hasattr(os, "fork"):  # Windows: the student's code runs in this process (and says so)
         Path("sandbox.txt").write_text(f"not sandboxed: {why}; the student's code ran in the task's own process",
                                        encoding="utf-8")

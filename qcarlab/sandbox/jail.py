@@ -200,6 +200,11 @@ def _limits(plan: Plan) -> None:
 _probed: list[str | None] = []
 
 
+def unavailable(mode: str) -> str | None:
+    """Why the student's code will not be sandboxed under ``--sandbox MODE`` here (None: it will)."""
+    return "switched off (--sandbox off)" if mode == "off" else probe()
+
+
 def probe() -> str | None:
     """None when :func:`confine` works here; else why not, in one line (cached)."""
     if not _probed:
@@ -230,4 +235,4 @@ def _probe() -> str | None:
     return None
 
 
-__all__ = ["BASE_UID", "NAMESPACES", "Plan", "confine", "probe", "python_paths", "unshare"]
+__all__ = ["BASE_UID", "NAMESPACES", "Plan", "confine", "probe", "python_paths", "unavailable", "unshare"]
