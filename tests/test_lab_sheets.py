@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from qcarlab.experiments.labs import find_lab
 from qcarlab.grading import check_case, check_metrics, load_sheet
 from qcarlab.grading.child import run_block
 from qcarlab.grading.sheet import shipped_sheets
@@ -27,10 +28,21 @@ def tasks(kind: str):
                 yield pytest.param(loaded.extends or sheet.stem, task, id=f"{sheet.stem}:{task.id}")
 
 
+def reference_choices(sheet: str, task) -> list[str]:
+    """The options that give the task's graded choices (params.yaml's) the reference's values."""
+    lab = load_sheet(next(p for p in SHEETS if p.stem == sheet)).lab
+    choices = {c.name: c.reference for c in find_lab(lab).choose} if lab else {}
+    words = []
+    for name in task.params:
+        if choices.get(name) is not None:
+            words += [f"--{name.replace('_', '-')}", str(choices[name])]
+    return words
+
+
 @pytest.mark.parametrize(("sheet", "task"), list(tasks("scenario")))
 def test_task_command_meets_its_criteria(cli, sheet, task, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # camera writes its images to the current folder by default
-    code, out, err = cli(*task.argv(), "--json")
+    code, out, err = cli(*task.argv(), *reference_choices(sheet, task), "--json")
     assert code == 0, err
     verdicts = check_metrics(json.loads(out), task.criteria)
     assert all(v.passed for v in verdicts), [(v.criterion, v.value, v.reason) for v in verdicts]

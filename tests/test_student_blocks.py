@@ -7,6 +7,7 @@ Python API), and checks what *their* code made the car do.
 from __future__ import annotations
 
 import json
+import re
 import math
 import textwrap
 from pathlib import Path
@@ -58,7 +59,9 @@ def test_template_writes_a_workspace_and_unfilled_blocks_exit_2(cli, tmp_path, l
 def test_params_file_from_the_template_is_accepted_and_the_command_line_wins(cli, tmp_path):
     assert cli("template", "stop-sign", "--out", tmp_path)[0] == 0
     params = tmp_path / "params.yaml"
-    params.write_text(params.read_text().replace("speed: 0.3", "speed: 0.5").replace("far: 0.4", "far: 0.6"))
+    text = re.sub(r"  hsv_min: .*", "  hsv_min: [170, 100, 100]", params.read_text())  # the student's choices
+    text = re.sub(r"  hsv_max: .*", "  hsv_max: [10, 255, 255]", text)
+    params.write_text(text.replace("speed: 0.3", "speed: 0.5").replace("far: 0.4", "far: 0.6"))
     code, out, err = cli("stop-sign", "--params", params, "--json")
     assert code == 0, err
     m = json.loads(out)

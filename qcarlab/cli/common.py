@@ -244,6 +244,9 @@ def apply_tunables(cfg: Any, params: Path | None, ctx: typer.Context | None, ign
             if getattr(source, "name", None) == "COMMANDLINE":  # click's enum (typer may vendor click)
                 continue
         current = getattr(cfg, name)
+        if value is None and current is not None:  # the template leaves the student's choices empty
+            raise InputError(f"{params}: lab: {key} is empty: it is yours to choose (see the comment above it "
+                             f"in the file); fill it in, or give --{name.replace('_', '-')} on the command line")
         if isinstance(current, tuple) and isinstance(value, list):
             value = tuple(value)
         if isinstance(current, bool) and not isinstance(value, bool):

@@ -311,15 +311,27 @@ def _print(sheets: list[Sheet], students: list[dict[str, Any]], single: bool) ->
 
 @app.command("labs")
 def labs_cmd(
-    sheet: Annotated[str | None, typer.Argument(help="Show this sheet's tasks (a name, a section or a YAML).",
-                                                show_default=False)] = None,
+    sheet: Annotated[list[str] | None, typer.Argument(
+        help="Show this sheet's tasks (a name, a section or a YAML); or: check [SHEET ...] to self-check sheets "
+             "(all the shipped ones by default).", show_default=False)] = None,
+    jobs: Annotated[int, typer.Option(help="With check: tasks graded at a time.")] = 1,
     json_out: JsonOpt = False,
     debug: DebugOpt = False,
 ) -> None:
-    """List the lab sheets qcarlab grade knows (installed with qcarlab), or one sheet's tasks.
+    """List the lab sheets qcarlab grade knows (installed with qcarlab), or one sheet's tasks; with
+    check, self-check sheets: the untouched template (qcarlab template) must earn 0 points and
+    qcarlab's reference blocks every point, so every point depends on the student. Exit 1 when a
+    sheet fails its check.
 
-    Examples: qcarlab labs | qcarlab labs stop-sign | qcarlab labs 6.1 --json
+    Examples: qcarlab labs | qcarlab labs stop-sign | qcarlab labs 6.1 --json | qcarlab labs check
+    stop-sign | qcarlab labs check my-sheet.yaml --jobs 2
     """
+    if sheet and sheet[0] == "check":
+        _labs_check(sheet[1:], jobs, json_out)
+        return
+    if sheet and len(sheet) > 1:
+        raise InputError(f"give one sheet to show (or: qcarlab labs check {' '.join(sheet)}), got {len(sheet)}")
+    sheet = sheet[0] if sheet else None
     if sheet is None:
         rows = []
         for path in shipped_sheets():
@@ -340,7 +352,7 @@ def labs_cmd(
             stdout.print(f"from {Path(rows[0]['path']).parent}", markup=False)
         return
     s = load_sheet(find_sheet(sheet))
-    tasks = [{"id": t.id, "kind": t.kind, "command": t.command, "block": t.block, "uses": list(t.uses),
+    tasks = [{"id": t.id, "kind": t.kind, "command": t.command, "block": t.block, "uses": list(t.uses) + list(t.params),
               "needs_car": t.needs_car, "points": t.points, "text": t.text,
               "criteria": [{"criterion": c.describe(), "points": c.points} for c in t.criteria]} for t in s.tasks]
     if json_out:
@@ -357,3 +369,43 @@ def labs_cmd(
             runs += f"  (with your {', '.join(t['uses'])})"
         table.add_row(t["id"], runs, "\n".join(c["criterion"] for c in t["criteria"]), f"{t['points']:g}")
     stdout.print(table)
+
+
+def _labs_check(names: list[str], jobs: int, json_out: bool) -> None:
+    """``qcarlab labs check``: each sheet read, then graded as the untouched template and as the reference."""
+    from qcarlab.grading.selfcheck import check_sheet
+
+    if not 1 <= jobs <= 256:
+        raise InputError(f"--jobs must be 1..256, got {jobs}")
+    sheets = [load_sheet(find_sheet(n)) for n in names] if names else [load_sheet(p) for p in shipped_sheets()]
+    commands = CliCommands()
+    _check_sheet_commands(sheets, commands)
+    outcomes = []
+    for s in sheets:
+        if not json_out:
+            stderr.print(f"labs check: {s.name}: grading the untouched template and the reference ...", markup=False)
+        outcomes.append(check_sheet(s, commands, jobs))
+    if json_out:
+        sys.stdout.write(dumps({"sheets": [{"sheet": o.sheet, "ok": o.ok, "problems": o.problems,
+                                            "template": o.template, "template_points": o.template_points,
+                                            "reference": o.reference, "reference_missed": o.reference_missed}
+                                           for o in outcomes]}) + "\n")
+    else:
+        table = Table(title="Lab sheets' self-check: the untouched template earns 0, the reference every point",
+                      title_justify="left")
+        for col in ("sheet", "template", "reference", "check"):
+            table.add_column(col)
+        for o in outcomes:
+            def pts(d: dict[str, Any]) -> str:
+                return f"{d['points']:g} of {d['max_points']:g}" if d else "-"
+            table.add_row(o.sheet, pts(o.template), pts(o.reference), "ok" if o.ok else "FAIL")
+        stdout.print(table)
+        for o in outcomes:
+            for line in o.problems:
+                stdout.print(f"{o.sheet}: {line}", markup=False)
+            for line in o.template_points:
+                stdout.print(f"{o.sheet}: the untouched template earns {line}", markup=False)
+            for line in o.reference_missed:
+                stdout.print(f"{o.sheet}: the reference misses {line}", markup=False)
+    if not all(o.ok for o in outcomes):
+        raise typer.Exit(1)

@@ -63,8 +63,8 @@ def _summary(result: Result) -> None:
     table.add_row("distance along the lane", _fmt(m["distance_along_lane_m"], "m", 2))
     table.add_row("laps", _fmt(m["laps"], "", 2))
     table.add_row("duration, mean speed", f"{m['duration_s']:.2f} s, {m['mean_speed_mps']:.3f} m/s")
-    table.add_row("frames: white backup / line lost", f"{m['frames_white_backup']} / {m['frames_line_lost']} "
-                  f"of {m['frames']}")
+    table.add_row("frames: yellow line / white backup / lost", f"{m['frames_yellow']} / {m['frames_white_backup']} / "
+                  f"{m['frames_line_lost']} of {m['frames']}")
     u = m["user_inputs"]
     table.add_row("user inputs: speed, stop distance, lane", f"{u['desired_speed_mps']:.2f} m/s, "
                   f"{u['stop_distance_m']:.2f} m, {u['lane_gain'] * 100:.0f} %")
@@ -149,6 +149,7 @@ def lane_follow_cmd(
 
         profile = load_hsv_profile(hsv)
         cfg.hsv_min, cfg.hsv_max = profile.hsv_min, profile.hsv_max
+        cfg.white_s_max, cfg.white_v_min = profile.white_s_max, profile.white_v_min  # the white backup's
     cfg.check()
     mine = student_blocks(LaneFollowingLab, use, block)
     world_obj, pose = sim_world(car, world, start, "track", params)

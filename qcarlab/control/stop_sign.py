@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["FAR", "NEAR", "StopSignBehaviour", "stop_sign"]
+__all__ = ["FAR", "NEAR", "StopSignBehaviour", "StopSignHold", "stop_sign"]
 
 NEAR = 0.05  # m: below this the reading is "no sign" (the camera reads 0 without data)
 FAR = 0.40  # m: the sheet stops the car inside 0.05 .. 0.40 m
@@ -153,3 +153,37 @@ class StopSignBehaviour:
             self.state = "leaving"
             return self.desired_speed
         return 0.0
+
+
+class StopSignHold:
+    """The ``stop_sign_hold`` block (sheet 5.2 Task 4, the improved stopSign) as the lab calls it::
+
+        speed_cmd = stop_sign_hold(t, distance_to_sign, new_frame, speed, desired_speed)
+
+    every control tick: ``t`` s since the start, ``distance_to_sign`` m from the latest camera
+    frame (0 = no sign in it; held between frames), ``new_frame`` True on the tick a new frame
+    arrived, ``speed`` the measured speed (m/s), ``desired_speed`` m/s. The reference is
+    :class:`StopSignBehaviour` (slow down, stop, hold ``hold`` s, drive on, ignore that sign),
+    made at the first call with that call's desired speed; ``state`` and ``stops`` are its.
+    """
+
+    def __init__(self, hold: float = 3.0):
+        self.hold = float(hold)
+        self.reset()
+
+    def reset(self) -> None:
+        self._machine: StopSignBehaviour | None = None
+
+    @property
+    def state(self) -> str:
+        return self._machine.state if self._machine is not None else "drive"
+
+    @property
+    def stops(self) -> int:
+        return self._machine.stops if self._machine is not None else 0
+
+    def __call__(self, t: float, distance_to_sign: float, new_frame: bool, speed: float,
+                 desired_speed: float) -> float:
+        if self._machine is None:
+            self._machine = StopSignBehaviour(desired_speed, hold=self.hold)
+        return self._machine.step(t, speed, distance_to_sign if new_frame else None)

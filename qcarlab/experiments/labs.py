@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from qcarlab.blocks import BlockSpec
 from qcarlab.errors import InputError
@@ -25,6 +25,14 @@ from qcarlab.experiments.lane_follow import LaneFollowConfig, LaneFollowingLab
 from qcarlab.experiments.model import LabModel
 from qcarlab.experiments.path_follow import FollowConfig, PathFollowingLab
 from qcarlab.experiments.stop_sign import StopSignConfig, StopSignLab
+
+
+class Choice(NamedTuple):
+    """A tunable the student chooses (the template leaves it empty; the sheet's tasks grade it)."""
+
+    name: str
+    task: str  # the sheet's task, as the template's comment says it
+    reference: Any = None  # the reference's choice (None: the lab's default)
 
 
 @dataclass(frozen=True)
@@ -40,6 +48,7 @@ class Lab:
     tunables: tuple[str, ...]  # the fields params.yaml offers
     questions: tuple[str, ...]  # the sheet's "explain" tasks, for answers.md
     run: str  # how to run the lab with the workspace, from inside it
+    choose: tuple[Choice, ...] = ()  # the tunables the student chooses: the template leaves them empty
 
     @property
     def blocks(self) -> tuple[BlockSpec, ...]:
@@ -77,7 +86,9 @@ LABS: tuple[Lab, ...] = (
          "4.2.2 Tasks 3-4: Which look-ahead distance did you choose for p4, and why is the behaviour better?",
          "4.2.3 Task 1: Study the speed controller's structure. What kind of controller is it?",
          "4.2.3: Which K_p and K_i did you choose for the best speed control? Explain how and why."),
-        "qcarlab path-follow butterfly --size 2 --use . --params params.yaml"),
+        "qcarlab path-follow butterfly --size 2 --use . --params params.yaml",
+        (Choice("lookahead", "4.2.2 Tasks 3-4: the look-ahead distance you chose for p4, m (try a sweep: "
+                "--lookahead 0.2,0.3,0.5,0.8)", 0.5),)),
     Lab("stop-sign", "stop-sign", "5.2", "Stop at a stop sign", StopSignLab, StopSignConfig,
         ("speed", "near", "far", "kp", "ki", "kff", "hsv_min", "hsv_max", "min_area"),
         ("5.1: Explain what each block of the RGBD Imaging model does (thresholding, find objects, distance).",
@@ -85,14 +96,20 @@ LABS: tuple[Lab, ...] = (
          "wanted?",
          "5.2 Task 4: Suggest improvements to the stopSign block (think of other speeds, a sign lost from "
          "view, driving on after the stop)."),
-        "qcarlab stop-sign --use stop_sign.py --params params.yaml"),
+        "qcarlab stop-sign --use . --params params.yaml",
+        (Choice("hsv_min", "5.1: the lower HSV bound of the sign's red, [H, S, V] (H in OpenCV's 0..179 = deg / 2; "
+          "red's hue is 0, so a range may wrap: H_min > H_max)"),
+         Choice("hsv_max", "5.1: the upper HSV bound of the sign's red, [H, S, V]"))),
     Lab("lane-follow", "lane-following", "5.3", "Vision lane following", LaneFollowingLab, LaneFollowConfig,
         ("hsv_min", "hsv_max", "speed", "speed_selector", "lookahead", "stop_distance", "stop_offset",
-         "distance_to_lane", "kp", "ki", "kff"),
+         "distance_to_lane", "kp", "ki", "kff", "white_backup", "white_s_max", "white_v_min"),
         ("5.3 Task: Which HSV ranges did you choose so that only the yellow line is detected? How did you "
          "check them at different spots of the track (the brightness changes)?",
          "What happens when the yellow line leaves the camera's view in a tight curve?"),
-        "qcarlab lane-follow --params params.yaml --laps 1"),
+        "qcarlab lane-follow --params params.yaml --laps 1",
+        (Choice("hsv_min", "5.3.2: the lower HSV bound of the yellow centre line, [H, S, V] (H in OpenCV's "
+          "0..179 = deg / 2); tune it with qcarlab lane-follow --hsv-tune"),
+         Choice("hsv_max", "5.3.2: the upper HSV bound of the yellow centre line, [H, S, V]"))),
     Lab("avoid", "obstacle-avoidance", "6.1", "LIDAR obstacle detection and avoidance", AvoidLab, AvoidConfig,
         ("speed", "stop_distance", "half_width", "kp", "ki", "kff"),
         ("Task 2: Run the stop strategy with an obstacle ahead. Describe the car's behaviour.",
@@ -160,7 +177,9 @@ def block_file(spec: BlockSpec, lab: Lab) -> str:
     return "\n".join(doc + imports + body) + "\n"
 
 
-def params_file(lab: Lab) -> str:
+def params_file(lab: Lab, filled: bool = False) -> str:
+    """The template's params.yaml: the lab's tunables with qcarlab's values, the student's choices
+    (``lab.choose``) empty; ``filled``: those with qcarlab's values too (the reference's submission)."""
     lines = [f"# Your tunables for sheet {lab.section} ({lab.title}): qcarlab {lab.command} --params params.yaml",
              "# Options typed on the command line win over this file. Units: SI (m, m/s, rad); HSV as OpenCV's",
              "# H 0..179 (degrees / 2), S and V 0..255. The simulated car's own parameters may go at the top",
@@ -170,15 +189,27 @@ def params_file(lab: Lab) -> str:
         lines.append("lab: {}")
         return "\n".join(lines) + "\n"
     lines.append("lab:")
+    chosen = {c.name for c in lab.choose}
+    for c in lab.choose if not filled else ():  # the student's choices first, empty: the sheet's tasks grade them
+        lines += [f"  # {line}" for line in _wrap(f"yours to choose: {c.task}", width=94).splitlines()]
+        lines.append(f"  {c.name}:   # empty until you fill it in (runs with --params refuse it empty)")
+    reference = {c.name: c.reference for c in lab.choose if c.reference is not None} if filled else {}
     for name, value in defaults.items():
-        if isinstance(value, list):
-            text = "[" + ", ".join(str(v) for v in value) + "]"
-        elif isinstance(value, float) and math.isfinite(value):
-            text = repr(value)
-        else:
-            text = str(value).lower() if isinstance(value, bool) else str(value)
-        lines.append(f"  {name}: {text}")
+        if name in chosen and not filled:
+            continue
+        lines.append(f"  {name}: {_yaml_value(reference.get(name, value))}")
     return "\n".join(lines) + "\n"
+
+
+def _yaml_value(value: Any) -> str:
+    """A tunable's value as params.yaml writes it."""
+    if isinstance(value, list):
+        return "[" + ", ".join(str(v) for v in value) + "]"
+    if isinstance(value, float) and math.isfinite(value):
+        return repr(value)
+    if value is None:
+        return "null"
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def answers_file(lab: Lab) -> str:
@@ -226,4 +257,4 @@ def block_rows(lab: Lab) -> list[dict[str, Any]]:
              "stateful": b.stateful, "in_template": bool(b.fill)} for b in lab.blocks]
 
 
-__all__ = ["LABS", "Lab", "block_rows", "find_lab", "write_template"]
+__all__ = ["LABS", "Choice", "Lab", "block_rows", "find_lab", "write_template"]

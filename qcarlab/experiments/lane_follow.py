@@ -72,6 +72,8 @@ from qcarlab.experiments.safety import WorldWatch
 from qcarlab.experiments.result import Result
 from qcarlab.perception.lane import (
     LANES,
+    WHITE_S_MAX,
+    WHITE_V_MIN,
     edge_line_mask,
     white_line_mask,
     linear_poly_fit,
@@ -105,7 +107,10 @@ class LaneFollowConfig:
     hsv_max: tuple[int, int, int] = YELLOW_HSV_MAX
     min_pixels: int = MIN_PIXELS
     lookahead: float = 0.5  # m ahead of the camera
-    white_backup: bool = True
+    white_backup: bool = True  # the white edge line steers where the yellow one left the view (curves) ...
+    backup_distance: float = 2.5  # m: ... for at most this far driven since the yellow line was last seen
+    white_s_max: int = WHITE_S_MAX  # the white line: saturation at most (the HSV profile's white: section)
+    white_v_min: int = WHITE_V_MIN  # ... and value at least
     turn_speed: bool = True
     stop_distance: float = 0.6  # m: the minimum stopping distance (section 1 of userInputs)
     speed_selector: float = 100.0  # %: of speed, the maximum speed (userInputs' Speed Selector)
@@ -132,6 +137,12 @@ class LaneFollowConfig:
         self.hsv_max = check_hsv(self.hsv_max, "--hsv-max")
         if self.hsv_min[1] > self.hsv_max[1] or self.hsv_min[2] > self.hsv_max[2]:
             raise InputError(f"--hsv-min {self.hsv_min} is above --hsv-max {self.hsv_max} in saturation or value")
+        if not (math.isfinite(self.backup_distance) and 0.0 <= self.backup_distance <= 100.0):
+            raise InputError(f"backup_distance must be 0..100 m, got {self.backup_distance}")
+        for name in ("white_s_max", "white_v_min"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and 0 <= value <= 255):
+                raise InputError(f"{name} must be a whole number 0..255, got {value!r}")
         if not (math.isfinite(self.lookahead) and 0.3 <= self.lookahead <= 1.5):
             raise InputError(f"--lookahead must be 0.3..1.5 m, got {self.lookahead}")
         if not (math.isfinite(self.stop_distance) and 0.0 <= self.stop_distance <= 1.2):
@@ -268,7 +279,10 @@ class LaneFollowingLab(LabModel):
         self.delta, self.last_seen, self.d_obs = 0.0, 0.0, 0.0
         self.det = LaneDetection(None, None)
         self.frame = self.box = self.shown = None
-        self.frames = self.lost = self.white = 0
+        self.frames = self.lost = self.white = self.yellow = 0
+        self.since_yellow: float | None = None  # m driven (by the encoder) since the yellow line was last seen
+        self.line_lost = False
+        self.driven = 0.0  # m, by the encoder
         self.desired_speed, self.stop_distance, self.lane_gain = cfg.speed, cfg.stop_distance, 1.0
 
     def reference_blocks(self) -> dict[str, Any]:
@@ -311,25 +325,48 @@ class LaneFollowingLab(LabModel):
         self.desired_speed, self.stop_distance, self.lane_gain = v, d, g
 
     def detect(self, color: np.ndarray) -> LaneDetection:
-        """The vision half of the diagram: the yellow line, else (backup) the lane's white edge line."""
+        """The vision half of the diagram: the yellow line, else (backup) the lane's white edge line,
+        only where the yellow line was seen less than ``backup_distance`` m ago (it left the view in a
+        curve): the yellow line, found with the student's HSV range, is what the lab follows."""
         yellow = self.color_thresholding_hsv(self.image_selector(color))
         fit = self.linear_poly_fit(yellow)
         ny = int(np.count_nonzero(yellow))
-        if fit is not None or not self.cfg.white_backup:
+        c = self.cfg
+        backup = c.white_backup and self.since_yellow is not None and self.since_yellow <= c.backup_distance
+        if fit is not None or not backup:
             return LaneDetection(fit, "yellow" if fit is not None else None, ny, 0, yellow, yellow)
-        white = white_edge_mask(color, self.cfg.lane)
+        white = white_edge_mask(color, c.lane, c.white_s_max, c.white_v_min)
         fit = self.linear_poly_fit(white)
         return LaneDetection(fit, "white" if fit is not None else None, ny, int(np.count_nonzero(white)),
                              white if fit is not None else yellow, yellow)
 
+    def lost_line(self, t: float) -> bool:
+        """Whether the yellow line is lost for good: not seen for ``backup_distance`` m driven (or,
+        never seen, for that far from the start or 3 s armed, whichever is later); the run then ends."""
+        c = self.cfg
+        if self.since_yellow is None:
+            driven = self.driven
+            self.line_lost = driven > c.backup_distance and t >= c.start_at + 3.0
+        else:
+            self.line_lost = self.since_yellow > c.backup_distance
+        return self.line_lost
+
     def step(self, t: float, r, dt: float) -> Step | object:
         c = self.cfg
         v = self.basic_speed_estimation(r.tach)
+        self.driven += abs(v) * dt
+        if self.since_yellow is not None:
+            self.since_yellow += abs(v) * dt
         if t + 1e-9 >= self.next_frame:
             frame = self.read_rgbd()
             self.next_frame = (math.floor((t + 1e-9) / self.frame_dt) + 1) * self.frame_dt
             det = self.detect(frame.color)
             self.frames += 1
+            if det.source == "yellow":
+                self.yellow += 1
+                self.since_yellow = 0.0
+            elif self.lost_line(t):
+                return STOP
             if det.fit is not None:
                 self.delta = self.steering_calculation(det.fit, self.lane_gain * line_offset(c.lane, det.source))
                 self.last_seen = t
@@ -359,11 +396,11 @@ class LaneFollowingLab(LabModel):
                      "armed": int(armed), "lamps": "+".join(names)})
 
 
-def white_edge_mask(color: np.ndarray, lane: str) -> np.ndarray:
+def white_edge_mask(color: np.ndarray, lane: str, s_max: int = WHITE_S_MAX, v_min: int = WHITE_V_MIN) -> np.ndarray:
     """The backup line: the lane's own white edge line (on the far side of the yellow line's
     region), the white line-shaped blob nearest the road (:func:`edge_line_mask`: a brightly lit
     floor beyond the edge line is not taken for it)."""
-    white = image_selector(white_line_mask(color), lane, line="white")
+    white = image_selector(white_line_mask(color, s_max, v_min), lane, line="white")
     w = white.shape[1]
     if lane == "right":
         white[:, : int(0.15 * w)] = 0
@@ -438,6 +475,8 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
         else (float(np.mean(cols["v_meas"])) if n else 0.0),
         "frames": lab.frames,
         "frames_line_lost": lab.lost,
+        "frames_yellow": lab.yellow,
+        "line_lost": lab.line_lost,
         "frames_white_backup": lab.white,
         "stopped_for_obstacle_s": float(np.count_nonzero((cols["v_ref"] == 0.0) & (cols["armed"] == 1)
                                                          & (cols["obstacle_distance"] > 0.0)) * dt) if n else 0.0,
@@ -447,7 +486,13 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     })
     metrics["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()}
     goal, why = True, ""
-    if cfg.laps is not None and metrics["laps"] is not None and metrics["laps"] < cfg.laps - 0.02:
+    if lab.line_lost:
+        seen = (f"never found the yellow line in {lab.frames} frames" if not lab.yellow else
+                f"lost the yellow line: not seen for {cfg.backup_distance:g} m driven, found in {lab.yellow} of "
+                f"{lab.frames} frames")
+        goal, why = False, (f"{seen} with the HSV range {list(cfg.hsv_min)}..{list(cfg.hsv_max)}: check it with "
+                            "qcarlab lane-follow --hsv-tune")
+    elif cfg.laps is not None and metrics["laps"] is not None and metrics["laps"] < cfg.laps - 0.02:
         goal, why = False, f"drove {metrics['laps']:.2f} of {cfg.laps:g} laps in the time limit"
     elif metrics["time_out_of_lane_s"]:
         goal, why = False, f"out of the lane for {metrics['time_out_of_lane_s']:.2f} s"

@@ -67,7 +67,8 @@ def lab_only_params(source: Path, target: Path, argv: list[str] = ()) -> None:
     if not isinstance(lab, dict):
         raise InputError(f"{source.name}: lab: expected a mapping of tunable: value")
     given = {w.split("=", 1)[0] for w in argv if w.startswith("--")}
-    lab = {k: v for k, v in lab.items() if "--" + str(k).replace("_", "-") not in given}
+    # a choice left empty is graded by the tasks that use it (qcarlab.grading.grader); the others run with qcarlab's
+    lab = {k: v for k, v in lab.items() if "--" + str(k).replace("_", "-") not in given and v is not None}
     target.write_text(yaml.safe_dump({"lab": lab}, sort_keys=False), encoding="utf-8")
 
 

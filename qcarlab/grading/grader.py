@@ -72,6 +72,11 @@ def _plan_one(student: str, sheet: Sheet, task: Task, sub: Submission | None, op
             if why:
                 p.problem = why
                 return p
+        for name in task.params:
+            why = sub.param_problem(name)
+            if why:
+                p.problem = why
+                return p
     if opts.results is not None and task.kind == "scenario":  # graded from the saved run
         return p
     limits = opts.limits.as_dict()
@@ -220,7 +225,8 @@ def grade(p: Planned, outcome: dict[str, Any] | None, commands: Commands,
     (None when there was no job); with ``results_dir`` the saved runs there are graded instead."""
     task = p.task
     row: dict[str, Any] = {"sheet": p.sheet.name, "id": task.id, "kind": task.kind,
-                           "command": p.command or task.command or None, "uses": list(task.student_blocks),
+                           "command": p.command or task.command or None,
+                           "uses": list(task.student_blocks) + list(task.params),
                            "status": "failed", "passed": False, "problem": None, "criteria": [],
                            "points": task.points, "earned": 0.0, "seconds": None, "_figures": {}}
     if p.skipped:

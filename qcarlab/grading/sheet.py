@@ -123,6 +123,7 @@ class Task:
     command: str | None = None  # "qcarlab stop-sign --speed 0.5"
     block: str | None = None  # "stop_sign"
     uses: tuple[str, ...] = ()  # the student's blocks the task grades
+    params: tuple[str, ...] = ()  # the student's choices (params.yaml's lab: tunables) the task grades
     criteria: list[Criterion] = field(default_factory=list)
     sheet: str = ""  # the sheet's name, for reports
 
@@ -309,7 +310,7 @@ def _share(item: dict, n: int, given: int, where: str) -> float | None:
     return total / free if free else None
 
 
-def _task(item: Any, where: str, sheet: str, lab_blocks: set[str] | None) -> Task:
+def _task(item: Any, where: str, sheet: str, lab_blocks: set[str] | None, lab_params: set[str] = frozenset()) -> Task:
     if not isinstance(item, dict) or not isinstance(item.get("id"), str) or not item["id"].strip():
         raise InputError(f"{where}: expected a mapping with an 'id'")
     unknown = set(item) - {"id", "text", "command", "block", "uses", "criteria", "cases", "points", "tolerance"}
@@ -333,9 +334,9 @@ def _task(item: Any, where: str, sheet: str, lab_blocks: set[str] | None) -> Tas
         if not isinstance(uses, list) or not all(isinstance(u, str) for u in uses):
             raise InputError(f"{where}.uses: expected a list of block names")
         for u in uses:
-            if lab_blocks is not None and u not in lab_blocks:
-                raise InputError(f"{where}.uses: the sheet's lab has no block {u!r} (its blocks: "
-                                 f"{', '.join(sorted(lab_blocks))})")
+            if lab_blocks is not None and u not in lab_blocks and u not in lab_params:
+                raise InputError(f"{where}.uses: the sheet's lab has no block or tunable {u!r} (its blocks: "
+                                 f"{', '.join(sorted(lab_blocks))}; its tunables: {', '.join(sorted(lab_params))})")
         if uses and lab_blocks is None:
             raise InputError(f"{where}.uses: the sheet names no lab (add lab: LAB at the top)")
         if "cases" in item:
@@ -346,7 +347,8 @@ def _task(item: Any, where: str, sheet: str, lab_blocks: set[str] | None) -> Tas
         given = sum(1 for b in crits.values() if isinstance(b, dict) and "points" in b)
         share = _share(item, len(crits), given, where)
         criteria: list[Criterion] = [_metric(m, b, f"{where}.criteria.{m}", share) for m, b in crits.items()]
-        return Task(tid, text, command=command, uses=tuple(uses), criteria=criteria, sheet=sheet)
+        return Task(tid, text, command=command, uses=tuple(u for u in uses if u not in lab_params),
+                    params=tuple(u for u in uses if u in lab_params), criteria=criteria, sheet=sheet)
     block = item["block"]
     if not isinstance(block, str) or not block.isidentifier():
         raise InputError(f"{where}.block: expected a block's name (qcarlab blocks LAB lists them)")
@@ -371,13 +373,15 @@ def _task(item: Any, where: str, sheet: str, lab_blocks: set[str] | None) -> Tas
     return Task(tid, text, block=block, criteria=criteria, sheet=sheet)
 
 
-def _lab_blocks(lab: str, where: str) -> set[str]:
+def _lab_names(lab: str, where: str) -> tuple[set[str], set[str]]:
+    """The lab's blocks and its tunables (what a task's ``uses`` may name)."""
     from qcarlab.experiments.labs import find_lab
 
     try:
-        return {b.name for b in find_lab(lab).blocks}
+        found = find_lab(lab)
     except InputError as exc:
         raise InputError(f"{where}: {exc}") from None
+    return {b.name for b in found.blocks}, set(found.tunables)
 
 
 def load_sheet(path: str | Path, _seen: tuple[Path, ...] = ()) -> Sheet:
@@ -406,7 +410,7 @@ def load_sheet(path: str | Path, _seen: tuple[Path, ...] = ()) -> Sheet:
         raise InputError(f"{path}: lab: expected a lab's name (io-test, path-follow, stop-sign, lane-follow, avoid)")
     if base is not None and base.lab is not None and lab != base.lab:
         raise InputError(f"{path}: lab: {lab!r} differs from the lab of the sheet it extends ({base.lab!r})")
-    lab_blocks = _lab_blocks(lab, f"{path}: lab") if lab is not None else None
+    lab_blocks, lab_params = _lab_names(lab, f"{path}: lab") if lab is not None else (None, set())
     if lab is not None:
         from qcarlab.experiments.labs import find_lab
 
@@ -417,7 +421,7 @@ def load_sheet(path: str | Path, _seen: tuple[Path, ...] = ()) -> Sheet:
     name = path.stem
     tasks = list(base.tasks) if base else []
     for i, item in enumerate(items):
-        task = _task(item, f"{path}: tasks[{i}]", name, lab_blocks)
+        task = _task(item, f"{path}: tasks[{i}]", name, lab_blocks, lab_params)
         if any(t.id == task.id for t in tasks):
             raise InputError(f"{path}: tasks[{i}].id: {task.id!r} is already a task of this sheet"
                              + (f" (or of {base.name})" if base else ""))

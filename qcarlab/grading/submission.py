@@ -112,6 +112,23 @@ class Submission:
                         return f"{fname} line {node.lineno}: uses qcarlab's own {name}; {_OWN}"
         return None
 
+    def param_problem(self, name: str) -> str | None:
+        """Why the submission's ``params.yaml`` does not give the tunable ``name`` a value in its
+        ``lab:`` section (None when it does): a choice the sheet grades must be the student's."""
+        from qcarlab.yamlio import parse_yaml
+
+        raw = self.files.get("params.yaml")
+        if raw is None:
+            return f"your submission has no params.yaml: the task grades your {name} (lab: {name}: ...)"
+        try:
+            data = parse_yaml(raw.decode("utf-8"), "params.yaml")
+        except (InputError, UnicodeDecodeError) as exc:
+            return f"params.yaml: {exc}"
+        lab = data.get("lab") if isinstance(data, dict) else None
+        if not isinstance(lab, dict) or lab.get(name) is None:
+            return f"params.yaml: lab: {name} is empty: the task grades your choice of it (fill it in)"
+        return None
+
     def block_problem(self, name: str) -> str | None:
         """Why the submission cannot be graded on block ``name`` (None when it can)."""
         fname = self.defined().get(name)
