@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import textwrap
 
+import numpy as np
 import pytest
 
 from qcarlab.experiments.labs import LABS, find_lab, write_template
@@ -155,3 +156,27 @@ def test_the_template_has_every_block_the_stop_sign_sheet_grades(tmp_path):
     text = (tmp_path / "stop_sign_hold.py").read_text()
     assert "class stop_sign_hold:" in text
     assert "def __call__(self, t, distance_to_sign, new_frame, speed, desired_speed):" in text
+
+
+# ------------------------------------------------------------------------------------ 6.1 headings
+def test_a_lidar_block_gets_headings_ahead_0_left_positive_right_negative(tmp_path, cli):
+    """A student's 'h < 0 is right' works: the headings come in (-pi, pi], as the template says."""
+    seen = tmp_path / "seen.txt"
+    block = write_block(tmp_path, "lidar_steer.py", f"""
+        import numpy as np
+
+        def lidar_steer(distances, headings, desired_speed):
+            with open({str(seen)!r}, "a") as f:
+                f.write(f"{{headings.min()}} {{headings.max()}}\\n")
+            near = (distances > 0) & (distances < 1.0) & (np.abs(headings) < 0.6)
+            if not near.any():
+                return 0.0
+            return -0.5 if np.mean(headings[near]) > 0 else 0.5   # obstacle left: steer right
+    """)
+    code, out, err = cli("avoid", "--strategy", "steer", "--duration", "3", "--block",
+                         f"lidar_steer={block}:lidar_steer", "--json")
+    assert code == 0, err
+    lo, hi = (float(x) for x in seen.read_text().split("\n")[0].split())
+    assert -np.pi < lo < -3.0 and 3.0 < hi <= np.pi  # right negative, left positive
+    write_template(find_lab("avoid"), tmp_path / "tpl")
+    assert "0 straight ahead, + to the left, - to the right, in (-pi, pi]" in (tmp_path / "tpl" / "lidar_steer.py").read_text()

@@ -4,7 +4,7 @@ The model, :class:`AvoidLab`, is the sheet's Figure 59; each tick (``rate``, 100
 
     v      = basic_speed_estimation(tach)                      # encoder -> m/s
     scan   = car.read_lidar()                                  # a new turn every 0.1 s (10 Hz)
-    on a new scan (distances, headings: body frame, + = left, 0 = no return):
+    on a new scan (distances, headings: body frame, ahead 0, + = left, in (-pi, pi]; 0 m = no return):
         stop:     v_ref = lidar_stop(d, h, speed), delta = 0               (Task 1-2)
         steer:    v_ref = speed, delta = lidar_steer(d, h, speed)          (Task 3)
         combined: v_ref, delta = lidar_avoid(d, h, speed)                  (Task 4, open problem;
@@ -103,12 +103,13 @@ class AvoidConfig:
 BLOCKS = (
     BASIC_SPEED_ESTIMATION,
     BlockSpec("lidar_stop", "lidar_stop(distances, headings, desired_speed) -> speed_cmd",
-              "m (0 = no return), rad (body frame, CCW from forward, + = left), m/s -> m/s",
+              "m (0 = no return), rad (body frame: ahead 0, left +, right -, in (-pi, pi]), m/s -> m/s",
               "6.1 Tasks 1-2, Figure 60", "Stop strategy: 0 when an obstacle is near ahead, else the desired "
               "speed. Acts on the speed only.", "speed",
               fill="The stop strategy (LIDAR Stop.slx): set the speed to 0 when the QCar is near an obstacle "
               "ahead, else the desired speed. distances[i] is the range (m) of the return at headings[i] "
-              "(rad, counter-clockwise from forward, + = left); 0 means no return. The LIDAR is by the "
+              "(rad, body frame: 0 straight ahead, positive to the left, negative to the right, in (-pi, pi]; "
+              "behind is +-pi); 0 m means no return. The LIDAR is by the "
               "car's centre: the front bumper is 0.223 m ahead of it.",
               example="lidar_stop(np.array([0.3]), np.array([0.0]), 0.3) == 0.0 (an obstacle 0.3 m dead ahead)"),
     BlockSpec("lidar_steer", "lidar_steer(distances, headings, desired_speed) -> steering_cmd",
@@ -167,6 +168,17 @@ class AvoidLab(LabModel):
         self.scan_pose = None  # (t) -> the LIDAR's world pose, on a simulator
         self.frame_dt, self.next_frame, self.n_frames = 1.0 / params.rgbd_rate, 0.0, 0
         self.windows = (math.nan, math.nan, math.nan)
+        self._headings: tuple[np.ndarray, np.ndarray] | None = None
+
+    def headings(self, angles: np.ndarray) -> np.ndarray:
+        """The scan's beam angles as the LIDAR blocks receive them: body frame, ahead 0, left
+        positive, right negative, in (-pi, pi] (a scan's angles come as 0..2 pi); the same array for
+        the same beams, made once."""
+        if self._headings is None or self._headings[0] is not angles:
+            h = np.where(angles > math.pi, angles - 2.0 * math.pi, angles)
+            h.setflags(write=False)
+            self._headings = (angles, h)
+        return self._headings[1]
 
     def reference_blocks(self) -> dict[str, Any]:
         c, p = self.cfg, self.p
@@ -216,7 +228,7 @@ class AvoidLab(LabModel):
         if scan is not None and scan.t != self.scan_t:
             self.scan_t = scan.t
             self.n_scans += 1
-            d, h = scan.ranges, scan.angles
+            d, h = scan.ranges, self.headings(scan.angles)
             self.front = forward_range(d, h, c.half_width)
             if c.strategy == "stop":
                 self.v_ref, self.delta, self.state = self.lidar_stop(d, h, c.speed), 0.0, ""

@@ -151,9 +151,11 @@ def block_file(spec: BlockSpec, lab: Lab) -> str:
            f"    {spec.signature}", f"    units: {spec.units}"]
     if spec.example:
         doc.append(f"    e.g. {spec.example}")
-    doc += ["", "Conventions: SI units; body frame x forward, y left; angles counter-clockwise, + = left.",
-            f"Run it:  {lab.run}",
-            f"(the reference block it replaces: qcarlab blocks {lab.command})", '"""', ""]
+    doc += ["", "Conventions: SI units; body frame x forward, y left; angles counter-clockwise, + = left."]
+    if "headings" in args:
+        doc += ["LIDAR headings: rad, 0 straight ahead, + to the left, - to the right, in (-pi, pi] (behind: +-pi);",
+                "distances: m, 0 = no return on that beam; both numpy arrays of one value per beam."]
+    doc += [f"Run it:  {lab.run}", f"(the reference block it replaces: qcarlab blocks {lab.command})", '"""', ""]
     stub = f'raise NotImplementedError("{spec.name} is not filled in yet (sheet {spec.section})")'
     if spec.stateful:
         body = [

@@ -8,8 +8,9 @@ points it earned::
     # -> passed False, reason "got 0.5, expected 0 +- 1e-06"
 
 :func:`make_scan` builds the LIDAR scan a block case describes (``{scan: {obstacles: [[r, bearing]]}}``)
-the way the simulated RPLidar reports one: ``beams`` headings 2 pi k / beams (k = 0..beams-1,
-counter-clockwise from forward), range 0 where nothing returns. Each obstacle is a flat face
+the way the lab gives the simulated RPLidar's to a block: ``beams`` headings 2 pi k / beams (k =
+0..beams-1, counter-clockwise from forward) wrapped to (-pi, pi] (ahead 0, left positive, right
+negative), range 0 where nothing returns. Each obstacle is a flat face
 ``half_width`` m each side, perpendicular to its bearing at ``r`` m: a beam at heading a with
 ``|r tan(a - bearing)| <= half_width`` returns ``r / cos(a - bearing)``.
 """
@@ -119,7 +120,7 @@ def make_scan(spec: Any, where: str = "scan") -> tuple[np.ndarray, np.ndarray]:
         d = r / np.cos(off)
         closer = hit & ((distances == 0.0) | (d < distances))
         distances[closer] = d[closer]
-    return distances, headings
+    return distances, np.where(headings > np.pi, headings - 2.0 * np.pi, headings)  # as the lab gives them
 
 
 def expand_args(args: tuple | list) -> list[Any]:
