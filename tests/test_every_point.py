@@ -50,7 +50,7 @@ def test_labs_check_grades_the_template_at_zero_and_the_reference_at_full_marks(
     code, out, err = cli("labs", "check", "stop-sign", "basic-io", "--json")
     assert code == 0, out + err
     sheets = {s["sheet"]: s for s in json.loads(out)["sheets"]}
-    for name, total in (("stop-sign", 17), ("basic-io", 9)):
+    for name, total in (("stop-sign", 21), ("basic-io", 9)):
         s = sheets[name]
         assert s["ok"], s
         assert (s["template"]["points"], s["template"]["max_points"]) == (0, total)
@@ -180,3 +180,27 @@ def test_a_lidar_block_gets_headings_ahead_0_left_positive_right_negative(tmp_pa
     assert -np.pi < lo < -3.0 and 3.0 < hi <= np.pi  # right negative, left positive
     write_template(find_lab("avoid"), tmp_path / "tpl")
     assert "0 straight ahead, + to the left, - to the right, in (-pi, pi]" in (tmp_path / "tpl" / "lidar_steer.py").read_text()
+
+
+# ------------------------------------------------------------------------------------ the report's stop sign
+def test_the_race_car_reports_stop_sign_drives_with_the_students_blocks(tmp_path, cli):
+    root = correct_submission(tmp_path, ("stop-sign",)) / "stop-sign"
+    code, out, err = cli("grade", "stop-sign", "--submission", str(root), "--task", "report-hough-stop", "--json")
+    row = json.loads(out)["tasks"][0]
+    assert code == 0, out + err
+    assert row["uses"] == ["red_share", "stop_sign_hold"] and row["earned"] == row["points"] == 4
+    write_block(root, "red_share.py", """
+        def red_share(image_bgr, circle):
+            return 0.0   # sees no red: the car never stops
+    """)
+    code, out, _ = cli("grade", "stop-sign", "--submission", str(root), "--task", "report-hough-stop", "--json")
+    row = json.loads(out)["tasks"][0]
+    assert code == 1 and row["earned"] == 0
+
+
+def test_stop_sign_detector_hough_stops_and_drives_on_at_every_speed(cli_json):
+    for speed in ("0.3", "1.0"):
+        m = cli_json("stop-sign", "--detector", "hough", "--behaviour", "hold", "--speed", speed)
+        assert m["detector"] == "hough" and m["goal_reached"]
+        assert 0.05 <= m["stop_distance_m"] <= 0.40 and 2.9 <= m["hold_s"] <= 3.3 and m["passed_sign"]
+        assert 1.9 <= m["detected_at_m"] < 2.0  # the report counts a sign under 2 m

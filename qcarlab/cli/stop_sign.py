@@ -77,6 +77,9 @@ def stop_sign_cmd(
     behaviour: Annotated[str, typer.Option(help="sheet: the sheet's stopSign block (stop while 0.05 < d < 0.40 m); "
                                            "hold: slow down, stop, wait --hold s, drive on (Task 4).")] = "sheet",
     hold: Annotated[float, typer.Option(help="hold: seconds to stand at the sign.")] = 3.0,
+    detector: Annotated[str, typer.Option(help="hsv: the sheet's chain (HSV red, the largest blob, its depth; 5.1); "
+                                          "hough: the race-car report's (Circle Hough, red inside the circle, "
+                                          "depth < 2 m; blocks circle_hough, red_share).")] = "hsv",
     hsv_min: Annotated[str, typer.Option(help="Lower HSV bound H,S,V (H in OpenCV's 0..179 = deg/2; "
                                          "H_min > H_max wraps through red's 0).")] = ",".join(map(str, RED_HSV_MIN)),
     hsv_max: Annotated[str, typer.Option(help="Upper HSV bound H,S,V.")] = ",".join(map(str, RED_HSV_MAX)),
@@ -107,7 +110,8 @@ def stop_sign_cmd(
     """Drive straight, detect the stop sign (HSV red + depth, sheet 5.1) and stop in front of it (5.2).
 
     Examples: qcarlab stop-sign | qcarlab stop-sign --speed 0.5 --out runs/stop |
-    qcarlab stop-sign --behaviour hold --hold 3 --json | qcarlab stop-sign --use mylab/stop_sign.py
+    qcarlab stop-sign --behaviour hold --hold 3 --json | qcarlab stop-sign --use mylab/stop_sign.py |
+    qcarlab stop-sign --detector hough --behaviour hold --speed 0.5 (the race-car report's stop sign)
 
     Trials: qcarlab stop-sign --trials 10 (start 2.1-2.9 m before the sign, the sign moved +-0.2 m).
 
@@ -116,7 +120,7 @@ def stop_sign_cmd(
     """
     if behaviour not in BEHAVIOURS:
         raise InputError(f"--behaviour must be one of {', '.join(BEHAVIOURS)}, got {behaviour!r}")
-    cfg = StopSignConfig(speed=speed, behaviour=behaviour, hold=hold, hsv_min=parse_hsv(hsv_min, "--hsv-min"),
+    cfg = StopSignConfig(speed=speed, behaviour=behaviour, detector=detector, hold=hold, hsv_min=parse_hsv(hsv_min, "--hsv-min"),
                          hsv_max=parse_hsv(hsv_max, "--hsv-max"), min_area=min_area, kp=kp, ki=ki, kff=kff,
                          rate=rate, max_time=max_time, frames=frames and out is not None)
     apply_tunables(cfg, params, ctx, ignore=("frames",))

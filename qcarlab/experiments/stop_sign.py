@@ -68,8 +68,11 @@ from qcarlab.perception.stop_sign import (
     detection_image,
     find_objects,
 )
+from qcarlab.perception.stop_signs import MAX_CIRCLES, MIN_RED_SHARE, circle_hough, red_share
 
 BEHAVIOURS = ("sheet", "hold")
+DETECTORS = ("hsv", "hough")  # the sheet's chain (5.1), the race-car report's (Circle Hough, red inside, depth < 2 m)
+REPORT_RANGE = 2.0  # m: the report counts a sign whose depth is under 2 m
 _BRAKE = parse_lamps(["brake"])
 FRAME_EVERY = 3  # --frames keeps every 3rd camera frame (10 per second)
 
@@ -80,6 +83,7 @@ class StopSignConfig:
 
     speed: float = 0.3  # m/s desired
     behaviour: str = "sheet"
+    detector: str = "hsv"
     hold: float = 3.0  # s, hold mode
     hsv_min: tuple[int, int, int] = RED_HSV_MIN
     hsv_max: tuple[int, int, int] = RED_HSV_MAX
@@ -98,6 +102,8 @@ class StopSignConfig:
     def check(self) -> None:
         if self.behaviour not in BEHAVIOURS:
             raise InputError(f"--behaviour must be one of {', '.join(BEHAVIOURS)}, got {self.behaviour!r}")
+        if self.detector not in DETECTORS:
+            raise InputError(f"--detector must be one of {', '.join(DETECTORS)}, got {self.detector!r}")
         if not (math.isfinite(self.speed) and self.speed > 0.0):
             raise InputError(f"--speed must be a positive number of m/s, got {self.speed}")
         if self.speed > 3.0:
@@ -183,6 +189,17 @@ BLOCKS = (
               "a new camera frame comes every third tick (new_frame True), between frames the last distance "
               "is held: dead-reckon with speed * dt when you need it.",
               example="stop_sign_hold(t, 0.0, True, 0.0, 1.0) == 1.0 (no sign: drive)"),
+    BlockSpec("circle_hough", "circle_hough(image_bgr) -> circles", "BGR uint8 -> (n, 3) array of u, v, r px",
+              "race-car report, stop sign (--detector hough)",
+              "The Circle Hough Transform: the image's circles, best-voted first."),
+    BlockSpec("red_share", "red_share(image_bgr, circle) -> share", "BGR uint8, (u, v, r) px -> 0..1",
+              "race-car report, stop sign (--detector hough)",
+              "The share of red pixels inside the circle: a stop sign's is 0.6..0.95 (white letters and rim).",
+              fill="The race-car report's colour check (--detector hough): the Circle Hough Transform found a "
+              "circle (u, v, r) in pixels; return the share (0..1) of the pixels inside it that are the sign's "
+              "red (HSV, the hue wrapping through 0). A circle is taken for the sign when the share is at least "
+              "0.5; a circle that is not wholly in the image should give 0.",
+              example="red_share(image, (320.0, 200.0, 30.0)) -> 0.84 on the simulator's sign 2 m ahead"),
     SPEED_CONTROLLER,
 )
 
@@ -220,17 +237,35 @@ class StopSignLab(LabModel):
             "calculate_distance": sign_distance,
             "stop_sign": partial(stop_sign, near=c.near, far=c.far),
             "stop_sign_hold": StopSignHold(hold=c.hold),
+            "circle_hough": circle_hough,
+            "red_share": red_share,
             "speed_controller": SpeedController(c.kp, c.ki, c.kff, throttle_limit=self.throttle_limit),
         }
 
     def detect(self, frame) -> StopSignDetection:
-        """The vision half of the diagram on one RGBD frame."""
+        """The vision half of the diagram on one RGBD frame: the sheet's chain (HSV threshold, the
+        largest blob, the depth there) or the race-car report's (``--detector hough``: the best-voted
+        circle with at least half its pixels red, the depth at its centre, a sign only within 2 m)."""
+        if self.cfg.detector == "hough":
+            return self.detect_hough(frame)
         mask = self.color_thresholding_hsv(frame.color)
         obj = self.find_objects(mask)
         if obj is None:
             return StopSignDetection(False, mask=mask)
         d = float(self.calculate_distance(frame.depth, obj.centroid, mask))
         return StopSignDetection(True, obj.centroid, obj.bbox, obj.area, d if math.isfinite(d) else 0.0, mask=mask)
+
+    def detect_hough(self, frame) -> StopSignDetection:
+        for u, v, radius in np.asarray(self.circle_hough(frame.color), float).reshape(-1, 3)[:MAX_CIRCLES]:
+            if float(self.red_share(frame.color, (float(u), float(v), float(radius)))) < MIN_RED_SHARE:
+                continue
+            d = float(self.calculate_distance(frame.depth, (float(u), float(v)), None))
+            if not (math.isfinite(d) and 0.0 < d < REPORT_RANGE):
+                return StopSignDetection(False)
+            r = int(round(radius))
+            return StopSignDetection(True, (float(u), float(v)), (int(round(u)) - r, int(round(v)) - r, 2 * r, 2 * r),
+                                     int(math.pi * radius * radius), d)
+        return StopSignDetection(False)
 
     def step(self, t: float, r: Readout, dt: float) -> Step | object:
         c = self.cfg
@@ -328,6 +363,7 @@ def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None, *, blocks: Mapping[s
     metrics = {
         "experiment": "stop-sign",
         "behaviour": cfg.behaviour,
+        "detector": cfg.detector,
         "speed_mps": cfg.speed,
         "stopped": bool(stopped),
         "stop_distance_m": rest[0] if rest is not None else None,
@@ -348,7 +384,8 @@ def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None, *, blocks: Mapping[s
     goal = stopped
     if lab.hold_mode:
         metrics["hold_s"] = (lab.go_t - lab.rest_t) if lab.go_t is not None else None
-        metrics["passed_sign"] = bool(lab.passed) if plate is not None else (lab.go_t is not None)
+        # drove on past the sign after its stop (a car that never stopped did not "drive on")
+        metrics["passed_sign"] = bool(lab.passed and lab.go_t is not None) if plate is not None else (lab.go_t is not None)
         metrics["stops"] = lab.stops
         goal = stopped and metrics["passed_sign"]
     metrics["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()}

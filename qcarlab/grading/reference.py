@@ -52,6 +52,12 @@ REFERENCE = {
             def stop_sign(distance_to_sign, desired_speed):
                 return 0.0 if 0.05 < distance_to_sign < 0.40 else desired_speed
         """,
+        "red_share.py": """
+            _reference = __import__("importlib").import_module("qcarlab.perception.stop_signs").red_share
+
+            def red_share(image_bgr, circle):
+                return _reference(image_bgr, circle)
+        """,
         "stop_sign_hold.py": """
             _reference = __import__("importlib").import_module("qcarlab.control.stop_sign").StopSignHold
 

@@ -46,7 +46,8 @@ from qcarlab.perception.stop_sign import (
     in_hsv_range,
 )
 
-__all__ = ["DIM_HSV_MAX", "DIM_HSV_MIN", "METHODS", "SignBox", "detect_stop_signs", "sign_blobs", "signs_image"]
+__all__ = ["DIM_HSV_MAX", "DIM_HSV_MIN", "METHODS", "MIN_RED_SHARE", "SignBox", "circle_hough", "detect_stop_signs",
+           "red_share", "sign_blobs", "signs_image"]
 
 METHODS = ("hsv", "hough")
 DIM_HSV_MIN = (168, 60, 40)  # the dim pass: red or orange-red, weakly saturated, dark
@@ -119,7 +120,11 @@ def sign_blobs(mask: np.ndarray, min_area: int) -> list[SignBox]:
     return _suppress(found)
 
 
-def _hough(img: np.ndarray, red: np.ndarray, min_area: int) -> list[SignBox]:
+def circle_hough(color: np.ndarray) -> np.ndarray:
+    """The race-car report's Circle Hough Transform: the circles of a BGR image as an (n, 3) array of
+    (u, v, r) px, best-voted first (``cv2.HoughCircles`` on the grey image after a 5x5 Gaussian blur,
+    at half size when the image is 400 px or more on its short side); (0, 3) when there is none."""
+    img = np.asarray(color)
     h, w = img.shape[:2]
     grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     k = 2 if min(h, w) >= 400 else 1  # the accumulator is costly: big images are searched at half size
@@ -131,8 +136,34 @@ def _hough(img: np.ndarray, red: np.ndarray, min_area: int) -> list[SignBox]:
     circles = cv2.HoughCircles(grey, cv2.HOUGH_GRADIENT, dp=1.2, minDist=max(8, side // 12), param1=120,
                                param2=22, minRadius=r_min, maxRadius=max(r_min + 1, side // 2))
     if circles is None:
-        return []
-    circles = np.asarray(circles, np.float64).reshape(-1, 3) * k
+        return np.zeros((0, 3))
+    return np.asarray(circles, np.float64).reshape(-1, 3) * k
+
+
+def red_share(color: np.ndarray, circle, hsv_min: Sequence[int] = DIM_HSV_MIN,
+              hsv_max: Sequence[int] = DIM_HSV_MAX) -> float:
+    """The report's colour check: the share (0..1) of the pixels within 0.85 radii of ``circle``
+    ((u, v, r) px) whose HSV is red (``hsv_min``..``hsv_max``, the hue wrapping through 0); 0 for a
+    circle not wholly in view. A stop sign's is 0.6..0.95 (its letters and rim are white)."""
+    img = np.asarray(color)
+    h, w = img.shape[:2]
+    cx, cy, r = (float(c) for c in circle[:3])
+    if not (r > 0 and cx - r >= -1 and cy - r >= -1 and cx + r <= w and cy + r <= h):
+        return 0.0
+    R = 0.85 * r
+    x0, y0 = max(0, int(cx - R)), max(0, int(cy - R))
+    x1, y1 = min(w, int(np.ceil(cx + R)) + 1), min(h, int(np.ceil(cy + R)) + 1)
+    if x1 - x0 < 1 or y1 - y0 < 1:
+        return 0.0
+    red = in_hsv_range(cv2.cvtColor(np.ascontiguousarray(img[y0:y1, x0:x1]), cv2.COLOR_BGR2HSV), hsv_min, hsv_max)
+    disc = ((np.arange(y0, y1) - cy) ** 2)[:, None] + ((np.arange(x0, x1) - cx) ** 2)[None, :] <= R * R
+    n = int(np.count_nonzero(disc))
+    return float(np.count_nonzero((red != 0) & disc)) / n if n else 0.0
+
+
+def _hough(img: np.ndarray, red: np.ndarray, min_area: int) -> list[SignBox]:
+    h, w = img.shape[:2]
+    circles = circle_hough(img)
     found = []
     # OpenCV returns the circles best-voted first: the first MAX_CIRCLES are plenty for the signs
     for cx, cy, r in circles[:MAX_CIRCLES]:
