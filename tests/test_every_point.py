@@ -204,3 +204,13 @@ def test_stop_sign_detector_hough_stops_and_drives_on_at_every_speed(cli_json):
         assert m["detector"] == "hough" and m["goal_reached"]
         assert 0.05 <= m["stop_distance_m"] <= 0.40 and 2.9 <= m["hold_s"] <= 3.3 and m["passed_sign"]
         assert 1.9 <= m["detected_at_m"] < 2.0  # the report counts a sign under 2 m
+
+
+@pytest.mark.parametrize("lab", LABS, ids=lambda lab: lab.command)
+def test_the_template_has_a_file_for_every_block_of_the_lab(lab, tmp_path):
+    write_template(lab, tmp_path)
+    for spec in lab.blocks:
+        path = tmp_path / (f"{spec.name}.py" if spec.fill else f"other-blocks/{spec.name}.py")
+        text = path.read_text()
+        assert spec.signature in text and f"units: {spec.units}" in text
+        assert f'raise NotImplementedError("{spec.name} is not filled in yet' in text

@@ -63,7 +63,7 @@ def template_cmd(
     """
     info = find_lab(lab)
     written = write_template(info, out, force)
-    stdout.print(f"wrote the sheet {info.section} workspace to {out}: " + ", ".join(p.name for p in written))
+    stdout.print(f"wrote the sheet {info.section} workspace to {out}: " + ", ".join(p.relative_to(out).as_posix() for p in written))
     if info.to_fill:
         stdout.print("fill in: " + ", ".join(f"{b.name}.py" for b in info.to_fill))
     stdout.print(f"then, from {out}: {info.run}")

@@ -221,8 +221,15 @@ def answers_file(lab: Lab) -> str:
     return "\n".join(out)
 
 
+OTHER_BLOCKS = "other-blocks"  # the template's folder of the blocks the sheet does not ask to fill
+
+
 def readme_file(lab: Lab) -> str:
     files = "".join(f"- `{b.name}.py`: {b.doc}\n" for b in lab.to_fill)
+    others = [b for b in lab.blocks if not b.fill]
+    if others:
+        files += (f"- `{OTHER_BLOCKS}/`: the lab's other blocks ({', '.join(b.name for b in others)}) as templates: "
+                  "to replace one with yours, move its file up into this folder and fill it in.\n")
     return (f"# Sheet {lab.section}: {lab.title}\n\n"
             f"Fill in the blocks, tune `params.yaml`, answer `answers.md`.\n\n{files}"
             "- `params.yaml`: the lab's tunables.\n- `answers.md`: the sheet's questions.\n\n"
@@ -237,6 +244,8 @@ def write_template(lab: Lab, out: str | Path, force: bool = False) -> list[Path]
     if folder.exists() and not folder.is_dir():
         raise InputError(f"--out {folder}: exists and is not a folder")
     files = {f"{b.name}.py": block_file(b, lab) for b in lab.to_fill}
+    # every other block of the lab, for a student who wants to replace it too: copy it up a level
+    files.update({f"{OTHER_BLOCKS}/{b.name}.py": block_file(b, lab) for b in lab.blocks if not b.fill})
     files.update({"params.yaml": params_file(lab), "answers.md": answers_file(lab), "README.md": readme_file(lab)})
     clash = [name for name in files if (folder / name).exists()]
     if clash and not force:
@@ -246,6 +255,7 @@ def write_template(lab: Lab, out: str | Path, force: bool = False) -> list[Path]
         folder.mkdir(parents=True, exist_ok=True)
         for name, text in files.items():
             path = folder / name
+            path.parent.mkdir(exist_ok=True)
             path.write_text(text, encoding="utf-8")
             written.append(path)
     except OSError as exc:
