@@ -120,16 +120,17 @@ def test_a_wrong_hsv_range_loses_the_lane_tasks_points(tmp_path, cli):
 
 # ------------------------------------------------------------------------------------ 4.2.2 look-ahead
 def test_the_lookahead_sweep_ranks_by_the_tracking_error_and_marks_missed_goals(cli):
-    code, out, err = cli("path-follow", "butterfly", "--size", "2", "--lookahead", "0.1,0.5,1.2", "--json")
+    code, out, err = cli("path-follow", "butterfly", "--size", "2", "--lookahead", "0.05,0.5,1.2", "--json")
     m = json.loads(out)
     ranked = [r["lookahead"] for r in m["runs"]]
     assert code == 0, err
-    assert ranked[0] == 0.5  # the middle: 0.1 m weaves (and misses its goal), 1.2 m cuts the corners
-    assert ranked[-1] == 0.1 and not m["runs"][-1]["goal_reached"]
+    assert ranked[0] == 0.5  # the middle: 0.05 m weaves (and misses its goal), 1.2 m cuts the corners
+    assert ranked[-1] == 0.05 and not m["runs"][-1]["goal_reached"]
     by = {r["lookahead"]: r for r in m["runs"]}
     assert by[1.2]["rms_cross_track_estimate_m"] > 2 * by[0.5]["rms_cross_track_estimate_m"]
-    code, out, _ = cli("path-follow", "butterfly", "--size", "2", "--lookahead", "0.1,0.5")
-    assert "MISSED" in out and "look-ahead 0.1 m missed its goal" in out
+    assert by[0.05]["rms_cross_track_estimate_m"] > 2 * by[0.5]["rms_cross_track_estimate_m"]
+    code, out, _ = cli("path-follow", "butterfly", "--size", "2", "--lookahead", "0.05,0.5")
+    assert "MISSED" in out and "look-ahead 0.05 m missed its goal" in out
 
 
 # ------------------------------------------------------------------------------------ 5.2 Task 4
@@ -214,3 +215,21 @@ def test_the_template_has_a_file_for_every_block_of_the_lab(lab, tmp_path):
         text = path.read_text()
         assert spec.signature in text and f"units: {spec.units}" in text
         assert f'raise NotImplementedError("{spec.name} is not filled in yet' in text
+
+
+# ------------------------------------------------------------------------------------ 4.2.3 PI tuning
+def step(cli_json, kp, ki, realism="lab"):
+    return cli_json("path-follow", "line", "--step-response", "--speed", "0.5", "--kp", kp, "--ki", ki,
+                    "--realism", realism)
+
+
+def test_pi_tuning_is_a_trade_off_on_the_lab_car(cli_json):
+    """The lab car's ESC (30 ms late, 2 % dead-band): huge gains ring and chatter, tiny ones never
+    settle, the middle is best; the ideal drive train has no such penalty."""
+    huge, middle, tiny = step(cli_json, "20", "200"), step(cli_json, "5", "20"), step(cli_json, "0.05", "0.2")
+    assert huge["throttle_chatter"] > 0.05 and huge["throttle_saturated_s"] > 3.0
+    assert huge["settling_time_s"] is None or huge["settling_time_s"] > 4.0
+    assert middle["settling_time_s"] < 1.5 and middle["throttle_chatter"] < 0.01
+    assert tiny["settling_time_s"] is None and abs(tiny["steady_state_error_mps"]) > 0.02
+    ideal = step(cli_json, "20", "200", "ideal")
+    assert ideal["settling_time_s"] < 0.5 and ideal["throttle_chatter"] < 0.01

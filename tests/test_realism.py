@@ -140,7 +140,7 @@ def test_a_look_ahead_far_below_the_turning_radius_oscillates_on_the_line_under_
     assert amp < 1e-6 and sd < 1e-4  # the ideal car starts on the line and nothing pushes it off
     amp, sd, crossings = weave("lab", 0.05)
     assert amp > 0.05  # centimetres of weave, as on the real car
-    assert sd > 0.2 and crossings >= 4  # an oscillation across the line, not a drift to one side
+    assert sd > 0.2 and crossings >= 3  # an oscillation across the line, not a drift to one side (4 before the ESC)
     amp, sd, _ = weave("lab", 0.3)
     assert amp < 0.01 and sd < 0.02
 

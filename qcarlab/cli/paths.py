@@ -219,6 +219,9 @@ def _step_summary(result: Result) -> None:
     table.add_row("settling time (2 %)", fmt(m["settling_time_s"], "s") if m["settling_time_s"] is not None
                   else "not settled")
     table.add_row("steady-state error", fmt(m["steady_state_error_mps"], "m/s"))
+    if "throttle_chatter" in m:
+        table.add_row("throttle chatter (RMS change a tick, last s)", f"{m['throttle_chatter']:.4f}")
+        table.add_row("throttle at its limit", f"{m['throttle_saturated_s']:.2f} s")
     stdout.print(table)
 
 

@@ -68,6 +68,18 @@ def step_metrics(t: np.ndarray, v: np.ndarray, step: float, band: float = 0.02) 
     }
 
 
+def throttle_metrics(t: np.ndarray, u: np.ndarray, limit: float) -> dict[str, float]:
+    """What the controller asks of the motor: its chatter, the RMS of the throttle's change from one
+    tick to the next over the last second, ``sqrt(mean((u[k] - u[k-1])^2))`` (0 for a steady
+    throttle; a loop tuned too hard for the drive train's delay and dead-band switches the throttle
+    back and forth every few ticks), and the seconds it spent at the throttle limit (saturated)."""
+    tail = u[t >= t[-1] - 1.0]
+    du = np.diff(tail)
+    return {"throttle_chatter": float(np.sqrt(np.mean(du * du))) if du.size else 0.0,
+            "throttle_saturated_s": float(np.count_nonzero(np.abs(u) >= limit - 1e-9)
+                                          * (float(t[1] - t[0]) if len(t) > 1 else 0.0))}
+
+
 class StepResponseLab(LabModel):
     """The speed loop of the PathFollowing model (sheet 4.2.3, Figure 43), driven by a speed step."""
 
@@ -142,6 +154,7 @@ def step_response(car: Car, cfg: FollowConfig, duration: float = 6.0,
     }
     if len(t):
         metrics.update(step_metrics(t, v, speed))
+        metrics.update(throttle_metrics(t, cols["throttle"].astype(float), car.throttle_limit))
     else:  # stopped before the first tick (a wall at the start)
         metrics.update({"rise_time_s": None, "overshoot_pct": 0.0, "settling_time_s": None,
                         "steady_state_error_mps": speed})

@@ -14,6 +14,13 @@ is in both profiles), each with its value, unit and source in the YAML:
     delta_cmd = wheels + steering_offset                                      (trim offset)
     applied steering_delay s later (the PWM frame and the servo's electronics), then the servo's lag
 
+and to every throttle command (the ESC)::
+
+    duty = 0 if |command| < esc_deadband else command                         (neutral dead-band)
+    applied throttle_delay s later (the PWM frame and the ESC's electronics)
+
+so a speed loop tuned too hard rings or chatters on a lab car, as on the real one.
+
 **Tyres** (in the physics step, :mod:`qcarlab.sim.vehicle`): the ground speed is the wheels'
 less the slip, which grows with the lateral acceleration (scrub in turns), and the car turns less
 than the bicycle model says (understeer)::
@@ -61,6 +68,8 @@ class Realism:
     steering_backlash: float = 0.0  # rad, total play between the servo and the wheels
     servo_deadband: float = 0.0  # rad, command change the servo ignores
     steering_delay: float = 0.0  # s, from the command to the servo moving
+    throttle_delay: float = 0.0  # s, from the command to the ESC's output
+    esc_deadband: float = 0.0  # duty fraction about neutral the ESC gives no output for
     slip_ratio: float = 0.0  # fraction of the wheel speed lost to longitudinal slip
     scrub_per_g: float = 0.0  # extra slip per g of lateral acceleration (tyre scrub in turns)
     understeer_gradient: float = 0.0  # rad per (m/s^2): tan(delta_eff) = tan(delta) L / (L + K v^2)
@@ -82,6 +91,10 @@ class Realism:
     @property
     def servo(self) -> bool:
         return self.steering_offset != 0.0 or self.steering_backlash != 0.0 or self.servo_deadband != 0.0
+
+    @property
+    def esc(self) -> bool:
+        return self.throttle_delay != 0.0 or self.esc_deadband != 0.0
 
     @property
     def tyres(self) -> bool:

@@ -302,6 +302,9 @@ class Vehicle:
         self._servo = Servo(realism) if realism.servo else None
         self._delay_ns = round(realism.steering_delay * 1e9)
         self._pending: deque[tuple[int, float]] = deque()  # (due time in ns, wheel target) with a delay
+        self._duty_delay_ns = round(realism.throttle_delay * 1e9)
+        self._esc_deadband = realism.esc_deadband
+        self._pending_duty: deque[tuple[int, float]] = deque()  # (due time in ns, duty) with a delay
         self.on_stand = bool(on_stand)
         p = params
         self.state = VehicleState(x=pose[0], y=pose[1], yaw=pose[2], soc=p.battery_soc0)
@@ -347,8 +350,15 @@ class Vehicle:
     def command(self, duty: float, delta: float) -> None:
         """Set the PWM duty fraction and the steering command (rad); the servo clamps to +-max (and
         a realism profile's servo adds its dead-band, backlash and trim, and its delay: the wheels'
-        target changes ``steering_delay`` s after the command)."""
-        self.duty = duty
+        target changes ``steering_delay`` s after the command; its ESC ignores a duty within
+        ``esc_deadband`` of neutral and passes the rest on ``throttle_delay`` s after the command)."""
+        if abs(duty) < self._esc_deadband:
+            duty = 0.0
+        if self._duty_delay_ns:
+            t = self.state._a[_T]
+            self._pending_duty.append(((self._t_ns if t == self._t_s else round(t * 1e9)) + self._duty_delay_ns, duty))
+        else:
+            self.duty = duty
         m = self._max_steering
         delta = m if delta > m else (-m if delta < -m else delta)
         target = delta if self._servo is None else self._servo(delta)
@@ -363,17 +373,21 @@ class Vehicle:
         delayed steering command takes effect)."""
         if dt <= 0.0:
             return
-        pending = self._pending
-        if pending:
+        pending, duties = self._pending, self._pending_duty
+        if pending or duties:
             t = self.state._a[_T]  # (the counts in ns as _advance keeps them)
             t_ns = self._t_ns if t == self._t_s else round(t * 1e9)
             end_ns = t_ns + (self._dt_ns if dt == self._dt else round(dt * 1e9))
-            while pending and pending[0][0] < end_ns:
-                due, target = pending.popleft()
+            while (pending and pending[0][0] < end_ns) or (duties and duties[0][0] < end_ns):
+                steer = bool(pending) and pending[0][0] < end_ns and (not duties or pending[0][0] <= duties[0][0])
+                due, value = (pending if steer else duties).popleft()
                 if due > t_ns:
                     self._advance((due - t_ns) / 1e9)
                     t_ns = due
-                self.delta_cmd = target
+                if steer:
+                    self.delta_cmd = value
+                else:
+                    self.duty = value
             if end_ns > t_ns:
                 self._advance((end_ns - t_ns) / 1e9)
             return
