@@ -1,0 +1,40 @@
+"""The bugs a student meets and the failures that were silent (issue 27, items 4 and 5): each test
+fails on the code before its fix."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+
+# --- a folder named like a shipped world does not shadow it ----------------------------------
+def test_a_folder_named_like_a_shipped_world_does_not_break_the_lab(cli, tmp_path, monkeypatch):
+    """`qcarlab template stop-sign --out stop-sign` makes stop-sign/; every run from the folder
+    above then said '--world stop-sign: is a folder', even without --world."""
+    (tmp_path / "studio").mkdir()  # lidar-scan's default world
+    (tmp_path / "studio" / "stop_sign.py").write_text("# a student's work\n")
+    monkeypatch.chdir(tmp_path)
+    code, out, err = cli("lidar-scan", "--json")  # no --world: the default 'studio'
+    assert code == 0, err
+    assert json.loads(out)["world"] == "studio"
+    code, out, err = cli("lidar-scan", "--world", "studio", "--json")  # the name: the shipped world
+    assert code == 0, err
+    code, out, err = cli("lidar-scan", "--world", "./studio")  # a path: the folder, refused in one line
+    assert code == 2 and "is a folder" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_path_like_world_argument_is_a_file(tmp_path, monkeypatch):
+    from qcarlab.errors import InputError
+    from qcarlab.experiments.worlds import load_world, looks_like_path
+
+    for text in ("./studio", "studio/", "maps/studio", "studio.yaml", "STUDIO.YML", "~/studio", ".studio"):
+        assert looks_like_path(text), text
+    assert not looks_like_path("studio") and not looks_like_path("stop-sign")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "track").write_text("not a world")  # a file named like a shipped world: the name wins
+    assert load_world("track").name == "track"
+    with pytest.raises(InputError, match="no such world file"):
+        load_world("./nowhere.yaml")
