@@ -38,3 +38,34 @@ def test_a_path_like_world_argument_is_a_file(tmp_path, monkeypatch):
     assert load_world("track").name == "track"
     with pytest.raises(InputError, match="no such world file"):
         load_world("./nowhere.yaml")
+
+
+# --- sheet names, command names and sections --------------------------------------------------
+@pytest.mark.parametrize("name, sheet", [("avoid", "obstacle-avoidance"), ("io-test", "basic-io"),
+                                         ("path-follow", "path-following"), ("lane-follow", "lane-following"),
+                                         ("5.1", "stop-sign"), ("6.1", "obstacle-avoidance"),
+                                         ("ping", "connectivity"), ("lidar-scan", "lidar"),
+                                         ("obstacle-avoidance", "obstacle-avoidance")])
+def test_a_sheet_is_found_by_its_commands_name_and_section(name, sheet):
+    """`qcarlab grade avoid` said: unknown lab sheet 'avoid'."""
+    from qcarlab.grading.sheet import find_sheet
+
+    assert find_sheet(name).stem == sheet
+
+
+def test_a_command_two_sheets_run_is_one_clear_line(cli):
+    code, out, err = cli("labs", "camera")
+    assert code == 2 and "csi-cameras" in err and "rgbd-camera" in err and len(err.strip().splitlines()) == 1
+    code, out, err = cli("labs", "avoid", "--json")
+    assert code == 0, err
+    assert "obstacle-avoidance" in out
+
+
+def test_the_template_readme_says_how_to_grade_yourself(tmp_path):
+    from qcarlab.experiments.labs import find_lab, write_template
+
+    for command in ("stop-sign", "avoid", "io-test"):
+        lab = find_lab(command)
+        write_template(lab, tmp_path / command)
+        text = (tmp_path / command / "README.md").read_text()
+        assert f"qcarlab grade {lab.sheet} --submission ." in text
