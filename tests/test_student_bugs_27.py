@@ -69,3 +69,27 @@ def test_the_template_readme_says_how_to_grade_yourself(tmp_path):
         write_template(lab, tmp_path / command)
         text = (tmp_path / command / "README.md").read_text()
         assert f"qcarlab grade {lab.sheet} --submission ." in text
+
+
+# --- --pose truth: the estimate is not labelled the truth ------------------------------------
+def test_pose_truth_does_not_label_the_bicycle_estimate_truth(cli, tmp_path, monkeypatch):
+    """Under --pose truth the bicycle model's estimate (still logged, unused) was labelled
+    'estimate (truth)' in the figure and 'pose estimate drift (truth)' in the summary."""
+    from qcarlab import plots
+
+    labels = []
+    save = plots._save
+
+    def keep(fig, file):
+        if Path(file).name == "path.png":
+            labels.extend(fig.axes[0].get_legend_handles_labels()[1])
+        return save(fig, file)
+
+    monkeypatch.setattr(plots, "_save", keep)
+    code, out, err = cli("path-follow", "line", "--length", "1", "--pose", "truth", "--out", tmp_path / "run")
+    assert code == 0, err
+    text = " ".join(out.split())
+    assert "drift (truth)" not in text and "unused" in text
+    estimate = [lb for lb in labels if lb.startswith("estimate")]
+    assert estimate and all("(truth)" not in lb and "unused" in lb for lb in estimate), labels
+    assert "driven (truth)" in labels
