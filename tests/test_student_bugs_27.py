@@ -93,3 +93,24 @@ def test_pose_truth_does_not_label_the_bicycle_estimate_truth(cli, tmp_path, mon
     estimate = [lb for lb in labels if lb.startswith("estimate")]
     assert estimate and all("(truth)" not in lb and "unused" in lb for lb in estimate), labels
     assert "driven (truth)" in labels
+
+
+# --- lidar-scan --target: the box is measured, out to the sheet's 12 m ------------------------
+@pytest.mark.parametrize("target", [8.0, 12.0])
+def test_lidar_target_beyond_the_studio_is_measured_not_the_wall(cli, target):
+    """--target 8 put the box behind the studio's wall (4.9 m ahead) and measured the wall;
+    --target 12 (the sheet's range) was refused."""
+    code, out, err = cli("lidar-scan", "--target", str(target), "--scans", "3", "--json")
+    assert code == 0, err
+    m = json.loads(out)
+    assert m["target"]["measured_m"] == pytest.approx(target, abs=0.05)
+    assert m["nearest_obstacle_m"] == pytest.approx(target, abs=0.1)  # nothing else in the way
+    assert m["world"] == "open-hall" and "open hall" in err
+
+
+def test_lidar_target_in_a_chosen_world_without_room_is_refused(cli):
+    code, out, err = cli("lidar-scan", "--target", "8", "--world", "studio")
+    assert code == 2 and "4.9" in err and "room" in err and len(err.strip().splitlines()) == 1
+    code, out, err = cli("lidar-scan", "--target", "1.5", "--json")  # it fits: the studio, as before
+    assert code == 0 and json.loads(out)["world"] == "studio"
+    assert json.loads(out)["target"]["measured_m"] == pytest.approx(1.5, abs=0.02)
