@@ -114,3 +114,51 @@ def test_lidar_target_in_a_chosen_world_without_room_is_refused(cli):
     code, out, err = cli("lidar-scan", "--target", "1.5", "--json")  # it fits: the studio, as before
     assert code == 0 and json.loads(out)["world"] == "studio"
     assert json.loads(out)["target"]["measured_m"] == pytest.approx(1.5, abs=0.02)
+
+
+# --- grades: a value the run measured none of, and the run's own failure sentence -------------
+def _failed_step_row():
+    from qcarlab.grading.checks import check_metric
+    from qcarlab.grading.sheet import MetricCriterion
+
+    results = {"settling_time_s": None, "min_clearance_m": None, "overshoot_pct": 3.0}
+    verdicts = [check_metric(results, MetricCriterion("settling_time_s", max=3.0)),
+                check_metric(results, MetricCriterion("min_clearance_m", min=0.05)),
+                check_metric(results, MetricCriterion("rise_time_s", max=1.0)),
+                check_metric(results, MetricCriterion("overshoot_pct", max=10.0))]
+    failure = "collision at (0.00, -4.71) m near (0.00, -5.00), t = 5.12 s"
+    row = {"sheet": "path-following", "id": "pi-tuning", "kind": "scenario", "command": "qcarlab path-follow",
+           "uses": [], "status": "failed", "passed": False, "problem": None,
+           "criteria": [v.as_dict() for v in verdicts], "points": 4.0, "earned": 1.0, "seconds": 2.0,
+           "run_failure": failure}
+    student = {"student": "me", "tasks": [row], "passed": 0, "total": 1, "points": 1.0, "max_points": 4.0,
+               "skipped": 0, "errors": 0}
+    return row, student, failure
+
+
+def test_a_value_never_measured_is_said_in_words():
+    """'settling_time_s is None, not a number', and a blank for a missing minimum clearance."""
+    row, _, _ = _failed_step_row()
+    settle, clearance, rise, overshoot = row["criteria"]
+    assert settle["reason"] == "settling_time_s: never settled" and settle["missing"] == "never settled"
+    assert clearance["reason"] == "min_clearance_m: not measured" and clearance["missing"] == "not measured"
+    assert rise["missing"] == "not measured" and "not in the results" in rise["reason"]
+    assert overshoot["passed"] and "missing" not in overshoot
+    assert all("None" not in (c["reason"] or "") for c in row["criteria"])
+
+
+def test_the_grade_table_html_and_junit_show_the_words_and_the_runs_failure(tmp_path, capsys):
+    from qcarlab.cli.grade import _print
+    from qcarlab.grading.report import write_html, write_junit
+    from qcarlab.grading.sheet import find_sheet, load_sheet
+
+    row, student, failure = _failed_step_row()
+    _print([load_sheet(find_sheet("path-following"))], [student], single=True)
+    table = " ".join(capsys.readouterr().out.split())
+    assert "never settled" in table and "not measured" in table
+    assert "collision at (0.00, -4.71) m" in table
+    html = write_html(tmp_path / "report.html", "grades", [student], {}, {}).read_text()
+    assert "never settled" in html and "not measured" in html and "collision at (0.00, -4.71) m" in html
+    xml = write_junit(tmp_path / "junit.xml", [student], single=True).read_text()
+    assert xml.count(failure) >= 3  # in each failed criterion's failure message
+    assert "got None" not in xml and "never settled" in xml
