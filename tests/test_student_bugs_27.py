@@ -162,3 +162,51 @@ def test_the_grade_table_html_and_junit_show_the_words_and_the_runs_failure(tmp_
     xml = write_junit(tmp_path / "junit.xml", [student], single=True).read_text()
     assert xml.count(failure) >= 3  # in each failed criterion's failure message
     assert "got None" not in xml and "never settled" in xml
+
+
+# --- keyboard-drive collides like every lab, and keeps --max-throttle --------------------------
+def _drive_into_the_wall(max_throttle: float, seconds: float):
+    from qcarlab.car import open_car
+    from qcarlab.experiments.keyboard_drive import DriveConfig, keyboard_drive
+
+    car = open_car("sim", world="studio", seed=1)  # walls at +-5 m; the car at the centre heading -Y
+    frames = []
+
+    def keys(t: float):
+        return ["w"] * 20 if not frames else (["q"] if t > seconds else [])
+
+    cfg = DriveConfig(max_throttle=max_throttle, throttle_step=min(0.03, max_throttle), throttle_ramp=3.0)
+    summary = keyboard_drive(car, cfg, keys=keys, on_frame=frames.append, rate=100.0)
+    return car, summary, frames
+
+
+def test_keyboard_drive_stops_at_a_wall():
+    """It drove on through the walls (x = +4.05 m with the walls at +-3.25 m)."""
+    car, summary, frames = _drive_into_the_wall(0.3, 8.0)
+    assert summary.reason == "collision" and summary.collision.startswith("collision at"), summary
+    assert car.truth().y > -5.0 + 0.2  # it stopped at the wall (at -5 m), not past it
+    assert car.read().throttle == 0.0
+    assert summary.duration_s < 6.0  # ended by the wall, not by the q at 8 s
+    assert max(f.state.throttle for f in frames) <= 0.3
+
+
+def test_keyboard_drive_keeps_max_throttle():
+    _, summary, frames = _drive_into_the_wall(0.05, 2.0)
+    assert summary.reason == "quit"
+    assert max(f.state.throttle for f in frames) == pytest.approx(0.05)
+    assert summary.top_speed_mps < 0.5  # the cap holds the speed down (0.1 holds about 1 m/s)
+
+
+def test_keyboard_drive_into_a_wall_exits_1_with_one_line():
+    from ptyrun import PtyRun
+
+    run = PtyRun("keyboard-drive", "--world", "track", "--max-throttle", "0.3", "--ramp", "3", "--no-map")
+    run.wait_for("speed")
+    run.send(b"w" * 10)
+    rc = run.finish(timeout=60.0)
+    text = run.text
+    assert rc == 1, text[-2000:]
+    assert run.after == run.before
+    errors = [ln for ln in text.splitlines() if "collision at" in ln]
+    assert len(errors) == 1 and "keyboard-drive" in errors[0] and "the car is stopped" in errors[0], text[-2000:]
+    assert "Traceback" not in text
