@@ -210,3 +210,79 @@ def test_keyboard_drive_into_a_wall_exits_1_with_one_line():
     errors = [ln for ln in text.splitlines() if "collision at" in ln]
     assert len(errors) == 1 and "keyboard-drive" in errors[0] and "the car is stopped" in errors[0], text[-2000:]
     assert "Traceback" not in text
+
+
+# --- a student's block stuck in a loop: named in one line, the run ended, the car stopped ------
+STUCK = '''
+def pure_pursuit(pose, target, lookahead, wheelbase):
+    """Turn towards the target."""
+    steering = 0.0
+    while abs(steering) < 10.0:  # never: a bug that loops for ever
+        try:
+            steering = steering * 1.0
+        except Exception:  # swallows what it can; the watchdog's alarm is not an Exception
+            pass
+    return steering
+'''
+
+SLEEPS = '''
+import time
+
+
+def speed_controller(v_ref, v_measured, dt):
+    """Wait for the speed to come (a sleep in a block stalls the whole car)."""
+    time.sleep(3600)
+    return 0.0
+'''
+
+
+def test_a_block_stuck_in_a_loop_ends_the_run_with_the_car_stopped(tmp_path, monkeypatch):
+    """It hung the lab for ever, with no message."""
+    import time
+
+    from qcarlab.blocks import StudentBlockError, resolve_student_blocks
+    from qcarlab.car import open_car
+    from qcarlab.experiments.path_follow import FollowConfig, PathFollowingLab, follow_path
+    from qcarlab.paths import line
+
+    monkeypatch.setenv("QCARLAB_BLOCK_TIMEOUT_S", "0.5")
+    for name, text in (("pure_pursuit", STUCK), ("speed_controller", SLEEPS)):
+        (tmp_path / f"{name}.py").write_text(text)
+        mine = resolve_student_blocks(PathFollowingLab.specs(), "path-follow", [tmp_path / f"{name}.py"])
+        car = open_car("sim", world="studio", seed=0)
+        t0 = time.monotonic()
+        with pytest.raises(StudentBlockError) as exc:
+            follow_path(car, line(2.0, 5), FollowConfig(), blocks=mine)
+        assert time.monotonic() - t0 < 10.0
+        text = str(exc.value)
+        assert len(text.splitlines()) == 1 and f"block {name}" in text and "has not returned after 0.5 s" in text
+        assert f"{name}.py:" in text  # where it was stuck: the student's own line
+        assert car.read().throttle == 0.0  # the car stopped
+
+
+def test_a_stuck_block_is_one_line_and_exit_1_from_the_command(cli, tmp_path, monkeypatch):
+    monkeypatch.setenv("QCARLAB_BLOCK_TIMEOUT_S", "0.5")
+    (tmp_path / "pure_pursuit.py").write_text(STUCK)
+    code, out, err = cli("path-follow", "line", "--length", "1", "--use", tmp_path / "pure_pursuit.py")
+    assert code == 1
+    errors = [ln for ln in err.splitlines() if "error:" in ln]
+    assert len(errors) == 1 and "pure_pursuit" in errors[0] and "has not returned" in errors[0], err
+    assert "Traceback" not in err
+
+
+def test_a_stuck_block_is_named_when_graded_in_its_own_process(cli, tmp_path, monkeypatch):
+    """Graded, the block runs in the student's process: the trusted side stops waiting and ends it."""
+    from qcarlab.experiments.labs import find_lab, write_template
+
+    monkeypatch.setenv("QCARLAB_BLOCK_TIMEOUT_S", "0.5")
+    write_template(find_lab("stop-sign"), tmp_path / "me")
+    (tmp_path / "me" / "stop_sign.py").write_text('''
+def stop_sign(distance_to_sign, desired_speed):
+    while distance_to_sign > 0.4:
+        pass
+    return 0.0
+''')
+    code, out, err = cli("grade", "stop-sign", "--submission", tmp_path / "me", "--task", "5.2-task1-block", "--json")
+    assert code == 1
+    reasons = [c["reason"] for c in json.loads(out)["tasks"][0]["criteria"] if not c["passed"]]
+    assert any("block stop_sign" in r and "has not returned after 0.5 s" in r for r in reasons), reasons
