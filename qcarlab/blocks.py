@@ -322,6 +322,7 @@ class StudentBlock:
             raise exc
         where = f"block {self.spec.name} ({self.source})"
         if isinstance(exc, BlockTimeout):
+            _watchdog.disarm()  # no second alarm while the run ends
             at = [f for f in traceback.extract_tb(exc.__traceback__)
                   if Path(f.filename).resolve() == Path(self.file).resolve()]
             line = f", at {self.file}:{at[-1].lineno}" if at else ""

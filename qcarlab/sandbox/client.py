@@ -103,6 +103,7 @@ class BlockHost:
             self.channel.send(msg)
             reply = self.channel.recv()
         except BlockTimeout:  # the block has not returned (qcarlab.blocks' watchdog): its process is ended
+            signal.setitimer(signal.ITIMER_REAL, 0.0)  # no second alarm while it is
             self.dead = "the process running your blocks was stopped: a block of yours had not returned"
             self.kill()
             raise
