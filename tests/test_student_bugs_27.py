@@ -286,3 +286,96 @@ def stop_sign(distance_to_sign, desired_speed):
     assert code == 1
     reasons = [c["reason"] for c in json.loads(out)["tasks"][0]["criteria"] if not c["passed"]]
     assert any("block stop_sign" in r and "has not returned after 0.5 s" in r for r in reasons), reasons
+
+
+# --- blocks never called and options a student's block makes meaningless: one warning each -----
+CARROT = '''
+import math
+
+
+def follow_the_carrot(pose, target, k_carrot):
+    """Steer towards the carrot."""
+    return max(-0.5, min(0.5, k_carrot * (math.atan2(target[1] - pose[1], target[0] - pose[0]) - pose[2])))
+'''
+
+MY_PI = '''
+class speed_controller:
+    def __init__(self):
+        self.reset()
+
+    def reset(self):
+        self.i = 0.0
+
+    def __call__(self, v_ref, v_measured, dt):
+        e = v_ref - v_measured
+        self.i += e * dt
+        return max(-0.3, min(0.3, 0.1 * v_ref + 0.3 * e + 1.0 * self.i))
+'''
+
+
+def _warnings(err: str) -> list[str]:
+    return [ln for ln in err.splitlines() if ": warning: " in ln]
+
+
+def test_a_block_given_but_never_called_is_one_warning(cli, tmp_path):
+    """A student's follow_the_carrot with the default controller was listed as 'your blocks' and
+    called 0 times, silently."""
+    (tmp_path / "carrot.py").write_text(CARROT)
+    code, out, err = cli("path-follow", "line", "--length", "1", "--use", tmp_path / "carrot.py", "--json")
+    assert code == 0, err
+    assert json.loads(out)["student_blocks"]["follow_the_carrot"]["calls"] == 0
+    warnings = _warnings(err)
+    assert len(warnings) == 1 and "follow_the_carrot" in warnings[0] and "never called" in warnings[0]
+    assert "--controller carrot" in warnings[0]
+    code, out, err = cli("path-follow", "line", "--length", "1", "--use", tmp_path / "carrot.py",
+                         "--controller", "carrot", "--json")
+    assert code == 0 and not _warnings(err), err
+
+
+def test_options_a_students_block_makes_meaningless_are_one_warning_each(cli, tmp_path):
+    """--kp 5 --ki 20 were silently ignored with the student's speed_controller."""
+    (tmp_path / "pi.py").write_text(MY_PI)
+    step = ("path-follow", "line", "--step-response", "--speed", "0.5", "--use", tmp_path / "pi.py", "--json")
+    code, out, err = cli(*step, "--kp", "5", "--ki", "20")
+    assert code == 0, err
+    warnings = _warnings(err)
+    assert len(warnings) == 2, err
+    assert "--kp is not used" in warnings[0] and "--ki is not used" in warnings[1]
+    assert all("speed_controller" in w for w in warnings)
+    code, out, err = cli(*step)  # the defaults, not typed: nothing to warn of
+    assert code == 0 and not _warnings(err), err
+    code, out, err = cli("path-follow", "line", "--step-response", "--speed", "0.5", "--kp", "0.5", "--json")
+    assert code == 0 and not _warnings(err), err  # qcarlab's controller: --kp is used
+
+
+# --- io-test reports what the run's block made of the encoder --------------------------------
+DOUBLE = '''
+def basic_speed_estimation(counts_per_s):
+    """Twice the speed (a wrong gear ratio)."""
+    return 2.0 * counts_per_s * 6.866e-6
+'''
+
+
+def test_io_test_distance_and_live_speed_come_from_the_students_block(cli, tmp_path):
+    """io-test's distance_m was the package's counts x metres-per-count, whatever the block said."""
+    (tmp_path / "bse.py").write_text(DOUBLE)
+    base = ("io-test", "--on-floor", "--throttle", "0.1", "--duration", "1", "--json")
+    code, out, err = cli(*base)
+    assert code == 0, err
+    ours = json.loads(out)
+    code, out, err = cli(*base, "--use", tmp_path / "bse.py")
+    assert code == 0, err
+    mine = json.loads(out)
+    assert mine["encoder_counts"] == ours["encoder_counts"]  # the same drive
+    assert mine["mean_speed_mps"] == pytest.approx(2.0 * ours["mean_speed_mps"], rel=1e-3)
+    assert mine["distance_m"] == pytest.approx(2.0 * ours["distance_m"], rel=1e-3)
+    assert ours["distance_m"] == pytest.approx(ours["truth"]["wheel_distance_m"], rel=0.02)
+
+    from qcarlab.car import open_car
+    from qcarlab.experiments.io_test import io_test
+
+    seen = []
+    with open_car("sim", seed=0) as car:
+        io_test(car, 0.1, 0.0, (), 0.5, on_tick=lambda t, r, cmd, v: seen.append((r.tach, v)),
+                blocks={"basic_speed_estimation": lambda c: 2.0 * c * 6.866e-6})
+    assert seen and all(v == pytest.approx(2.0 * tach * 6.866e-6) for tach, v in seen)

@@ -269,7 +269,7 @@ def path_follow_cmd(
                                                                    step=step, size=size, width=width,
                                                                    height=height).items() if v is not None}
     ref, label = _load_path(path_spec, options)
-    mine = student_blocks(PathFollowingLab, use, block)
+    mine = student_blocks(PathFollowingLab, use, block, ctx)
     world_obj, _ = sim_world(car, world, None, "studio", params)
 
     def open_car():
