@@ -27,7 +27,10 @@ import importlib.util
 import inspect
 import math
 import numbers
+import os
+import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable, Mapping
@@ -40,7 +43,9 @@ from qcarlab.errors import InputError, QcarlabError
 _clock = time.perf_counter
 
 __all__ = [
+    "BLOCK_TIMEOUT_S",
     "BlockSpec",
+    "BlockTimeout",
     "RaisedInBlock",
     "StudentBlock",
     "StudentBlockError",
@@ -54,6 +59,74 @@ class StudentBlockError(QcarlabError):
     """A student's block raised or returned something unusable. Exit code 1 (the run failed)."""
 
     exit_code = 1
+
+
+class BlockTimeout(BaseException):
+    """Raised inside a student's block that has run longer than :func:`block_timeout` (an endless
+    loop?), by the watchdog's alarm on the main thread. A BaseException, so the student's own
+    ``except Exception`` does not swallow it; :class:`StudentBlock` turns it into one line."""
+
+
+#: Seconds a student's block may run in one call before it is taken for stuck (internal: the
+#: environment's QCARLAB_BLOCK_TIMEOUT_S, or this; tests lower it).
+BLOCK_TIMEOUT_S = 5.0
+
+
+def block_timeout() -> float:
+    """The watchdog's limit for one call of a student's block, s."""
+    text = os.environ.get("QCARLAB_BLOCK_TIMEOUT_S")
+    try:
+        value = float(text) if text else BLOCK_TIMEOUT_S
+    except ValueError:
+        value = BLOCK_TIMEOUT_S
+    return value if math.isfinite(value) and value > 0 else BLOCK_TIMEOUT_S
+
+
+class _Watchdog:
+    """Interrupts a student's block that has not returned after :func:`block_timeout` s: a real-time
+    alarm (SIGALRM through ``setitimer``, armed around each call on the main thread; it fires again
+    every half second should the student's code swallow the first) raises :class:`BlockTimeout`
+    in the block, wherever it is (a Python loop, a sleep, waiting for the student's process). The
+    alarm is ours only where nothing else handles SIGALRM; elsewhere (another thread, a host
+    program's own alarm) blocks run unwatched, as before."""
+
+    def __init__(self) -> None:
+        self.main = threading.main_thread().ident
+        self.limit = BLOCK_TIMEOUT_S
+        self.running: StudentBlock | None = None  # the block in a watched call
+        self.handler = self._alarm  # one bound method, so that ``is`` recognises it
+
+    def ready(self) -> bool:
+        """Install the handler (at a run's start, on the main thread); True when calls are watched."""
+        if threading.get_ident() != self.main:
+            return False
+        handler = signal.getsignal(signal.SIGALRM)
+        if handler is not self.handler:
+            if handler not in (signal.SIG_DFL, None):
+                return False
+            signal.signal(signal.SIGALRM, self.handler)
+        self.limit = block_timeout()
+        return True
+
+    def _alarm(self, signum: int, frame: Any) -> None:
+        if self.running is not None:
+            raise BlockTimeout()
+
+    def arm(self, block: StudentBlock) -> bool:
+        """Start the alarm for ``block``'s call (the handler was installed by :meth:`ready`)."""
+        if _get_ident() != self.main:
+            return False
+        self.running = block
+        _setitimer(_REAL, self.limit, 0.5)
+        return True
+
+    def disarm(self) -> None:
+        self.running = None
+        _setitimer(_REAL, 0.0)
+
+
+_get_ident, _setitimer, _REAL = threading.get_ident, signal.setitimer, signal.ITIMER_REAL
+_watchdog = _Watchdog()
 
 
 class RaisedInBlock(Exception):
@@ -213,10 +286,12 @@ class StudentBlock:
     over_budget: int = 0
     budget_s: float | None = None
     fn: Callable[..., Any] | None = field(default=None, repr=False)
+    watched: bool = field(default=False, repr=False)  # its calls are under the watchdog (see _Watchdog)
 
     def start(self) -> StudentBlock:
         """Ready for a run: instantiate a class (once), call its ``reset()`` if it has one."""
         self.calls, self.worst_s, self.total_s, self.over_budget = 0, 0.0, 0.0, 0
+        self.watched = _watchdog.ready()
         if _is_class(self.target):
             obj = self._guard(self.target, ())
             if not callable(obj):
@@ -231,18 +306,29 @@ class StudentBlock:
         return self
 
     def _guard(self, fn: Callable[..., Any], args: tuple, kwargs: Mapping[str, Any] | None = None) -> Any:
+        armed = self.watched and _watchdog.arm(self)
         try:
             return fn(*args, **(kwargs or {}))
         except BaseException as exc:  # noqa: BLE001 - the student's code may raise anything
             self._failed(exc)
+        finally:
+            if armed:
+                _watchdog.disarm()
 
     def _failed(self, exc: BaseException) -> None:
         """Raise what the student's exception ``exc`` means for the run (see the module docstring):
         raised here, or in the student's own process (:class:`RaisedInBlock`)."""
         if isinstance(exc, (KeyboardInterrupt, QcarlabError)):
             raise exc
-        what = exc if isinstance(exc, RaisedInBlock) else RaisedInBlock.of(exc, self.file)
         where = f"block {self.spec.name} ({self.source})"
+        if isinstance(exc, BlockTimeout):
+            _watchdog.disarm()  # no second alarm while the run ends
+            at = [f for f in traceback.extract_tb(exc.__traceback__)
+                  if Path(f.filename).resolve() == Path(self.file).resolve()]
+            line = f", at {self.file}:{at[-1].lineno}" if at else ""
+            raise StudentBlockError(f"{where} has not returned after {_watchdog.limit:g} s: an endless loop?"
+                                    + (f" (at {line.removeprefix(', at ')})" if line else "")) from None
+        what = exc if isinstance(exc, RaisedInBlock) else RaisedInBlock.of(exc, self.file)
         if what.kind == "not_implemented":
             raise InputError(f"{self.file}: {self.spec.name} is not filled in yet (sheet {self.spec.section}); "
                              "write its body, then run again") from None
@@ -258,11 +344,15 @@ class StudentBlock:
         fn = self.fn
         if fn is None:
             fn = self.start().fn
+        armed = self.watched and _watchdog.arm(self)
         t0 = _clock()
         try:  # (self._guard written out: this runs every tick)
             value = fn(*args, **kwargs)
         except BaseException as exc:  # noqa: BLE001 - the student's code may raise anything
             self._failed(exc)
+        finally:
+            if armed:
+                _watchdog.disarm()
         spent = _clock() - t0
         self.calls += 1
         self.total_s += spent

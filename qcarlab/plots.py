@@ -78,6 +78,15 @@ def plot_path(
     return _save(fig, file)
 
 
+def estimate_label(pose: str, short: bool = False) -> str:
+    """What the logged pose estimate of a path-follow run is: the ``--pose`` source, except under
+    ``--pose truth``, where the controller had the simulator's truth and the bicycle model's estimate
+    ran beside it, unused (it is not the truth)."""
+    if pose == "truth":
+        return "bicycle, unused" if short else "bicycle, unused: --pose truth"
+    return pose
+
+
 def plot_follow(path: np.ndarray, log: Mapping[str, Any], metrics: Mapping[str, Any], file: str | Path) -> Path:
     """Reference path against the driven path (true pose on a simulator, else the estimate),
     the dead-reckoning estimate dashed, and the worst cross-track error marked."""
@@ -87,7 +96,7 @@ def plot_follow(path: np.ndarray, log: Mapping[str, Any], metrics: Mapping[str, 
     ax.plot(p[:, 0], p[:, 1], "-", color="0.6", lw=3, label="reference")
     if "true_x" in log:
         ax.plot(log["true_x"], log["true_y"], "-", color="tab:blue", lw=1.3, label="driven (truth)")
-        ax.plot(log["est_x"], log["est_y"], "--", color="tab:orange", lw=1, label=f"estimate ({metrics['config']['pose']})")
+        ax.plot(log["est_x"], log["est_y"], "--", color="tab:orange", lw=1, label=f"estimate ({estimate_label(metrics['config']['pose'])})")
     else:
         ax.plot(log["est_x"], log["est_y"], "-", color="tab:blue", lw=1.3, label="driven (estimate)")
     wx, wy = metrics["worst_point"]

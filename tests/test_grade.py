@@ -28,7 +28,7 @@ def test_metric_checks_bounds_nested_lists_and_missing_values():
     assert [v.passed for v in verdicts] == [True, True, True, False, False, False, True]
     assert verdicts[3].reason == "rms = 0.01, below the minimum 0.05" and verdicts[3].points == 2
     assert verdicts[3].earned == 0 and verdicts[0].earned == 1
-    assert verdicts[4].reason == "nope is not in the results" and "not a number" in verdicts[5].reason
+    assert verdicts[4].reason == "nope is not in the results" and verdicts[5].reason == "bad: not measured"  # in words (issue 27)
 
 
 def test_case_checks_say_what_was_expected_and_what_came():

@@ -102,7 +102,7 @@ def avoid_cmd(
                       duration=duration, rate=rate)
     apply_tunables(cfg, params, ctx)
     cfg.check(load_params(params))
-    mine = student_blocks(AvoidLab, use, block)
+    mine = student_blocks(AvoidLab, use, block, ctx)
     check_trials(trials, car, realtime)
     world_obj, pose = sim_world(car, world, start, "obstacles", params)
     if trials is not None:

@@ -195,15 +195,65 @@ def open_from_options(
     return recording.wrap(qcar, car=car, world=world, seed=seed, path=path, start=extra.get("start"))
 
 
-def student_blocks(model: Any, use: list[Path] | None, block: list[str] | None) -> dict[str, Any]:
-    """The student's blocks for a lab model class from --use/--block; says on stderr which are used."""
+#: The options that only set qcarlab's own block of that name: a student's block in its place makes
+#: them meaningless (it is called with the sheet's arguments, not with these).
+SETS_BLOCK = {"speed_controller": ("kp", "ki", "kff"), "color_thresholding_hsv": ("hsv_min", "hsv_max"),
+              "find_objects": ("min_area",), "linear_poly_fit": ("min_pixels",)}
+
+
+def _typed(ctx: Any, name: str) -> bool:
+    """True when the command's option ``name`` was typed on the command line (not its default)."""
+    if ctx is None or name not in {p.name for p in ctx.command.params}:
+        return False
+    try:
+        source = ctx.get_parameter_source(name)
+    except Exception:  # noqa: BLE001
+        return False
+    return getattr(source, "name", None) == "COMMANDLINE"
+
+
+def student_blocks(model: Any, use: list[Path] | None, block: list[str] | None, ctx: Any = None) -> dict[str, Any]:
+    """The student's blocks for a lab model class from --use/--block; says on stderr which are used,
+    and (given the command's context) warns, one line each, of a typed option a student's block
+    makes meaningless."""
     from qcarlab.blocks import resolve_student_blocks
 
     found = resolve_student_blocks(model.specs(), model.lab, use or (), block or ())
     if found:
         listed = ", ".join(f"{name} ({b.source})" for name, b in found.items())
         stderr.print(f"{model.lab}: your blocks: {listed}", markup=False)
+    for name in found:
+        for option in SETS_BLOCK.get(name, ()):
+            if _typed(ctx, option):
+                flag = "--" + option.replace("_", "-")
+                stderr.print(f"{model.lab}: warning: {flag} is not used: it sets qcarlab's {name}, which your "
+                             f"{name} replaces", markup=False)
     return found
+
+
+#: Where a block that was never called would have been (the option that runs it).
+_CALLED_WITH = {"follow_the_carrot": "--controller carrot", "stanley": "--controller stanley",
+                "pure_pursuit": "--controller pure-pursuit", "lidar_stop": "--strategy stop",
+                "lidar_steer": "--strategy steer", "lidar_avoid": "--strategy student",
+                "depth_windows": "--strategy depth", "depth_avoid": "--strategy depth"}
+
+
+def never_called(metrics: dict[str, Any]) -> list[str]:
+    """The student's blocks a run that ticked never called (a sweep: its best run's), each as a warning."""
+    mine = metrics.get("student_blocks")
+    loop = metrics.get("loop") or {}
+    best = metrics.get("best")
+    if mine is None and isinstance(best, dict):
+        mine, loop = best.get("student_blocks"), best.get("loop") or {}
+    if not isinstance(mine, dict) or not loop.get("ticks"):
+        return []
+    out = []
+    for block, timing in mine.items():
+        if isinstance(timing, dict) and timing.get("calls") == 0:
+            hint = f"; {_CALLED_WITH[block]} uses it" if block in _CALLED_WITH else \
+                "; this run's options do not use it"
+            out.append(f"your {block} ({timing.get('source')}) was never called in this run{hint}")
+    return out
 
 
 def lab_section(params: Path | None) -> dict[str, Any]:
@@ -295,6 +345,8 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
         if timing.get("over_budget"):
             stderr.print(f"{name}: warning: your {block} took longer than the {timing['budget_s'] * 1000:.1f} ms tick "
                          f"{timing['over_budget']} time(s) (worst {timing['worst_s'] * 1000:.1f} ms)", markup=False)
+    for warning in never_called(m):
+        stderr.print(f"{name}: warning: {warning}", markup=False)
     for note in m.get("notes") or ():
         stderr.print(f"{name}: note: {note}", markup=False)
     loop = m.get("loop") or {}

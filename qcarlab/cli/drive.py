@@ -25,7 +25,7 @@ from rich.text import Text
 
 from qcarlab.cli.app import app
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
-from qcarlab.cli.common import CarTokenOpt, CarOpt, DebugOpt, ParamsOpt, SeedOpt, WorldOpt, open_from_options, stdout
+from qcarlab.cli.common import CarTokenOpt, CarOpt, DebugOpt, ParamsOpt, SeedOpt, WorldOpt, open_from_options, stderr, stdout
 from qcarlab.errors import CarError, InputError
 from qcarlab.experiments.keyboard_drive import (
     DriveConfig,
@@ -239,7 +239,8 @@ def _map_for(world: Any, console: Console, map_wanted: bool) -> tuple[_MapView |
 @recordable
 def keyboard_drive_cmd(
     max_throttle: Annotated[
-        float, typer.Option(help="Most throttle the keys can give (duty fraction; the car's limit is 0.3).")
+        float, typer.Option(help="Most throttle the keys can give (duty fraction; the car's limit is 0.3). It caps "
+                            "the duty, and so the speed: on the floor 0.1 holds about 1 m/s, 0.05 about 0.4 m/s.")
     ] = 0.15,
     throttle_step: Annotated[float, typer.Option(help="Throttle change per key press (duty fraction).")] = 0.03,
     ramp: Annotated[
@@ -322,6 +323,10 @@ def keyboard_drive_cmd(
 
 def _finish(summary: DriveSummary) -> None:
     stdout.print(summary.line(), markup=False, highlight=False, soft_wrap=True)
+    if summary.reason == "collision":
+        stderr.print(f"qcarlab keyboard-drive: {summary.collision}; the drive ended and the car is stopped",
+                     markup=False)
+        raise typer.Exit(1)
     if summary.reason == "interrupted":
         raise typer.Exit(130)
     if summary.reason == "signal":

@@ -33,12 +33,11 @@ class CliCommands:
         return command_accepts(argv, option)
 
 
-def _shown(value: Any) -> str:
-    if isinstance(value, float):
-        return f"{value:.4g}"
-    if value is None:
-        return "-"
-    text = str(value)
+def _shown(criterion: dict[str, Any]) -> str:
+    """A criterion's value: the number, in words when the run measured none, "-" when nothing ran."""
+    from qcarlab.grading.checks import value_text
+
+    text = value_text(criterion) or "-"
     return text if len(text) <= 40 else text[:37] + "..."
 
 
@@ -292,8 +291,11 @@ def _print(sheets: list[Sheet], students: list[dict[str, Any]], single: bool) ->
                     continue
             for c in r["criteria"]:
                 verdict = "pass" if c["passed"] else f"FAIL: {c['reason']}"
-                table.add_row(label, c["criterion"], _shown(c["value"]), verdict, f"{c['earned']:g}/{c['points']:g}")
+                table.add_row(label, c["criterion"], _shown(c), verdict, f"{c['earned']:g}/{c['points']:g}")
         stdout.print(table)
+        for r in st["tasks"]:
+            if r.get("run_failure"):
+                stdout.print(f"{r['id']}: the run failed: {r['run_failure']}", markup=False, highlight=False)
         for r in st["tasks"]:
             if r.get("detail") and r["status"] == "failed":
                 stdout.print(f"[b]{r['id']}[/b]:", r["detail"].strip()[-800:], markup=True, highlight=False)

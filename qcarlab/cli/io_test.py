@@ -17,20 +17,19 @@ from qcarlab.cli.common import (
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt, UseOpt, BlockOpt,
     emit, interactive, open_from_options, stdout, student_blocks, summary_table,
 )
-from qcarlab.control.speed import basic_speed_estimation
 from qcarlab.errors import InputError
 from qcarlab.experiments.io_test import BasicIOLab, io_test
 from qcarlab.experiments.loop import check_rate
 from qcarlab.experiments.result import Result
 
 
-def _live_table(t: float, r, cmd, params) -> Table:
+def _live_table(t: float, r, cmd, speed: float) -> Table:
     table = Table(title=f"QCar basic I/O  t = {t:5.2f} s", title_justify="left")
     table.add_column("channel")
     table.add_column("value", justify="right")
     table.add_row("encoder 0 (counts)", f"{r.encoder_counts:,}")
     table.add_row("tach (counts/s)", f"{r.tach:,.0f}")
-    table.add_row("speed (m/s)", f"{basic_speed_estimation(r.tach, params):.3f}")
+    table.add_row("speed, basic_speed_estimation (m/s)", f"{speed:.3f}")
     table.add_row("motor current, analog 5 (A)", f"{r.motor_current:.3f}")
     table.add_row("battery, analog 6 (V)", f"{r.battery_voltage:.2f}")
     table.add_row("steering, ch 1000 (rad)", f"{cmd.steering:+.3f}")
@@ -46,8 +45,8 @@ def _summary(result: Result) -> None:
     table.add_row("command", f"throttle {m['command']['throttle']:+.3f}, steering {m['steering_rad']:+.3f} rad")
     table.add_row("duration", f"{m['duration_s']:.2f} s")
     table.add_row("encoder counts", f"{m['encoder_counts']:,}")
-    table.add_row("mean speed (encoder)", f"{m['mean_speed_mps']:.3f} m/s")
-    table.add_row("wheel distance (encoder)", f"{m['distance_m']:.3f} m")
+    table.add_row("mean speed (encoder, basic_speed_estimation)", f"{m['mean_speed_mps']:.3f} m/s")
+    table.add_row("wheel distance (encoder, basic_speed_estimation)", f"{m['distance_m']:.3f} m")
     table.add_row("motor current (mean / max)", f"{m['motor_current_a']:.3f} / {m['motor_current_max_a']:.3f} A")
     table.add_row("battery (mean / min)", f"{m['battery_v']:.2f} / {m['battery_min_v']:.2f} V"
                   + ("  LOW: charge it" if m["battery_low"] else ""))
@@ -103,11 +102,11 @@ def io_test_cmd(
             with Live(refresh_per_second=10, console=stdout, transient=True) as view:
                 last = [0.0]
 
-                def show(t, r, cmd):
+                def show(t, r, cmd, speed):
                     now = time.monotonic()
                     if now - last[0] >= 0.1:
                         last[0] = now
-                        view.update(_live_table(t, r, cmd, qcar.params))
+                        view.update(_live_table(t, r, cmd, speed))
 
                 result = io_test(qcar, throttle, steering, lamp_state, duration, rate, on_tick=show, blocks=mine)
         else:

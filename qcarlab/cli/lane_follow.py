@@ -151,7 +151,7 @@ def lane_follow_cmd(
         cfg.hsv_min, cfg.hsv_max = profile.hsv_min, profile.hsv_max
         cfg.white_s_max, cfg.white_v_min = profile.white_s_max, profile.white_v_min  # the white backup's
     cfg.check()
-    mine = student_blocks(LaneFollowingLab, use, block)
+    mine = student_blocks(LaneFollowingLab, use, block, ctx)
     world_obj, pose = sim_world(car, world, start, "track", params)
     if world_obj is not None:
         pose = start_in_lane(world_obj, lane, pose)

@@ -163,7 +163,7 @@ def _follow_summary(result: Result) -> None:
                   + ("" if m["stopped_at_goal"] else "  (where its estimate put the end)"
                      if m.get("reached_by_estimate") else "  (did not stop: time limit)"))
     if "pose_drift_m" in m:
-        table.add_row(f"pose estimate drift ({m['config']['pose']})", f"{m['pose_drift_m'] * 100:.1f} cm"
+        table.add_row(f"pose estimate drift ({plots.estimate_label(m['config']['pose'], short=True)})", f"{m['pose_drift_m'] * 100:.1f} cm"
                       + (f"  ({m['pose_drift_per_m'] * 100:.1f} cm per m driven)" if "pose_drift_per_m" in m else ""))
     if m.get("realism"):
         table.add_row("simulator realism", str(m["realism"]))
@@ -292,7 +292,7 @@ def path_follow_cmd(
                                                                    step=step, size=size, width=width,
                                                                    height=height).items() if v is not None}
     ref, label = _load_path(path_spec, options)
-    mine = student_blocks(PathFollowingLab, use, block)
+    mine = student_blocks(PathFollowingLab, use, block, ctx)
     world_obj, _ = sim_world(car, world, None, "studio", params)
 
     def open_car():

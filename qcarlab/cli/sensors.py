@@ -20,12 +20,12 @@ from qcarlab.cli.common import (
     StartOpt, WorldOpt, sim_world,
     check_out,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RealtimeOpt, SeedOpt, emit, interactive, open_from_options,
-    stdout, summary_table,
+    stderr, stdout, summary_table,
 )
 from qcarlab.constants import load_params
 from qcarlab.errors import InputError
 from qcarlab.experiments.camera import grab
-from qcarlab.experiments.lidar_scan import place_target, capture, sector_minima
+from qcarlab.experiments.lidar_scan import MAX_TARGET_M, capture, sector_minima, target_world
 from qcarlab.experiments.result import Result
 
 SECTORS = ("ahead", "ahead-left", "left", "behind-left", "behind", "behind-right", "right", "ahead-right")
@@ -100,15 +100,18 @@ def lidar_scan_cmd(
     if worlds:
         _list_worlds()
         return
-    if target is not None and not (math.isfinite(target) and 0.0 < target <= 11.0):
-        raise InputError(f"--target must be a distance in (0, 11] m, got {target}")
+    if target is not None and not (math.isfinite(target) and 0.0 < target <= MAX_TARGET_M):
+        raise InputError(f"--target must be a distance in (0, {MAX_TARGET_M:g}] m, got {target}")
     if watch and not interactive(json_out):
         raise InputError("--watch needs an interactive terminal (and no --json)")
     if target is not None and parse_car_uri(car)[0] != "sim":
         raise InputError("--target applies to the simulator only")
     world_obj, pose = sim_world(car, world, start, "studio", params)
     if target is not None:
-        place_target(world_obj, pose or world_obj.start, target, load_params(params))
+        world_obj, pose, note = target_world(world_obj, pose, target, load_params(params),
+                                             chosen=world is not None or start is not None)
+        if note is not None:
+            stderr.print(f"lidar-scan: {note}", markup=False)
     with open_from_options(car, world_obj, seed, realtime or watch, params, start=pose, token=token) as qcar:
         if beams is not None:
             if not hasattr(qcar, "lidar_beams"):

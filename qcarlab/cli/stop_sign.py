@@ -125,7 +125,7 @@ def stop_sign_cmd(
                          rate=rate, max_time=max_time, frames=frames and out is not None)
     apply_tunables(cfg, params, ctx, ignore=("frames",))
     cfg.check()
-    mine = student_blocks(StopSignLab, use, block)
+    mine = student_blocks(StopSignLab, use, block, ctx)
     check_trials(trials, car, realtime)
     world_obj, pose = sim_world(car, world, start, "stop-sign", params)
     if trials is not None:

@@ -45,8 +45,11 @@ class BasicIOLab(LabModel):
     def reference_blocks(self) -> dict[str, Any]:
         return {"basic_speed_estimation": partial(basic_speed_estimation, params=self.p)}
 
+    speed = 0.0  # m/s: the last speed the basic_speed_estimation block gave
+
     def step(self, t: float, r: Readout, dt: float) -> Step:
-        return Step(self.command, {"speed_mps": self.basic_speed_estimation(r.tach)})
+        self.speed = speed = self.basic_speed_estimation(r.tach)
+        return Step(self.command, {"speed_mps": speed})
 
 
 def io_test(
@@ -56,30 +59,36 @@ def io_test(
     leds: tuple[float, ...],
     duration: float,
     rate: float = 100.0,
-    on_tick: Callable[[float, Readout, Command], None] | None = None,
+    on_tick: Callable[[float, Readout, Command, float], None] | None = None,
     *,
     blocks: Mapping[str, Any] | None = None,
 ) -> Result:
-    """Drive with a constant command for ``duration`` s; summarise the sensors."""
+    """Drive with a constant command for ``duration`` s; summarise the sensors.
+
+    ``on_tick(t, readout, command, speed_mps)`` sees each tick, with the speed the run's
+    ``basic_speed_estimation`` block (the student's, when given) made of it. The speeds and the
+    distance reported come from that block too."""
     command = car.validate(throttle, steering, leds)  # refuse NaN before anything moves
     lab = BasicIOLab(command, car.params, blocks)
     truth0 = car.truth()
     start = car.read()
-    log = run_loop(car, lab, duration, rate, on_tick=on_tick)
+    tick = None if on_tick is None else (lambda t, r, cmd: on_tick(t, r, cmd, lab.speed))
+    log = run_loop(car, lab, duration, rate, on_tick=tick)
     end = car.read()
     elapsed = end.t - start.t
     counts = end.encoder_counts - start.encoder_counts
     p = car.params
     cols = log.arrays()
     speed = cols["speed_mps"].astype(float)
+    mean_speed = float(lab.basic_speed_estimation(counts / elapsed))  # the run's block, on the mean count rate
     metrics = {
         "experiment": "io-test",
         "command": {"throttle": command.throttle, "steering": command.steering, "leds": lamps_on(command.leds)},
         "duration_s": elapsed,
         "rate_hz": rate,
-        "mean_speed_mps": float(lab.basic_speed_estimation(counts / elapsed)),
+        "mean_speed_mps": mean_speed,
         "max_speed_mps": float(np.max(np.abs(speed))),
-        "distance_m": counts * p.speed_per_count,
+        "distance_m": mean_speed * elapsed,  # the block's mean speed over the run (it was the package's constant)
         "encoder_counts": counts,
         "tach_counts_per_s": end.tach,
         "motor_current_a": float(np.mean(cols["motor_current"])),

@@ -383,7 +383,7 @@ class Frame:
 @dataclass
 class DriveSummary:
     """How the drive went; ``reason`` is quit | interrupted (Ctrl-C, SIGINT) | terminal closed |
-    signal (SIGTERM, SIGHUP)."""
+    signal (SIGTERM, SIGHUP) | collision (a simulated car hit a wall or an obstacle, or left its world)."""
 
     reason: str
     duration_s: float
@@ -396,6 +396,7 @@ class DriveSummary:
     heading_change_rad: float | None = None
     battery_v: float | None = None
     signal: int | None = None  # the signal that ended the drive, if one did
+    collision: str | None = None  # a simulated car that hit a solid or left its world: what happened (reason "collision")
 
     def line(self) -> str:
         """One line for the terminal, e.g. after quitting."""
@@ -553,15 +554,21 @@ def keyboard_drive(
         def keys(_t: float) -> list[str] | None:
             return read_keys(key_fd, decoder, time.monotonic())  # type: ignore[arg-type]
 
+    from qcarlab.experiments.safety import WorldWatch
+
+    # a simulated car in a local world collides like in every lab: the drive ends, the car stopped
+    watch = WorldWatch.for_car(car, getattr(car, "world", None))
     with _Signals() as sigs:
         lab = KeyboardDriveLab(car, config, keys, on_frame, sigs, rate, lidar_period, truth_period)
         lab.read_lidar()  # once before driving: a first scan may be slow (compilation, a cold cache)
         lab.wall0 = time.monotonic()
-        log = run_loop(car, lab, 7 * 24 * 3600.0, rate, record_truth=False, pace=True, keep_rows=False)
+        model = watch.wrap(lab) if watch is not None else lab
+        log = run_loop(car, model, 7 * 24 * 3600.0, rate, record_truth=False, pace=True, keep_rows=False)
+    event = watch.event if watch is not None else None
     final_truth = car.truth() if lab.truth0 is not None else None
     r = lab.readout if lab.readout is not None else car.read()
     summary = DriveSummary(
-        reason="interrupted" if log.interrupted else lab.reason,
+        reason="interrupted" if log.interrupted else "collision" if event is not None else lab.reason,
         duration_s=time.monotonic() - lab.wall0,
         distance_m=lab.distance,
         top_speed_mps=lab.top,
@@ -570,6 +577,7 @@ def keyboard_drive(
         keys=lab.n_keys,
         battery_v=float(r.battery_voltage),
         signal=sigs.received,
+        collision=event["what"] if event is not None else None,
     )
     if lab.truth0 is not None and final_truth is not None:
         summary.truth_distance_m = final_truth.distance - lab.truth0.distance

@@ -234,6 +234,7 @@ def readme_file(lab: Lab) -> str:
             f"Fill in the blocks, tune `params.yaml`, answer `answers.md`.\n\n{files}"
             "- `params.yaml`: the lab's tunables.\n- `answers.md`: the sheet's questions.\n\n"
             f"Run the lab with your blocks, from this folder:\n\n    {lab.run}\n\n"
+            f"Grade yourself as the teacher will, from this folder:\n\n    qcarlab grade {lab.sheet} --submission .\n\n"
             f"`qcarlab blocks {lab.command}` lists every block of the lab; any of them can be yours: "
             "a function (or class) in a .py file here, named like the block.\n")
 

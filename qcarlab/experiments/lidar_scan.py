@@ -67,13 +67,62 @@ def lidar_world_pose(car: Car, t: float) -> tuple[float, float, float] | None:
     return (x + lx * math.cos(yaw), y + lx * math.sin(yaw), yaw)
 
 
+TARGET_DEPTH, TARGET_WIDTH = 0.3, 0.6  # m: the carton box, along and across the line of sight
+MAX_TARGET_M = 20.0  # beyond the model's 18 m range (the sheet's table says 12 m): "no return" is a lesson too
+
+
+def room_ahead(world, pose: tuple[float, float, float], target: float, params) -> float:
+    """Free floor (m) straight ahead of the LIDAR at car ``pose``, over the width the box at
+    ``target`` m would cover: the first solid the LIDAR sees there (inf: nothing within its range)."""
+    from qcarlab.sim.lidar import Lidar
+
+    half = math.atan2(TARGET_WIDTH / 2.0, target)
+    ranges = Lidar(world, params, beams=9, fov=2.0 * half).true_ranges(pose)
+    return float(np.min(ranges)) if ranges.size else math.inf
+
+
+def open_hall(target: float, params):
+    """A bare floor with room for the box ``target`` m ahead and nothing else for the LIDAR to
+    see: the car at (0, 0) heading -Y, as in the studio."""
+    from qcarlab.sim.world import world_from_dict
+
+    length = target + 3.0
+    return world_from_dict({"name": "open-hall", "description": f"a bare {length:g} m floor for lidar-scan --target",
+                            "floor": {"size": [4.0, length], "origin": [-2.0, -(length - 1.5)], "color": "concrete"},
+                            "start": [0.0, 0.0, -math.pi / 2.0]}, "open-hall", "lidar-scan --target", params)
+
+
+def target_world(world, pose: tuple[float, float, float] | None, target: float, params, chosen: bool):
+    """The world with the sheet's carton box ``target`` m in front of the LIDAR, and a note when it
+    is not ``world``: a world (or ``--start``) the user ``chosen`` without room for the box is
+    refused in one line; the default one without room gives way to :func:`open_hall` (the box
+    was placed behind the studio's wall, and the wall was measured)."""
+    from qcarlab.errors import InputError
+
+    if not (math.isfinite(target) and 0.0 < target <= MAX_TARGET_M):
+        raise InputError(f"--target must be a distance in (0, {MAX_TARGET_M:g}] m, got {target}")
+    at = pose or world.start
+    need = target + TARGET_DEPTH
+    room = room_ahead(world, at, target, params)
+    note = None
+    if room < need:
+        if chosen:
+            raise InputError(f"--target {target:g}: the world '{world.name}' has {room:.2f} m of room ahead of the "
+                             f"LIDAR, the box needs {need:.2f} m; give a shorter --target, another --start or --world, "
+                             "or leave --world and --start out for an open hall")
+        note = (f"the box {target:g} m ahead does not fit in the world '{world.name}' ({room:.2f} m of room ahead); "
+                "scanning in an open hall instead")
+        world, at = open_hall(target, params), None
+    place_target(world, at or world.start, target, params)
+    return world, at, note
+
+
 def place_target(world, pose: tuple[float, float, float], target: float, params) -> None:
     """Put a 0.3 m deep, 0.6 m wide box ``target`` m in front of the LIDAR at ``pose`` (the sheet's
     carton box, for the range check of ``lidar-scan --target``)."""
     x, y, yaw = pose
-    depth = 0.3  # the box's size along the line of sight
-    d = params.lidar_x + target + depth / 2.0
-    world.add_box(x + d * math.cos(yaw), y + d * math.sin(yaw), depth, 0.6, yaw)
+    d = params.lidar_x + target + TARGET_DEPTH / 2.0
+    world.add_box(x + d * math.cos(yaw), y + d * math.sin(yaw), TARGET_DEPTH, TARGET_WIDTH, yaw)
 
 
 def capture(car: Car, scans: int = 1, drive: bool = False, target: float | None = None,

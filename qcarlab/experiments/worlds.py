@@ -15,10 +15,10 @@ import numpy as np
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import InputError
 from qcarlab.sim.render import render_topdown, world_to_pixel
-from qcarlab.sim.world import World, list_worlds
+from qcarlab.sim.world import World, list_worlds, shipped_names
 from qcarlab.sim.world import load_world as _load_world
 
-__all__ = ["check_start", "label_views", "list_worlds", "load_world", "render_topdown", "stitch_panorama",
+__all__ = ["check_start", "label_views", "list_worlds", "load_world", "looks_like_path", "render_topdown", "stitch_panorama",
            "topdown_map"]
 
 
@@ -30,8 +30,23 @@ def stitch_panorama(*args: Any, **kwargs: Any) -> Any:
     return stitch(*args, **kwargs)
 
 
+def looks_like_path(text: str) -> bool:
+    """True when ``--world``'s argument is meant as a file: it has a folder separator, starts
+    with ``.`` or ``~``, or ends in .yaml/.yml. Anything else that is a shipped world's name is that
+    world, whatever the current folder holds (``qcarlab template stop-sign --out stop-sign`` makes
+    a folder named like the shipped world; it must not shadow it)."""
+    return ("/" in text or "\\" in text or text.startswith((".", "~"))
+            or text.lower().endswith((".yaml", ".yml")))
+
+
 def load_world(name_or_path: str | Path | World, params: QCarParams = DEFAULT_PARAMS) -> World:
-    """The simulator's :func:`~qcarlab.sim.world.load_world`, with one clear line for a folder."""
+    """The simulator's :func:`~qcarlab.sim.world.load_world`, with one clear line for a folder.
+
+    A shipped world's name wins over a file or folder of the same name in the current folder,
+    unless the argument looks like a path (:func:`looks_like_path`: ``./stop-sign``)."""
+    if isinstance(name_or_path, (str, Path)) and str(name_or_path) in shipped_names() \
+            and not looks_like_path(str(name_or_path)):
+        return _load_world(str(name_or_path), params)
     if isinstance(name_or_path, (str, Path)) and Path(str(name_or_path)).expanduser().is_dir():
         raise InputError(f"--world {name_or_path}: is a folder; give a shipped world's name, a world YAML file "
                          "or a ROS map YAML file (qcarlab lidar-scan --worlds lists the shipped ones)")

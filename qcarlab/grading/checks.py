@@ -36,10 +36,35 @@ class Verdict:
     reason: str = ""  # why it failed (one line)
     points: float = 0.0  # what it is worth
     earned: float = 0.0
+    missing: str | None = None  # the value in words when the run measured none ("never settled", "not measured")
 
     def as_dict(self) -> dict[str, Any]:
-        return {"criterion": self.criterion, "expected": self.expected, "value": self.value, "passed": self.passed,
-                "reason": self.reason or None, "points": self.points, "earned": self.earned}
+        out = {"criterion": self.criterion, "expected": self.expected, "value": self.value, "passed": self.passed,
+               "reason": self.reason or None, "points": self.points, "earned": self.earned}
+        if self.missing:
+            out["missing"] = self.missing
+        return out
+
+
+def absent(metric: str) -> str:
+    """What a metric's null value means, in words (a step that never settled has no settling time)."""
+    name = metric.rsplit(".", 1)[-1]
+    if "settl" in name:
+        return "never settled"
+    if name.startswith("rise_time"):
+        return "never reached 90 % of the step"
+    return "not measured"
+
+
+def value_text(criterion: dict[str, Any], digits: int = 4) -> str:
+    """A criterion's value for a table (from :meth:`Verdict.as_dict`): the number, or in words
+    when there is none (``missing``); empty when the task produced nothing to check."""
+    v = criterion.get("value")
+    if v is None:
+        return criterion.get("missing") or ""
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
 
 
 def lookup(results: Any, dotted: str) -> Any:
@@ -67,7 +92,11 @@ def check_metric(results: dict, c: MetricCriterion) -> Verdict:
     try:
         value = lookup(results, c.metric)
     except KeyError:
-        return Verdict(expected, expected, None, False, f"{c.metric} is not in the results", c.points)
+        return Verdict(expected, expected, None, False, f"{c.metric} is not in the results", c.points,
+                       missing="not measured")
+    if value is None:
+        words = absent(c.metric)
+        return Verdict(expected, expected, None, False, f"{c.metric}: {words}", c.points, missing=words)
     if isinstance(value, bool):
         value = int(value)
     if not isinstance(value, (int, float)) or not math.isfinite(value):

@@ -177,7 +177,16 @@ def _used(task: Task, results: dict) -> str | None:
     return None
 
 
-def _grade_saved(p: Planned, commands: Commands, folder: Path) -> tuple[str | None, list[Verdict] | None]:
+def _run_failure(data: dict) -> str | None:
+    """The run's own sentence for why it failed (a collision, "did not stop before the sign"); a
+    sweep's is its best run's."""
+    best = data.get("best")
+    failure = data.get("failure") or (best.get("failure") if isinstance(best, dict) else None)
+    return str(failure) if failure else None
+
+
+def _grade_saved(p: Planned, commands: Commands, folder: Path,
+                 row: dict[str, Any]) -> tuple[str | None, list[Verdict] | None]:
     data, why = _saved(p.task, folder)
     if data is None:
         return why, None
@@ -186,6 +195,8 @@ def _grade_saved(p: Planned, commands: Commands, folder: Path) -> tuple[str | No
     problem = problem or (_used(p.task, data) if p.submission is not None else None)
     if problem:
         return problem, None
+    if _run_failure(data):
+        row["run_failure"] = _run_failure(data)
     return None, check_metrics(data, p.task.criteria)  # type: ignore[arg-type]
 
 
@@ -199,8 +210,8 @@ def _grade_results(p: Planned, outcome: dict[str, Any], commands: Commands,
     problem = problem or (_used(p.task, data) if p.submission is not None else None)
     if problem:
         return problem, None
-    if data.get("failure"):
-        row["run_failure"] = data["failure"]
+    if _run_failure(data):
+        row["run_failure"] = _run_failure(data)
     return None, check_metrics(data, p.task.criteria)  # type: ignore[arg-type]
 
 
@@ -236,7 +247,7 @@ def grade(p: Planned, outcome: dict[str, Any] | None, commands: Commands,
     problem, verdicts = p.problem, None
     if problem is None:
         if results_dir is not None and task.kind == "scenario":
-            problem, verdicts = _grade_saved(p, commands, results_dir)
+            problem, verdicts = _grade_saved(p, commands, results_dir, row)
         elif outcome is None:
             problem = "not run"
         elif outcome.get("status") == "infrastructure":  # the grader's failure: not graded, never 0 points

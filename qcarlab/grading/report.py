@@ -20,6 +20,8 @@ import html
 from pathlib import Path
 from typing import Any
 
+from qcarlab.grading.checks import value_text
+
 
 def _public(row: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in row.items() if not k.startswith("_")}
@@ -60,7 +62,8 @@ def write_junit(path: str | Path, students: list[dict[str, Any]], single: bool) 
                     case = TestCase(c["criterion"], classname=f"{sheet}.{r['id']}" if single
                                     else f"{st['student']}.{sheet}.{r['id']}",
                                     time=round((r.get("seconds") or 0.0) / n, 3))
-                    text = f"expected {c['expected']}; got {c['value']!r}; points {c['earned']:g}/{c['points']:g}"
+                    got = repr(c["value"]) if c["value"] is not None else (c.get("missing") or "nothing")
+                    text = f"expected {c['expected']}; got {got}; points {c['earned']:g}/{c['points']:g}"
                     if r["status"] == "skipped":
                         case.result = [Skipped(r["problem"])]
                     elif r["problem"] and not c["passed"] and c["reason"] == r["problem"]:
@@ -68,7 +71,9 @@ def write_junit(path: str | Path, students: list[dict[str, Any]], single: bool) 
                         err.text = (r.get("detail") or "")[-4000:] or text
                         case.result = [err]
                     elif not c["passed"]:
-                        fail = Failure(c["reason"] or "criterion not met", "criterion")
+                        fail = Failure((c["reason"] or "criterion not met")
+                                       + (f"; the run: {r['run_failure']}" if r.get("run_failure") else ""),
+                                       "criterion")
                         fail.text = text + (f"\n{r['detail'][-4000:]}" if r.get("detail") else "")
                         case.result = [fail]
                     case.system_out = text
@@ -204,14 +209,15 @@ def write_html(path: str | Path, title: str, students: list[dict[str, Any]], fig
                 parts.append(f"<p class='small'><code>{e(r['command'])}</code></p>")
             if r["problem"]:
                 parts.append(f"<p><b>{e(r['problem'])}</b></p>")
+            if r.get("run_failure"):
+                parts.append(f"<p>the run failed: <b>{e(r['run_failure'])}</b></p>")
             if r.get("detail"):
                 parts.append(f"<pre>{e(r['detail'])}</pre>")
             if r.get("student_output"):
                 parts.append(f"<p class='small'>your code printed:</p><pre>{e(r['student_output'])}</pre>")
             parts.append("<table><tr><th>criterion</th><th>value</th><th>result</th><th>points</th></tr>")
             for c in r["criteria"]:
-                v = c["value"]
-                shown = f"{v:.4g}" if isinstance(v, float) else ("" if v is None else str(v))
+                shown = value_text(c)
                 verdict = "pass" if c["passed"] else ("skipped" if r["status"] == "skipped" else
                                                       "FAIL: " + (c["reason"] or ""))
                 parts.append(f"<tr class='{'pass' if c['passed'] else _cls(r)}'><td>{e(c['criterion'])}</td>"

@@ -197,9 +197,40 @@ def find_sheet(name: str | Path) -> Path:
     by_section = [p for p in shipped_sheets() if _section_of(p) == text]
     if len(by_section) == 1:
         return by_section[0]
+    aliased = _by_command(text)
+    if aliased is not None:
+        return aliased
     known = [p.stem for p in shipped_sheets()]
     raise InputError(f"unknown lab sheet '{text}'" + (f" (sheets: {', '.join(known)}; qcarlab labs lists them)"
                                                       if known else " (give the path of a lab sheet YAML)"))
+
+
+def _by_command(text: str) -> Path | None:
+    """The shipped sheet a command or a lab's other name stands for (``avoid``, ``io-test``,
+    ``5.1``: the lab's sheet; ``ping``, ``lidar-scan``: the one sheet whose tasks run it)."""
+    from qcarlab.experiments.labs import find_lab
+
+    try:
+        lab = find_lab(text)
+    except InputError:
+        lab = None
+    if lab is not None and (LABS_DIR / f"{lab.sheet}.yaml").is_file():
+        return LABS_DIR / f"{lab.sheet}.yaml"
+    running = []
+    for path in shipped_sheets():
+        try:
+            data = load_yaml(path, "lab sheet")
+        except InputError:
+            continue
+        tasks = data.get("tasks") if isinstance(data, dict) else None
+        words = {str(t["command"]).split()[1] for t in tasks or () if isinstance(t, dict)
+                 and len(str(t.get("command") or "").split()) > 1}
+        if text in words:
+            running.append(path)
+    if len(running) > 1:
+        raise InputError(f"lab sheet '{text}': several sheets run qcarlab {text} "
+                         f"({', '.join(p.stem for p in running)}); name one")
+    return running[0] if running else None
 
 
 def _section_of(path: Path) -> str | None:

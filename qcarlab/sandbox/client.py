@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
-from qcarlab.blocks import RaisedInBlock, check_block_file
+from qcarlab.blocks import BlockTimeout, RaisedInBlock, check_block_file
 from qcarlab.errors import GraderFault, InputError
 from qcarlab.sandbox import codec
 
@@ -102,6 +102,11 @@ class BlockHost:
         try:
             self.channel.send(msg)
             reply = self.channel.recv()
+        except BlockTimeout:  # the block has not returned (qcarlab.blocks' watchdog): its process is ended
+            signal.setitimer(signal.ITIMER_REAL, 0.0)  # no second alarm while it is
+            self.dead = "the process running your blocks was stopped: a block of yours had not returned"
+            self.kill()
+            raise
         except codec.CodecError as exc:  # (our own arguments always encode: this is their reply)
             self._broken(f"the process running your blocks sent something that is not a value ({exc})")
         except (EOFError, OSError):

@@ -106,6 +106,7 @@ __all__ = [
     "WORLDS_DIR",
     "list_worlds",
     "load_world",
+    "shipped_names",
     "world_from_dict",
 ]
 
@@ -742,6 +743,11 @@ def _read_yaml(path: Path) -> Any:
 
 def _shipped() -> dict[str, Path]:
     return {p.stem: p for p in sorted(WORLDS_DIR.glob("*.yaml"))}
+
+
+def shipped_names() -> list[str]:
+    """The shipped worlds' names (without reading them)."""
+    return list(_shipped())
 
 
 def list_worlds() -> list[tuple[str, str]]:
