@@ -169,13 +169,20 @@ def test_vector_env_of_many_cars_is_seeded():
     obs, info = envs.reset(seed=5)
     assert obs["readout"].shape == (3, len(qcarlab.gym.READOUT_FIELDS))
     actions = np.tile(np.array([[0.3, 0.1]], np.float32), (3, 1))
-    rows = [envs.step(actions)[0]["readout"].copy() for _ in range(30)]
+    rows, ends = [], []
+    for _ in range(30):
+        obs, _, terminated, truncated, _ = envs.step(actions)
+        rows.append(obs["readout"].copy())
+        ends.append((terminated.copy(), truncated.copy()))
     # each car has its own noise (seeds 5, 6, 7), the batch reproduces under the same seed
     assert not np.array_equal(rows[-1][0], rows[-1][1])
     again = qcarlab.gym.make_vec(3, world="hallway", observe="readout", max_time=0.5)
     again.reset(seed=5)
     assert all(np.array_equal(r, again.step(actions)[0]["readout"]) for r in rows)
-    # the time limit (25 steps) truncated every car once: gymnasium's autoreset started them again
-    _, _, terminated, truncated, _ = envs.step(actions)
-    assert not terminated.any()
+    # the time limit (25 steps at 50 per second) truncated every car at once; then gymnasium's
+    # autoreset started them again (the step after: speed back to 0)
+    assert ends[24][1].all() and not any(t.any() for t, _ in ends)
+    assert not any(tr.any() for _, tr in ends[:24])
+    assert np.allclose(rows[25][:, 0], 0.0, atol=0.05)
     envs.close()
+    again.close()
