@@ -97,6 +97,7 @@ class SimCar(Car):
         self._sensors: dict[str, Any] = {}  # built on first read: rasters cost time and memory
         self._frames: dict[str, tuple[int, Any]] = {}  # sensor -> (frame index, frame)
         self._history: deque[list[float]] = deque(maxlen=256)  # the state's values after each step
+        self._contact: Any = None  # qcarlab.sim.contact.Contact, built on the first contact()
         self._remember_pose()
         if self._realtime:  # a real-time car must not stall on the compiled physics' first step later
             self.warm_physics()
@@ -214,6 +215,22 @@ class SimCar(Car):
             self._sync()
         (t, x, y, yaw, v, _, _, delta, omega, _, _, _, _, dist, wdist, _) = self._vals
         return _new_tuple(Truth, (t, x, y, yaw, v, omega * self._g, delta, dist, wdist))  # Truth(...)
+
+    def contact(self) -> Any:
+        """Whether the car touches a solid or a ball of its world, or has left the world, now: a
+        :class:`~qcarlab.sim.contact.ContactEvent` (``kind`` "collision" or "left_world", the pose,
+        the time, the piece touched) or None. The simulator models no contact and goes on driving:
+        the caller ends the run (a lab's referee, a gymnasium episode). Cheap to ask every tick
+        (:class:`~qcarlab.sim.contact.Contact`); a car without a world is in the lab room."""
+        if self._realtime:
+            self._sync()
+        c = self._contact
+        if c is None:
+            from qcarlab.sim.contact import Contact
+
+            c = self._contact = Contact(self._world(), self.params)
+        t, x, y, yaw = self._vals[:4]
+        return c.check(x, y, yaw, t)
 
     # --- exteroceptive sensors ------------------------------------------------------------------
     def _world(self) -> Any:

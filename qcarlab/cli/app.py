@@ -26,7 +26,7 @@ app = typer.Typer(
         "Start with: qcarlab io-test --on-floor --throttle 0.1 --duration 2"
     ),
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,  # --install-completion / --show-completion (bash, zsh, fish, PowerShell)
     pretty_exceptions_enable=False,
     rich_markup_mode="rich",
     context_settings={"help_option_names": ["-h", "--help"]},

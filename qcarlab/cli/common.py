@@ -125,7 +125,8 @@ def recordable(command):
     """Give a driving command --record, --record-exact, --live, --live-port, --topics and
     --realism (one decorator line under ``@app.command``); the car it opens is then recorded or
     replayed, and a simulated one has the realism profile asked for (``lab`` by default). Its
-    --out is marked as holding a run in progress (:func:`mark_run_start`)."""
+    --out is marked as holding a run in progress (:func:`mark_run_start`); a long run shows a
+    progress bar on a terminal (:mod:`qcarlab.cli.progress`)."""
     import functools
     import inspect
     from typing import get_type_hints
@@ -133,14 +134,21 @@ def recordable(command):
     added = {"record": (RecordOpt, None), "record_exact": (RecordExactOpt, False), "live": (LiveOpt, False),
              "live_port": (LivePortOpt, None), "topics": (TopicsOpt, None), "realism": (RealismOpt, None)}
 
+    label = command.__name__.removesuffix("_cmd").replace("_", "-")
+    # a progress bar for a long run on a terminal, but not beside a live view of the command's own
+    # (keyboard-drive, io-test's table) nor --trials' lines
+    bars = label not in ("keyboard-drive", "io-test")
+
     @functools.wraps(command)
     def run(*args, record=None, record_exact=False, live=False, live_port=None, topics=None, realism=None, **kwargs):
         from qcarlab.cli import recording
+        from qcarlab.cli.progress import progress_bars
 
         token, opened = _realism_choice.set(realism), _opened_realism.set(None)
         mark_run_start(kwargs.get("out"))
+        quiet = not bars or bool(kwargs.get("json_out")) or bool(kwargs.get("trials"))
         try:
-            with recording.request(record, record_exact, live, live_port, topics):
+            with recording.request(record, record_exact, live, live_port, topics), progress_bars(label, quiet):
                 return command(*args, **kwargs)
         finally:
             _realism_choice.reset(token)

@@ -113,6 +113,10 @@ def grade_cmd(
     ray: Annotated[str | None, typer.Option("--ray", help="Run the tasks on a Ray cluster: its address (auto, "
                                             "ray://HOST:10001) or local; needs qcarlab\\[ray] installed.",
                                             show_default=False)] = None,
+    ray_token_file: Annotated[Path | None, typer.Option(
+        "--ray-token-file", help="With --ray: a file holding the cluster's token, for Ray's token authentication "
+        "(ray start --head turns it on; the head's ~/.ray/auth_token, or what ray get-auth-token prints). "
+        "RAY_AUTH_TOKEN or RAY_AUTH_TOKEN_PATH in the environment work too.", show_default=False)] = None,
     out: Annotated[Path | None, typer.Option("--out", help="Write grade.json (and each task's results and "
                                              "figures) here; with --class default: grades/.",
                                              show_default=False)] = None,
@@ -153,6 +157,8 @@ def grade_cmd(
     for option, path in (("--out", out), ("--junit", junit)):
         if path is not None and path.exists() and (path.is_dir() if option == "--junit" else not path.is_dir()):
             raise InputError(f"{option} {path}: exists and is {'a folder' if option == '--junit' else 'not a folder'}")
+    if ray_token_file is not None and ray is None:
+        raise InputError("--ray-token-file is the token of a Ray cluster: it goes with --ray ADDRESS")
     if car is not None:
         from qcarlab.car import parse_car_uri
 
@@ -186,7 +192,7 @@ def grade_cmd(
         if ray is not None:
             from qcarlab.grading.schedule import run_ray
 
-            outcomes = run_ray(to_run, ray, advance)
+            outcomes = run_ray(to_run, ray, advance, ray_token_file)
         else:
             from qcarlab.grading.schedule import run_local
 

@@ -24,18 +24,25 @@ app.add_typer(replay_app, name="replay")
 @replay_app.command("info")
 def info_cmd(
     file: Annotated[Path, typer.Argument(help="A recording: FILE.mcap (from --record) or a rosbag2 folder / .db3.")],
+    topics: Annotated[bool, typer.Option("--topics", help="Only the topics, one a line in full: name, schema and "
+                                         "message count, tab-separated (for scripts: cut -f1).")] = False,
     json_out: JsonOpt = False,
     debug: DebugOpt = False,
 ) -> None:
     """Topics, schemas, message counts, duration and rates of a recording.
 
-    Example: qcarlab replay info run.mcap | qcarlab replay info rosbag2_2024_05_01/ --json
+    Example: qcarlab replay info run.mcap | qcarlab replay info run.mcap --topics | qcarlab replay info
+    rosbag2_2024_05_01/ --json
     """
     from qcarlab.recording.reader import open_recording
 
     info = open_recording(file).info()
     if json_out:
         sys.stdout.write(dumps(info) + "\n")
+        return
+    if topics:
+        for topic, t in info["topics"].items():
+            sys.stdout.write(f"{topic}\t{t['schema'] or t['encoding'] or '-'}\t{t['count']}\n")
         return
     head = f"{info['file']}: {info['format']}, {info['duration_s']:.2f} s, {info['messages']} messages"
     if info.get("bytes") is not None:
@@ -49,15 +56,26 @@ def info_cmd(
         details.append("recorded by: qcarlab " + " ".join(info["command"]))
     for line in details:
         stdout.print(line, markup=False, highlight=False)
-    table = Table(title="topics", title_justify="left")
-    for name, justify in (("topic", "left"), ("schema", "left"), ("messages", "right"), ("rate", "right"),
-                          ("from - to (s)", "right")):
-        table.add_column(name, justify=justify)
-    for topic, t in info["topics"].items():
-        rate = f"{t['rate_hz']:.1f} Hz" if t["rate_hz"] is not None else "-"
+    stdout.print(topics_table(info["topics"]))
+
+
+def topics_table(topics: dict) -> Table:
+    """The topics as a table that keeps every topic name whole (qcarlab's fit in 80 columns): no
+    vertical rules, the name never wrapped or cut; a schema too long for the width folds onto a
+    second line instead (``--topics`` lists them one a line whatever the width)."""
+    from rich import box
+
+    table = Table(title="topics", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
+    longest = max((len(name) for name in topics), default=5)
+    table.add_column("topic", no_wrap=True, min_width=longest)
+    table.add_column("schema", overflow="fold", ratio=1)
+    for name in ("count", "Hz", "t (s)"):
+        table.add_column(name, justify="right", overflow="fold")
+    for topic, t in topics.items():
+        rate = f"{t['rate_hz']:.1f}" if t["rate_hz"] is not None else "-"
         table.add_row(topic, t["schema"] or t["encoding"] or "-", str(t["count"]), rate,
-                      f"{t['first_s']:.2f} - {t['last_s']:.2f}")
-    stdout.print(table)
+                      f"{t['first_s']:.2f}-{t['last_s']:.2f}")
+    return table
 
 
-__all__ = ["info_cmd", "replay_app"]
+__all__ = ["info_cmd", "replay_app", "topics_table"]

@@ -21,6 +21,7 @@ log so far with ``interrupted`` set, so the run's results can still be saved.
 
 from __future__ import annotations
 
+import contextvars
 import math
 import time
 from collections.abc import Callable
@@ -33,6 +34,13 @@ from qcarlab.car.base import Car, Command, Readout
 from qcarlab.errors import InputError
 
 STOP = object()  # returned by a step function to end the run
+
+#: Set by the CLI on a terminal (:mod:`qcarlab.cli.progress`): ``factory(duration_s)`` returns a
+#: tracker for one run, called as ``tracker(t)`` with the run's time after a tick and
+#: ``tracker.close()`` when the run ends, however it ends. Unset (the Python API, --json, CI), the
+#: loop pays nothing for it.
+PROGRESS: contextvars.ContextVar[Callable[[float], Any] | None] = contextvars.ContextVar("qcarlab_progress",
+                                                                                         default=None)
 
 
 @dataclass(slots=True)
@@ -128,6 +136,11 @@ def run_loop(
     next_wall = last_wall = time.monotonic()
     k = ticks = 0  # (log.ticks is set from ticks when the loop ends)
     recorder = getattr(car, "recorder", None)  # --record/--live (qcarlab.recording): the lab's values too
+    progress = PROGRESS.get()
+    tracker = None
+    if progress is not None:  # a progress display (the CLI on a terminal): told after each tick
+        tracker = progress(n_ticks * period)
+        on_tick = _with_progress(on_tick, tracker)
     ends = hasattr(car, "ended")  # --car replay: the recording runs out
     try:
         for k in range(n_ticks):
@@ -202,10 +215,24 @@ def run_loop(
         raise
     finally:
         log.ticks = ticks
+        if tracker is not None:
+            tracker.close()
     car.stop()
     if keep_rows:
         _pad(cols, log.ticks)
     return log
+
+
+def _with_progress(on_tick: Callable[[float, Readout, Command], None] | None, tracker: Callable[[float], Any]):
+    """``on_tick`` that also tells the progress ``tracker`` the run's time after each tick."""
+    if on_tick is None:
+        return lambda t, readout, cmd: tracker(t)
+
+    def both(t: float, readout: Readout, cmd: Command) -> None:
+        on_tick(t, readout, cmd)
+        tracker(t)
+
+    return both
 
 
 def _stop_quietly(car: Car) -> None:

@@ -3,7 +3,9 @@
 - ``grade.json``: every task of every student with its criteria (expected, value, verdict, reason,
   points) and the totals.
 - JUnit (``--junit FILE``, made with junitparser): one ``testsuite`` per student and sheet, one
-  ``testcase`` per criterion (``classname`` = ``sheet.task``), a ``failure`` with the reason when
+  ``testcase`` per criterion (``classname`` = ``sheet.task``, ``student.sheet.task`` for a class,
+  each part's own dots made ``_``: Jenkins reads a classname's dots as packages, so task
+  ``4.1.4-pure-pursuit-block`` is ``4_1_4-pure-pursuit-block``), a ``failure`` with the reason when
   a criterion is not met, an ``error`` when the task could not run (timeout, crash, block
   missing), ``skipped`` for tasks that need a car. GitHub Actions, GitLab and Jenkins show it.
 - ``gradebook.csv``: one row per student: points per task (``sheet/task`` columns), total, maximum.
@@ -46,6 +48,14 @@ def report_dict(sheets: list[Any], students: list[dict[str, Any]], single: bool)
 # --------------------------------------------------------------------------------------------
 # JUnit
 # --------------------------------------------------------------------------------------------
+def junit_classname(*parts: str) -> str:
+    """A JUnit ``classname`` of ``parts`` joined by dots, each part's own dots made ``_``: CI
+    systems (Jenkins, its xunit plugin) split a classname at its dots into packages and a class, so
+    ``stop-sign`` / ``5.2-task1-block`` must not become packages ``stop-sign.5`` and class
+    ``2-task1-block``."""
+    return ".".join(str(p).replace(".", "_") for p in parts)
+
+
 def write_junit(path: str | Path, students: list[dict[str, Any]], single: bool) -> Path:
     from junitparser import Error, Failure, JUnitXml, Skipped, TestCase, TestSuite
 
@@ -59,8 +69,8 @@ def write_junit(path: str | Path, students: list[dict[str, Any]], single: bool) 
             for r in rows:
                 n = max(len(r["criteria"]), 1)
                 for c in r["criteria"]:
-                    case = TestCase(c["criterion"], classname=f"{sheet}.{r['id']}" if single
-                                    else f"{st['student']}.{sheet}.{r['id']}",
+                    case = TestCase(c["criterion"], classname=junit_classname(sheet, r["id"]) if single
+                                    else junit_classname(st["student"], sheet, r["id"]),
                                     time=round((r.get("seconds") or 0.0) / n, 3))
                     got = repr(c["value"]) if c["value"] is not None else (c.get("missing") or "nothing")
                     text = f"expected {c['expected']}; got {got}; points {c['earned']:g}/{c['points']:g}"
@@ -245,4 +255,4 @@ def write_html(path: str | Path, title: str, students: list[dict[str, Any]], fig
     return out
 
 
-__all__ = ["report_dict", "thumbnail", "write_gradebook", "write_html", "write_junit"]
+__all__ = ["junit_classname", "report_dict", "thumbnail", "write_gradebook", "write_html", "write_junit"]

@@ -1945,7 +1945,7 @@ def box_blur_rows(img, b):
 
 
 # --------------------------------------------------------------------------------------------
-# the referee's collision check (qcarlab.experiments.safety.Clearance), edge by edge
+# the collision check (qcarlab.sim.contact.Clearance), edge by edge
 # --------------------------------------------------------------------------------------------
 @njit(**_JIT)
 def _point_rect(qx, qy, a, b):
