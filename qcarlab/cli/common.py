@@ -109,6 +109,10 @@ def sim_realism() -> str:
 TopicsOpt = Annotated[str | None, typer.Option(
     "--topics", help="--car replay:BAG: the rosbag2's topics for the car's sensors, e.g. "
     "scan=/scan,color=/camera/color/image_raw,depth=/camera/depth/image_rect_raw.", show_default=False)]
+ReplayToleranceOpt = Annotated[float | None, typer.Option(
+    "--replay-tolerance", min=0.0, help="--car replay: the largest throttle and steering (rad) difference counted as "
+    "the same command (default 1e-9, or 0.02 on a compact recording's camera frames); beyond it, exit 1.",
+    show_default=False)]
 
 
 def mark_run_start(out: Path | None) -> None:
@@ -131,16 +135,18 @@ def recordable(command):
     from typing import get_type_hints
 
     added = {"record": (RecordOpt, None), "record_exact": (RecordExactOpt, False), "live": (LiveOpt, False),
-             "live_port": (LivePortOpt, None), "topics": (TopicsOpt, None), "realism": (RealismOpt, None)}
+             "live_port": (LivePortOpt, None), "topics": (TopicsOpt, None), "realism": (RealismOpt, None),
+             "replay_tolerance": (ReplayToleranceOpt, None)}
 
     @functools.wraps(command)
-    def run(*args, record=None, record_exact=False, live=False, live_port=None, topics=None, realism=None, **kwargs):
+    def run(*args, record=None, record_exact=False, live=False, live_port=None, topics=None, realism=None,
+            replay_tolerance=None, **kwargs):
         from qcarlab.cli import recording
 
         token, opened = _realism_choice.set(realism), _opened_realism.set(None)
         mark_run_start(kwargs.get("out"))
         try:
-            with recording.request(record, record_exact, live, live_port, topics):
+            with recording.request(record, record_exact, live, live_port, topics, replay_tolerance):
                 return command(*args, **kwargs)
         finally:
             _realism_choice.reset(token)
@@ -307,6 +313,13 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
         raise typer.Exit(130)
     if m.get("goal_reached") is False and "replay" not in m:  # a replay's car did what was recorded
         stderr.print(f"qcarlab {name}: goal missed: {m.get('failure') or 'see the results'}", markup=False)
+        raise typer.Exit(1)
+    replay = m.get("replay") or {}
+    if replay.get("recorded_ticks") and not replay.get("within_tolerance", True):
+        stderr.print(f"qcarlab {name}: the replay differs from the recording: {replay['ticks_beyond_tolerance']} "
+                     f"tick(s) beyond the tolerance ({replay['tolerance']:.3g}; largest difference throttle "
+                     f"{replay['max_throttle_difference']:.3g}, steering {replay['max_steering_difference_rad']:.3g} rad)",
+                     markup=False)
         raise typer.Exit(1)
 
 

@@ -16,6 +16,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,13 +34,15 @@ class _Request:
     topics: str | None = None
     cars: list[Any] = field(default_factory=list)  # RecordingCar / ReplayCar opened by this command
     recorded: bool = False
+    tolerance: float | None = None  # --replay-tolerance
 
 
 _REQ = _Request()
 
 
 @contextlib.contextmanager
-def request(record: Path | None, exact: bool, live: bool, live_port: str | None, topics: str | None):
+def request(record: Path | None, exact: bool, live: bool, live_port: str | None, topics: str | None,
+            tolerance: float | None = None):
     """Hold a command's recording options while it runs; SIGTERM becomes Ctrl-C meanwhile."""
     global _REQ
     if exact and record is None:
@@ -50,7 +53,7 @@ def request(record: Path | None, exact: bool, live: bool, live_port: str | None,
     if (record is not None or live) and threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _interrupt)
         handler_set = True
-    _REQ = _Request(record, exact, live, live_port, topics)
+    _REQ = _Request(record, exact, live, live_port, topics, tolerance=tolerance)
     if record is not None and not live:
         from qcarlab.recording.process import prestart
 
@@ -88,6 +91,9 @@ def wrap(qcar: Car, car: str, world: Any = None, seed: int = 0, path: Any = None
     elif req.topics is not None:
         qcar.close()
         raise InputError("--topics maps a rosbag2's topics for --car replay:BAG")
+    elif req.tolerance is not None:
+        qcar.close()
+        raise InputError("--replay-tolerance is for a replay (--car replay:FILE.mcap)")
     if req.record is None and not req.live:
         return qcar
     try:
@@ -131,7 +137,11 @@ def make_recorder(qcar: Car, record: Path | None, exact: bool, live_port: str | 
     meta["world_source"] = getattr(world, "source", None) if world is not None and not isinstance(world, str) else None
     ident = qcar.identity()
     meta["identity"] = {"name": ident.name, "backend": ident.backend, "capabilities": ident.capabilities}
-    return open_recorder(record, profile="exact" if exact else "compact", live=live, params=qcar.params, metadata=meta)
+    # the car's clock on the machine's: a message's time is when it happened, from the run's start
+    # (a served or real-time car's clock has run since it was opened: its start-up time)
+    t0_ns = time.time_ns() - round(float(qcar.time) * 1e9)
+    return open_recorder(record, profile="exact" if exact else "compact", live=live, params=qcar.params, metadata=meta,
+                         t0_ns=t0_ns)
 
 
 def _announce(line: str) -> None:
@@ -194,7 +204,7 @@ def after_run(result: Any) -> dict[str, Any]:
     for car in _REQ.cars:
         inner = getattr(car, "inner", car)
         if isinstance(inner, ReplayCar) and comparison is None:
-            comparison = inner.comparison()
+            comparison = inner.comparison(_REQ.tolerance)
             result.metrics["replay"] = comparison["summary"]
             result.logs["replay.csv"] = comparison["rows"]
         rec = getattr(car, "recorder", None)
@@ -241,6 +251,11 @@ def _print_replay(comparison: dict[str, Any], console) -> None:
     else:
         table.add_row("commands identical", "yes, every tick" if s["identical"] else
                       f"NO: {s['ticks_differing']} tick(s) differ")
+        table.add_row("within tolerance", f"{'yes' if s['within_tolerance'] else 'NO'} (+-{s['tolerance']:.3g}"
+                      + (f"; {s['ticks_beyond_tolerance']} tick(s) beyond" if not s["within_tolerance"] else "")
+                      + ")")
+        if s.get("not_replayed"):
+            table.add_row("not replayed", f"{s['not_replayed']} recorded tick(s) after the replay's end")
     if not s["identical"]:
         table.add_row("largest difference", f"throttle {s['max_throttle_difference']:.4g}, "
                       f"steering {s['max_steering_difference_rad']:.4g} rad")

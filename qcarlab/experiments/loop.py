@@ -129,14 +129,22 @@ def run_loop(
     k = ticks = 0  # (log.ticks is set from ticks when the loop ends)
     recorder = getattr(car, "recorder", None)  # --record/--live (qcarlab.recording): the lab's values too
     ends = hasattr(car, "ended")  # --car replay: the recording runs out
+    note_step = getattr(car, "note_step", None)  # --record: the step's t and dt go with the tick's command
+    recorded_step = getattr(car, "recorded_step", None)  # --car replay: the t and dt the step was given then
     try:
         for k in range(n_ticks):
             if ends and car.ended:  # the recording has run out
                 log.stopped_early = True
                 break
             readout = read()
-            t = readout.t - t0
-            out = step(t, readout, dt)
+            t, step_dt = readout.t - t0, dt
+            if recorded_step is not None:  # a real-time run's recording: its ticks, as they were
+                given = recorded_step()
+                if given is not None:
+                    t, step_dt = given
+            if note_step is not None:
+                note_step(t, step_dt)
+            out = step(t, readout, step_dt)
             if out is STOP:
                 log.stopped_early = True
                 break

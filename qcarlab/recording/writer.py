@@ -263,8 +263,9 @@ class Recorder:
         """A basic-sensor readout; also advances the dead-reckoning pose estimate."""
         self._defer(self._readout, (r,))
 
-    def command(self, t: float, cmd: Any, stop: bool = False) -> None:
-        self._defer(self._command, (t, cmd, stop))
+    def command(self, t: float, cmd: Any, stop: bool = False, step: tuple[float, float] | None = None) -> None:
+        """What was applied at the tick of time ``t``; ``step``: the (t, dt) the lab's step was given."""
+        self._defer(self._command, (t, cmd, stop, step))
 
     def truth(self, tr: Any) -> None:
         self._defer(self._truth, (tr,))
@@ -278,8 +279,8 @@ class Recorder:
         if not self._has_truth:
             self._poses(ns, None, est)
 
-    def _command(self, t: float, cmd: Any, stop: bool) -> None:
-        self._bytes(C.COMMAND, C.command_pb, self.ns(t), t, cmd, stop)
+    def _command(self, t: float, cmd: Any, stop: bool, step: tuple[float, float] | None = None) -> None:
+        self._bytes(C.COMMAND, C.command_pb, self.ns(t), t, cmd, stop, step)
 
     def _truth(self, tr: Any) -> None:
         ns = self.ns(tr.t)
@@ -336,14 +337,17 @@ class Recorder:
                     counts[topic] = counts.get(topic, 0) + 1
 
     # --- sensors --------------------------------------------------------------------------------
-    def scan(self, scan: Any) -> None:
-        """A LIDAR scan (queued with the per-tick messages: its arrays are not written to after)."""
-        self._defer(self._scan, (scan,))
+    def scan(self, scan: Any, tick: float | None = None) -> None:
+        """A LIDAR scan (queued with the per-tick messages: its arrays are not written to after);
+        ``tick``: the time of the tick at which the lab first read it."""
+        self._defer(self._scan, (scan, tick))
 
-    def _scan(self, scan: Any) -> None:
+    def _scan(self, scan: Any, tick: float | None = None) -> None:
         M = self._M
         ns = self.ns(scan.t)
         info: dict[str, Any] = {"sensor": "lidar", "t": float(scan.t), "stamp": ns}
+        if tick is not None:
+            info["tick"] = float(tick)
         src = scan.angles
         if src is not self._angles_src:  # (the simulator hands the same angles array every scan)
             angles = np.asarray(src, dtype=np.float64)
@@ -358,10 +362,10 @@ class Recorder:
             ch.base.log(M.pb_laser_scan(scan, ns), ns)
             self.counts[C.LIDAR] = self.counts.get(C.LIDAR, 0) + 1
 
-    def rgbd(self, frame: Any) -> None:
+    def rgbd(self, frame: Any, tick: float | None = None) -> None:
         """An RGBD frame: its colour and (every DEPTH_EVERY-th, or every one when exact) depth,
         queued in order with the per-tick messages; JPEG and millimetre depth encoded meanwhile on
-        the encoder's thread (see :class:`_Frames`)."""
+        the encoder's thread (see :class:`_Frames`). ``tick``: as for :meth:`scan`."""
         M = self._M
         ns = self.ns(frame.t)
         k = self._rgbd_count
@@ -379,13 +383,15 @@ class Recorder:
         with self._flush_lock:  # (the frame's messages stay together, in the order they came)
             pending = self._pending
             if self.writer is not None:
-                pending.append((self._log, (C.FRAMES, None, {"sensor": "rgbd", "t": float(frame.t), "stamp": ns,
-                                                             "depth": with_depth}, ns)))
+                info = {"sensor": "rgbd", "t": float(frame.t), "stamp": ns, "depth": with_depth}
+                if tick is not None:
+                    info["tick"] = float(tick)
+                pending.append((self._log, (C.FRAMES, None, info, ns)))
             if k % CALIBRATION_EVERY == 0:
                 pending.append((self._log, (C.CALIBRATION, "CameraCalibration", M.calibration(self.params, ns), ns)))
             self._queue_jobs(jobs)
 
-    def csi(self, frames: Any) -> None:
+    def csi(self, frames: Any, tick: float | None = None) -> None:
         ns = self.ns(frames.t)
         kind = "RawImage" if self.exact else "CompressedImage"
         jobs = []
@@ -395,8 +401,10 @@ class Recorder:
                 jobs.append(self._frames.color(ch, C.CSI[view], image, ns, C.CSI_FRAMES[view], self.exact))
         with self._flush_lock:
             if self.writer is not None:
-                self._pending.append((self._log, (C.FRAMES, None, {"sensor": "csi", "t": float(frames.t), "stamp": ns},
-                                                  ns)))
+                info = {"sensor": "csi", "t": float(frames.t), "stamp": ns}
+                if tick is not None:
+                    info["tick"] = float(tick)
+                self._pending.append((self._log, (C.FRAMES, None, info, ns)))
             self._queue_jobs(jobs)
 
     def _queue_jobs(self, jobs: list[_Job]) -> None:
