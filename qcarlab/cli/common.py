@@ -188,6 +188,7 @@ def open_from_options(
     from qcarlab.cli import recording
 
     path = extra.pop("path", None)
+    sensors = extra.pop("sensors", None)  # those the command reads: a live view advertises their channels
     if parse_car_uri(car)[0] == "replay":
         extra.setdefault("topics", recording.replay_topics())
     if parse_car_uri(car)[0] == "sim":
@@ -198,7 +199,7 @@ def open_from_options(
     qcar = open_car(car, world=world, seed=seed, realtime=realtime, params=params, **extra)
     if getattr(qcar, "realism", None) is not None:
         _opened_realism.set(qcar.realism.name)
-    return recording.wrap(qcar, car=car, world=world, seed=seed, path=path, start=extra.get("start"))
+    return recording.wrap(qcar, car=car, world=world, seed=seed, path=path, start=extra.get("start"), sensors=sensors)
 
 
 def student_blocks(model: Any, use: list[Path] | None, block: list[str] | None) -> dict[str, Any]:

@@ -83,8 +83,11 @@ def replay_topics() -> dict[str, str] | None:
     return parse_topics(_REQ.topics)
 
 
-def wrap(qcar: Car, car: str, world: Any = None, seed: int = 0, path: Any = None, start: Any = None) -> Car:
-    """The car as opened, or wrapped in a RecordingCar when the command asked for --record/--live."""
+def wrap(qcar: Car, car: str, world: Any = None, seed: int = 0, path: Any = None, start: Any = None,
+         sensors: Any = None) -> Car:
+    """The car as opened, or wrapped in a RecordingCar when the command asked for --record/--live;
+    ``sensors``: those the command reads ("lidar", "rgbd", "csi"; None: any the car has), whose
+    channels a live view advertises."""
     req = _REQ
     if parse_car_uri(car)[0] == "replay":
         req.cars.append(qcar)
@@ -101,15 +104,16 @@ def wrap(qcar: Car, car: str, world: Any = None, seed: int = 0, path: Any = None
             raise InputError("--record/--live records one drive, and this command opens the car more than once "
                              "(e.g. --hsv-tune or a --lookahead sweep)")
         req.recorded = True
+        world_obj = world if world is not None and not isinstance(world, (str, Path)) else getattr(qcar, "world", None)
+        scene = (world_obj is not None and hasattr(world_obj, "static_solids")) or path is not None
         recorder = make_recorder(qcar, req.record, req.exact, req.live_port if req.live else None,
-                                 os.environ.get("QCARLAB_TOKEN"), car=car, world=world, seed=seed,
-                                 start=list(start) if start is not None else None)
+                                 os.environ.get("QCARLAB_TOKEN"), sensors=sensors, scene=scene, car=car, world=world,
+                                 seed=seed, start=list(start) if start is not None else None)
     except BaseException:
         qcar.close()
         raise
     from qcarlab.recording.car import RecordingCar
 
-    world_obj = world if world is not None and not isinstance(world, (str, Path)) else getattr(qcar, "world", None)
     if world_obj is not None and hasattr(world_obj, "static_solids"):
         recorder.scene(world_obj, path, t=qcar.time)
     elif path is not None:
@@ -120,8 +124,9 @@ def wrap(qcar: Car, car: str, world: Any = None, seed: int = 0, path: Any = None
 
 
 def make_recorder(qcar: Car, record: Path | None, exact: bool, live_port: str | None, token: str | None,
-                  **meta: Any):
-    """A Recorder for ``qcar``: to ``record`` (MCAP) and/or a live view on ``live_port``."""
+                  sensors: Any = None, scene: bool = True, **meta: Any):
+    """A Recorder for ``qcar``: to ``record`` (MCAP) and/or a live view on ``live_port``, which
+    advertises the channels the run sends (``sensors``, ``scene``: see channels.live_topics)."""
     from qcarlab.recording import require
 
     require("--record" if record is not None else "--live")
@@ -140,8 +145,10 @@ def make_recorder(qcar: Car, record: Path | None, exact: bool, live_port: str | 
     # the car's clock on the machine's: a message's time is when it happened, from the run's start
     # (a served or real-time car's clock has run since it was opened: its start-up time)
     t0_ns = time.time_ns() - round(float(qcar.time) * 1e9)
+    from qcarlab.recording.channels import live_topics
+
     return open_recorder(record, profile="exact" if exact else "compact", live=live, params=qcar.params, metadata=meta,
-                         t0_ns=t0_ns)
+                         t0_ns=t0_ns, live_topics=live_topics(ident.capabilities, sensors, scene))
 
 
 def _announce(line: str) -> None:
@@ -155,8 +162,9 @@ def live_car(qcar: Car, live: bool, live_port: str | None, token: str | None) ->
     from qcarlab.recording.car import RecordingCar
 
     try:
-        recorder = make_recorder(qcar, None, False, live_port or "8765", token, car="served")
         world = getattr(qcar, "world", None)
+        recorder = make_recorder(qcar, None, False, live_port or "8765", token, car="served",
+                                 scene=world is not None and hasattr(world, "static_solids"))
         if world is not None and hasattr(world, "static_solids"):
             recorder.scene(world, t=qcar.time)
     except BaseException:

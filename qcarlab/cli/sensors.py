@@ -109,7 +109,8 @@ def lidar_scan_cmd(
     world_obj, pose = sim_world(car, world, start, "studio", params)
     if target is not None:
         place_target(world_obj, pose or world_obj.start, target, load_params(params))
-    with open_from_options(car, world_obj, seed, realtime or watch, params, start=pose, token=token) as qcar:
+    with open_from_options(car, world_obj, seed, realtime or watch, params, start=pose, token=token,
+                           sensors=("lidar",)) as qcar:
         if beams is not None:
             if not hasattr(qcar, "lidar_beams"):
                 raise InputError("--beams applies to the simulator only")

@@ -71,6 +71,26 @@ CAMERA_FRAME = "camera_color_optical_frame"
 CSI_FRAMES = {view: f"csi_{view}_optical_frame" for view in CSI_VIEWS}
 CSI_YAW = {"right": -math.pi / 2.0, "rear": math.pi, "left": math.pi / 2.0, "front": 0.0}
 
+SENSOR_TOPICS = {"lidar": (LIDAR,), "rgbd": (COLOR, DEPTH, CALIBRATION), "csi": tuple(CSI.values())}
+
+
+def live_topics(capabilities: Any, sensors: Any = None, scene: bool = True) -> set[str]:
+    """The channels a run sends, which a live view advertises: the readouts, commands, the lab's
+    values and the dead-reckoned pose always; the truth and true pose with a ``truth`` capability;
+    the scene when there is a world or path; each of ``sensors`` ("lidar", "rgbd", "csi"; None:
+    every one the car has) that the car has."""
+    caps = set(capabilities or ())
+    out = {READOUT, COMMAND, LAB, POSE_ESTIMATE, TF}
+    if "truth" in caps:
+        out |= {TRUTH, POSE_TRUE}
+    if scene:
+        out.add(SCENE)
+    for sensor in (SENSOR_TOPICS if sensors is None else sensors):
+        if sensor in caps:
+            out.update(SENSOR_TOPICS[sensor])
+    return out
+
+
 PROFILES = ("compact", "exact")
 JPEG_QUALITY = 80  # its artefacts (mean 2.2 levels) are below the simulated camera's own noise
 DEPTH_EVERY = 15  # compact: every 15th depth frame (2 Hz at 30 fps)

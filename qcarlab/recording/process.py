@@ -61,7 +61,7 @@ POLL_S, POLL_MAX_S = 0.001, 0.004  # the child's pauses between reads of its pip
 
 def open_recorder(path: str | Path | None, *, profile: str = "compact", live: Any = None,
                   params: QCarParams = DEFAULT_PARAMS, metadata: dict[str, Any] | None = None,
-                  t0_ns: int | None = None) -> Any:
+                  t0_ns: int | None = None, live_topics: Any = None) -> Any:
     """A :class:`RecorderProcess` for a file-only recording where a child can help (see the module
     docstring), else an in-process :class:`~qcarlab.recording.writer.Recorder`. ``t0_ns``: the
     wall clock (ns) at which the car's clock read 0 (now, when not given)."""
@@ -69,7 +69,8 @@ def open_recorder(path: str | Path | None, *, profile: str = "compact", live: An
         return RecorderProcess(path, profile=profile, params=params, metadata=metadata, t0_ns=t0_ns)
     from qcarlab.recording.writer import Recorder
 
-    return Recorder(path, profile=profile, live=live, params=params, metadata=metadata, t0_ns=t0_ns)
+    return Recorder(path, profile=profile, live=live, params=params, metadata=metadata, t0_ns=t0_ns,
+                    live_topics=live_topics)
 
 
 class RecorderProcess:

@@ -80,6 +80,7 @@ class Recorder:
         params: QCarParams = DEFAULT_PARAMS,
         metadata: dict[str, Any] | None = None,
         t0_ns: int | None = None,
+        live_topics: Any = None,
     ):
         require("--record" if path is not None else "--live")
         import foxglove
@@ -122,16 +123,18 @@ class Recorder:
         self._scene: dict[str, Any] = {}  # the scene's entities by id, sent again to a live viewer who joins later
         self._scene_due = False
         if live is not None:
-            # every channel exists before a viewer connects: it gets them in its first advertisement
-            # (a channel advertised while a client is connected can refuse a subscription that comes
-            # within milliseconds, foxglove-sdk 0.30)
+            # the channels this run will send exist before a viewer connects: it gets them in its
+            # first advertisement (a channel advertised while a client is connected can refuse a
+            # subscription that comes within milliseconds, foxglove-sdk 0.30). ``live_topics``: those
+            # channels (None: all of them); one not among them is made when first sent.
             image = "RawImage" if self.exact else "CompressedImage"
             for topic, kind in ((C.READOUT, None), (C.COMMAND, None), (C.TRUTH, None), (C.LAB, None),
                                 (C.LIDAR, _PB_SCAN), (C.COLOR, image), (C.DEPTH, "RawImage"),
                                 (C.CALIBRATION, "CameraCalibration"), (C.POSE_TRUE, _PB_POSE),
                                 (C.POSE_ESTIMATE, _PB_POSE), (C.TF, _PB_TF),
                                 (C.SCENE, "SceneUpdate"), *((C.CSI[v], image) for v in C.CSI_VIEWS)):
-                self._channel(topic, kind)
+                if live_topics is None or topic in live_topics:
+                    self._channel(topic, kind)
             live.attach(self.ctx, on_subscribe=self._subscribed)
         self._angles: np.ndarray | None = None
         self._angles_src: Any = None  # a read-only angles array known to equal _angles
