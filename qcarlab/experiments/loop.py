@@ -17,6 +17,11 @@ of catch-up ticks: the schedule restarts from now, the step is told the real ``d
 last tick, and the late ticks are counted (``overruns``, ``worst_tick_s``). Whatever happens (the
 end, an exception, a student's block failing, Ctrl-C) the car is left stopped; Ctrl-C returns the
 log so far with ``interrupted`` set, so the run's results can still be saved.
+
+Recorded and replayed runs: before each step the loop hands a recording car (``note_step``) the
+``t`` and ``dt`` it gives the step, which go into the recording with the tick's command; a replay
+of a real-time run (``recorded_step``) gives the step the ``t`` and ``dt`` it was given then, so
+the lab computes the same commands from the same inputs.
 """
 
 from __future__ import annotations

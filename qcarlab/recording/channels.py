@@ -22,8 +22,9 @@ per-tick readouts, commands and truth, JSON with a JSON Schema for the rest)::
                                                  very numbers it had
 
 Times: a message's log time is ``t0_ns + round(t * 1e9)`` with ``t`` the car's time (s since it
-was opened) and ``t0_ns`` the wall clock when recording started (in the file's ``qcarlab``
-metadata). The messages carry ``t`` as the exact float (recordings of version 1 wrote readouts,
+was opened) and ``t0_ns`` (in the file's ``qcarlab`` metadata) the wall clock less the car's time
+when recording started: the run's first messages are stamped when it started, whatever time the
+car's clock showed then (a served or real-time car's start-up). The messages carry ``t`` as the exact float (recordings of version 1 wrote readouts,
 commands and truth as JSON; the reader reads both).
 
 LIDAR no-returns (range 0 in qcarlab) are written as NaN, which Foxglove leaves out of the scan;
