@@ -26,12 +26,15 @@ from qcarlab.recording.reader import Recording  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def watch(url: str, topics: set[str], step, timeout: float = 60.0, extra_headers=None) -> dict[str, int]:
+def watch(url: str, topics: set[str], step, timeout: float = 60.0, extra_headers=None,
+          subprotocol: str = "foxglove.sdk.v1", advertised: set[str] | None = None) -> dict[str, int]:
     """Subscribe to every advertised channel; call ``step()`` between receives until a message of
-    each of ``topics`` has arrived (or ``timeout``). Returns messages received per topic."""
+    each of ``topics`` has arrived (or ``timeout``). Returns messages received per topic; the
+    advertised topics go into ``advertised``."""
     got: dict[str, int] = {}
     channels: dict[int, str] = {}
-    with connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=30) as ws:
+    with connect(url, subprotocols=[subprotocol], open_timeout=30) as ws:
+        assert ws.subprotocol == subprotocol
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline and not topics <= set(got):
             step()
@@ -45,6 +48,8 @@ def watch(url: str, topics: set[str], step, timeout: float = 60.0, extra_headers
                     subs = []
                     for c in m["channels"]:
                         channels[c["id"]] = c["topic"]
+                        if advertised is not None:
+                            advertised.add(c["topic"])
                         subs.append({"id": c["id"], "channelId": c["id"]})
                     ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
                 elif m.get("op") == "status" and "Unknown channel ID" in m.get("message", ""):
@@ -80,6 +85,50 @@ def test_a_websocket_client_receives_scans_and_poses():
 
         got = watch(f"ws://127.0.0.1:{view.bound_port}", {C.LIDAR, C.POSE_TRUE, C.TF, C.READOUT}, step)
     assert {C.LIDAR, C.POSE_TRUE, C.TF, C.READOUT} <= set(got), got
+
+
+@pytest.mark.parametrize("subprotocol", ["foxglove.websocket.v1", "foxglove.sdk.v1"])
+def test_a_client_of_either_subprotocol_name_watches(subprotocol):
+    """Was: the SDK's server answered a client offering only ``foxglove.websocket.v1`` (older
+    Lichtblick, @foxglove/ws-protocol's client) with HTTP 400. Only the channels of the sensors
+    the run reads are advertised (here the LIDAR: no camera channels)."""
+    from qcarlab.car import open_car
+    from qcarlab.recording import channels as C2
+    from qcarlab.recording.car import RecordingCar
+    from qcarlab.recording.live import LiveView
+    from qcarlab.recording.writer import Recorder
+
+    view = LiveView(port=0)
+    car0 = open_car("sim", world="obstacles", seed=0)
+    rec = Recorder(None, live=view, live_topics=C2.live_topics(car0.identity().capabilities, ("lidar",)))
+    with RecordingCar(car0, rec) as car:
+        def step():
+            car.write(0.05, 0.0)
+            car.advance(0.02)
+            car.read()
+            car.read_lidar()
+
+        advertised: set[str] = set()
+        got = watch(f"ws://127.0.0.1:{view.bound_port}", {C.LIDAR, C.READOUT}, step, subprotocol=subprotocol,
+                    advertised=advertised)
+    assert {C.LIDAR, C.READOUT} <= set(got), got
+    assert C.LIDAR in advertised and not advertised & {C.COLOR, C.DEPTH, C.CALIBRATION, *C.CSI.values()}
+    with pytest.raises(OSError):  # the view closed with the car: its address no longer listens
+        with connect(f"ws://127.0.0.1:{view.bound_port}", subprotocols=[subprotocol], open_timeout=5):
+            pass
+
+
+def test_a_client_offering_neither_name_is_refused():
+    from qcarlab.recording.live import LiveView
+    from qcarlab.recording.writer import Recorder
+
+    rec = Recorder(None, live=LiveView(port=0))
+    try:
+        with pytest.raises(websockets.InvalidStatus):
+            with connect(f"ws://127.0.0.1:{rec.live.bound_port}", subprotocols=["other"], open_timeout=30):
+                pass
+    finally:
+        rec.close()
 
 
 def test_a_non_loopback_live_view_needs_the_token():
@@ -125,8 +174,11 @@ def test_lab_command_with_live_streams_while_it_drives(tmp_path):
             line = proc.stderr.readline()
         assert "ws://127.0.0.1:" in line, line
         url = line[line.index("ws://"):].split()[0]
-        got = watch(url, {C.LIDAR, C.POSE_TRUE}, lambda: None)
+        advertised: set[str] = set()
+        got = watch(url, {C.LIDAR, C.POSE_TRUE}, lambda: None, advertised=advertised)
         assert {C.LIDAR, C.POSE_TRUE} <= set(got), got
+        # avoid reads the LIDAR only: no camera channel advertised that would never send
+        assert not advertised & {C.COLOR, C.DEPTH, C.CALIBRATION, *C.CSI.values()}, advertised
     finally:
         proc.send_signal(signal.SIGINT)
         proc.wait(60)

@@ -49,16 +49,21 @@ def test_a_changed_lab_shows_where_its_decisions_differ(cli, tmp_path):
     f = tmp_path / "s.mcap"
     run_json(cli, "stop-sign", *NEAR_SIGN, "--record", f)  # LIDAR-free lab, compact: only the speed matters here
     out = tmp_path / "out"
-    replay = run_json(cli, "stop-sign", "--speed", "0.4", "--car", f"replay:{f}", "--out", out)
+    code, text, err = cli("stop-sign", "--speed", "0.4", "--car", f"replay:{f}", "--out", out, "--json")
+    assert code == 1 and "the replay differs from the recording" in err and "Traceback" not in err  # like diff
+    replay = json.loads(text)
     r = replay["replay"]
     assert not r["identical"] and r["ticks_differing"] > 0
+    assert not r["within_tolerance"] and r["ticks_beyond_tolerance"] > 0
     first = r["first_differences"][0]
     assert first["t"] == 0.0 and first["recorded"]["throttle"] != first["replayed"]["throttle"]
     rows = list(csv.DictReader((out / "replay.csv").open()))
     assert len(rows) >= r["recorded_ticks"] and {"t", "recorded_throttle", "replayed_throttle", "same"} <= set(rows[0])
     assert any(row["same"] == "0" for row in rows)
     code, text, _ = cli("stop-sign", "--speed", "0.4", "--car", f"replay:{f}")
-    assert code == 0 and "NO:" in text and "tick(s) differ" in text
+    assert code == 1 and "NO:" in text and "tick(s) differ" in text
+    code, _, err = cli("stop-sign", *NEAR_SIGN, "--replay-tolerance", "1")
+    assert code == 2 and "--replay-tolerance is for a replay" in err
 
 
 def test_compact_camera_recording_replays_with_a_note(cli, tmp_path):

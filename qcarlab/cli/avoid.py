@@ -117,7 +117,8 @@ def avoid_cmd(
                                "config": asdict(cfg)})
         emit(result, json_out, out, trials_summary)
         return
-    with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
+    sensors = ("rgbd",) if cfg.strategy == "depth" else ("lidar",)  # (what it reads: its live view shows those)
+    with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token, sensors=sensors) as qcar:
         if pose is not None and world_obj is not None:
             from qcarlab.experiments.safety import Clearance
 

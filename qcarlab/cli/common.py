@@ -109,6 +109,10 @@ def sim_realism() -> str:
 TopicsOpt = Annotated[str | None, typer.Option(
     "--topics", help="--car replay:BAG: the rosbag2's topics for the car's sensors, e.g. "
     "scan=/scan,color=/camera/color/image_raw,depth=/camera/depth/image_rect_raw.", show_default=False)]
+ReplayToleranceOpt = Annotated[float | None, typer.Option(
+    "--replay-tolerance", min=0.0, help="--car replay: the largest throttle and steering (rad) difference counted as "
+    "the same command (default 1e-9, or 0.02 on a compact recording's camera frames); beyond it, exit 1.",
+    show_default=False)]
 
 
 def mark_run_start(out: Path | None) -> None:
@@ -132,7 +136,8 @@ def recordable(command):
     from typing import get_type_hints
 
     added = {"record": (RecordOpt, None), "record_exact": (RecordExactOpt, False), "live": (LiveOpt, False),
-             "live_port": (LivePortOpt, None), "topics": (TopicsOpt, None), "realism": (RealismOpt, None)}
+             "live_port": (LivePortOpt, None), "topics": (TopicsOpt, None), "realism": (RealismOpt, None),
+             "replay_tolerance": (ReplayToleranceOpt, None)}
 
     label = command.__name__.removesuffix("_cmd").replace("_", "-")
     # a progress bar for a long run on a terminal, but not beside a live view of the command's own
@@ -140,7 +145,8 @@ def recordable(command):
     bars = label not in ("keyboard-drive", "io-test")
 
     @functools.wraps(command)
-    def run(*args, record=None, record_exact=False, live=False, live_port=None, topics=None, realism=None, **kwargs):
+    def run(*args, record=None, record_exact=False, live=False, live_port=None, topics=None, realism=None,
+            replay_tolerance=None, **kwargs):
         from qcarlab.cli import recording
         from qcarlab.cli.progress import progress_bars
 
@@ -148,7 +154,8 @@ def recordable(command):
         mark_run_start(kwargs.get("out"))
         quiet = not bars or bool(kwargs.get("json_out")) or bool(kwargs.get("trials"))
         try:
-            with recording.request(record, record_exact, live, live_port, topics), progress_bars(label, quiet):
+            with recording.request(record, record_exact, live, live_port, topics, replay_tolerance), \
+                    progress_bars(label, quiet):
                 return command(*args, **kwargs)
         finally:
             _realism_choice.reset(token)
@@ -190,6 +197,7 @@ def open_from_options(
     from qcarlab.cli import recording
 
     path = extra.pop("path", None)
+    sensors = extra.pop("sensors", None)  # those the command reads: a live view advertises their channels
     if parse_car_uri(car)[0] == "replay":
         extra.setdefault("topics", recording.replay_topics())
     if parse_car_uri(car)[0] == "sim":
@@ -200,7 +208,7 @@ def open_from_options(
     qcar = open_car(car, world=world, seed=seed, realtime=realtime, params=params, **extra)
     if getattr(qcar, "realism", None) is not None:
         _opened_realism.set(qcar.realism.name)
-    return recording.wrap(qcar, car=car, world=world, seed=seed, path=path, start=extra.get("start"))
+    return recording.wrap(qcar, car=car, world=world, seed=seed, path=path, start=extra.get("start"), sensors=sensors)
 
 
 #: The options that only set qcarlab's own block of that name: a student's block in its place makes
@@ -370,6 +378,13 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
         raise typer.Exit(130)
     if m.get("goal_reached") is False and "replay" not in m:  # a replay's car did what was recorded
         stderr.print(f"qcarlab {name}: goal missed: {m.get('failure') or 'see the results'}", markup=False)
+        raise typer.Exit(1)
+    replay = m.get("replay") or {}
+    if replay.get("recorded_ticks") and not replay.get("within_tolerance", True):
+        stderr.print(f"qcarlab {name}: the replay differs from the recording: {replay['ticks_beyond_tolerance']} "
+                     f"tick(s) beyond the tolerance ({replay['tolerance']:.3g}; largest difference throttle "
+                     f"{replay['max_throttle_difference']:.3g}, steering {replay['max_steering_difference_rad']:.3g} rad)",
+                     markup=False)
         raise typer.Exit(1)
 
 

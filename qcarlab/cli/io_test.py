@@ -96,7 +96,7 @@ def io_test_cmd(
     mine = student_blocks(BasicIOLab, use, block)
     live = interactive(json_out)
     with open_from_options(car, world, seed, realtime, params, on_stand=on_stand, throttle_limit=throttle_limit,
-                           token=token) as qcar:
+                           token=token, sensors=()) as qcar:
         qcar.validate(throttle, steering, lamp_state)
         if live:
             with Live(refresh_per_second=10, console=stdout, transient=True) as view:

@@ -184,7 +184,7 @@ def lane_follow_cmd(
         s0 = pose or world_obj.start
         frames = []
         for spot in tune_spots(lane_centre(world_obj, s0), s0):
-            with open_from_options(car, world_obj, seed, realtime, params, start=spot, token=token) as qcar:
+            with open_from_options(car, world_obj, seed, realtime, params, start=spot, token=token, sensors=("rgbd",)) as qcar:
                 frames.append((spot, qcar.read_rgbd()))
         from qcarlab.cli.hsv_tune import run_hsv_tuner, tuned_metrics  # the sheet's tuner (issue 10)
         where = hsv if hsv is not None else (out / "hsv.yaml" if out else None)
@@ -193,7 +193,7 @@ def lane_follow_cmd(
         result = hsv_tune(frames, cfg)
         result.metrics["tuned"] = tuned_metrics(tuned, where)
     else:
-        with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
+        with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token, sensors=("rgbd",)) as qcar:
             result = run_lane_follow(qcar, cfg, world_obj, blocks=mine)
         log = result.logs["log.csv"]
         result.figures["speed.png"] = lambda f: plots.plot_speed(log, f)

@@ -296,13 +296,14 @@ def path_follow_cmd(
     world_obj, _ = sim_world(car, world, None, "studio", params)
 
     def open_car():
-        return open_from_options(car, world_obj, seed, realtime, params, path=ref, token=token)
+        return open_from_options(car, world_obj, seed, realtime, params, path=ref, token=token, sensors=())
 
     if step_response_:  # the speed loop alone, with the student's speed blocks and the params' gains
         cfg = FollowConfig(speed=speed, kp=kp, ki=ki, kff=kff, rate=rate)
         apply_tunables(cfg, params, ctx)  # --kp/--ki/--kff/--speed typed here win over the file
         start = step_start(world_obj, load_params(params)) if parse_car_uri(car)[0] == "sim" else None
-        with open_from_options(car, world_obj, seed, realtime, params, path=ref, token=token, start=start) as qcar:
+        with open_from_options(car, world_obj, seed, realtime, params, path=ref, token=token, start=start,
+                               sensors=()) as qcar:
             result = step_response(qcar, cfg, duration=max_time or 6.0, blocks=mine, world=world_obj)
         result.metrics.update({"car": car, "seed": seed})
         result.figures["step.png"] = lambda f: plots.plot_step_response(result.logs["log.csv"], result.metrics, f)

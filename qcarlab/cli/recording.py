@@ -16,6 +16,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,13 +34,15 @@ class _Request:
     topics: str | None = None
     cars: list[Any] = field(default_factory=list)  # RecordingCar / ReplayCar opened by this command
     recorded: bool = False
+    tolerance: float | None = None  # --replay-tolerance
 
 
 _REQ = _Request()
 
 
 @contextlib.contextmanager
-def request(record: Path | None, exact: bool, live: bool, live_port: str | None, topics: str | None):
+def request(record: Path | None, exact: bool, live: bool, live_port: str | None, topics: str | None,
+            tolerance: float | None = None):
     """Hold a command's recording options while it runs; SIGTERM becomes Ctrl-C meanwhile."""
     global _REQ
     if exact and record is None:
@@ -50,7 +53,7 @@ def request(record: Path | None, exact: bool, live: bool, live_port: str | None,
     if (record is not None or live) and threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _interrupt)
         handler_set = True
-    _REQ = _Request(record, exact, live, live_port, topics)
+    _REQ = _Request(record, exact, live, live_port, topics, tolerance=tolerance)
     if record is not None and not live:
         from qcarlab.recording.process import prestart
 
@@ -80,14 +83,20 @@ def replay_topics() -> dict[str, str] | None:
     return parse_topics(_REQ.topics)
 
 
-def wrap(qcar: Car, car: str, world: Any = None, seed: int = 0, path: Any = None, start: Any = None) -> Car:
-    """The car as opened, or wrapped in a RecordingCar when the command asked for --record/--live."""
+def wrap(qcar: Car, car: str, world: Any = None, seed: int = 0, path: Any = None, start: Any = None,
+         sensors: Any = None) -> Car:
+    """The car as opened, or wrapped in a RecordingCar when the command asked for --record/--live;
+    ``sensors``: those the command reads ("lidar", "rgbd", "csi"; None: any the car has), whose
+    channels a live view advertises."""
     req = _REQ
     if parse_car_uri(car)[0] == "replay":
         req.cars.append(qcar)
     elif req.topics is not None:
         qcar.close()
         raise InputError("--topics maps a rosbag2's topics for --car replay:BAG")
+    elif req.tolerance is not None:
+        qcar.close()
+        raise InputError("--replay-tolerance is for a replay (--car replay:FILE.mcap)")
     if req.record is None and not req.live:
         return qcar
     try:
@@ -95,15 +104,16 @@ def wrap(qcar: Car, car: str, world: Any = None, seed: int = 0, path: Any = None
             raise InputError("--record/--live records one drive, and this command opens the car more than once "
                              "(e.g. --hsv-tune or a --lookahead sweep)")
         req.recorded = True
+        world_obj = world if world is not None and not isinstance(world, (str, Path)) else getattr(qcar, "world", None)
+        scene = (world_obj is not None and hasattr(world_obj, "static_solids")) or path is not None
         recorder = make_recorder(qcar, req.record, req.exact, req.live_port if req.live else None,
-                                 os.environ.get("QCARLAB_TOKEN"), car=car, world=world, seed=seed,
-                                 start=list(start) if start is not None else None)
+                                 os.environ.get("QCARLAB_TOKEN"), sensors=sensors, scene=scene, car=car, world=world,
+                                 seed=seed, start=list(start) if start is not None else None)
     except BaseException:
         qcar.close()
         raise
     from qcarlab.recording.car import RecordingCar
 
-    world_obj = world if world is not None and not isinstance(world, (str, Path)) else getattr(qcar, "world", None)
     if world_obj is not None and hasattr(world_obj, "static_solids"):
         recorder.scene(world_obj, path, t=qcar.time)
     elif path is not None:
@@ -114,8 +124,9 @@ def wrap(qcar: Car, car: str, world: Any = None, seed: int = 0, path: Any = None
 
 
 def make_recorder(qcar: Car, record: Path | None, exact: bool, live_port: str | None, token: str | None,
-                  **meta: Any):
-    """A Recorder for ``qcar``: to ``record`` (MCAP) and/or a live view on ``live_port``."""
+                  sensors: Any = None, scene: bool = True, **meta: Any):
+    """A Recorder for ``qcar``: to ``record`` (MCAP) and/or a live view on ``live_port``, which
+    advertises the channels the run sends (``sensors``, ``scene``: see channels.live_topics)."""
     from qcarlab.recording import require
 
     require("--record" if record is not None else "--live")
@@ -131,7 +142,13 @@ def make_recorder(qcar: Car, record: Path | None, exact: bool, live_port: str | 
     meta["world_source"] = getattr(world, "source", None) if world is not None and not isinstance(world, str) else None
     ident = qcar.identity()
     meta["identity"] = {"name": ident.name, "backend": ident.backend, "capabilities": ident.capabilities}
-    return open_recorder(record, profile="exact" if exact else "compact", live=live, params=qcar.params, metadata=meta)
+    # the car's clock on the machine's: a message's time is when it happened, from the run's start
+    # (a served or real-time car's clock has run since it was opened: its start-up time)
+    t0_ns = time.time_ns() - round(float(qcar.time) * 1e9)
+    from qcarlab.recording.channels import live_topics
+
+    return open_recorder(record, profile="exact" if exact else "compact", live=live, params=qcar.params, metadata=meta,
+                         t0_ns=t0_ns, live_topics=live_topics(ident.capabilities, sensors, scene))
 
 
 def _announce(line: str) -> None:
@@ -145,8 +162,9 @@ def live_car(qcar: Car, live: bool, live_port: str | None, token: str | None) ->
     from qcarlab.recording.car import RecordingCar
 
     try:
-        recorder = make_recorder(qcar, None, False, live_port or "8765", token, car="served")
         world = getattr(qcar, "world", None)
+        recorder = make_recorder(qcar, None, False, live_port or "8765", token, car="served",
+                                 scene=world is not None and hasattr(world, "static_solids"))
         if world is not None and hasattr(world, "static_solids"):
             recorder.scene(world, t=qcar.time)
     except BaseException:
@@ -194,7 +212,7 @@ def after_run(result: Any) -> dict[str, Any]:
     for car in _REQ.cars:
         inner = getattr(car, "inner", car)
         if isinstance(inner, ReplayCar) and comparison is None:
-            comparison = inner.comparison()
+            comparison = inner.comparison(_REQ.tolerance)
             result.metrics["replay"] = comparison["summary"]
             result.logs["replay.csv"] = comparison["rows"]
         rec = getattr(car, "recorder", None)
@@ -241,6 +259,11 @@ def _print_replay(comparison: dict[str, Any], console) -> None:
     else:
         table.add_row("commands identical", "yes, every tick" if s["identical"] else
                       f"NO: {s['ticks_differing']} tick(s) differ")
+        table.add_row("within tolerance", f"{'yes' if s['within_tolerance'] else 'NO'} (+-{s['tolerance']:.3g}"
+                      + (f"; {s['ticks_beyond_tolerance']} tick(s) beyond" if not s["within_tolerance"] else "")
+                      + ")")
+        if s.get("not_replayed"):
+            table.add_row("not replayed", f"{s['not_replayed']} recorded tick(s) after the replay's end")
     if not s["identical"]:
         table.add_row("largest difference", f"throttle {s['max_throttle_difference']:.4g}, "
                       f"steering {s['max_steering_difference_rad']:.4g} rad")

@@ -112,7 +112,8 @@ def lidar_scan_cmd(
                                              chosen=world is not None or start is not None)
         if note is not None:
             stderr.print(f"lidar-scan: {note}", markup=False)
-    with open_from_options(car, world_obj, seed, realtime or watch, params, start=pose, token=token) as qcar:
+    with open_from_options(car, world_obj, seed, realtime or watch, params, start=pose, token=token,
+                           sensors=("lidar",)) as qcar:
         if beams is not None:
             if not hasattr(qcar, "lidar_beams"):
                 raise InputError("--beams applies to the simulator only")

@@ -147,7 +147,7 @@ def stop_sign_cmd(
         if sign is None:
             stderr.print("warning: no stop sign ahead of the car in this world; the true stop distance is not "
                           "measured", markup=False)
-    with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token) as qcar:
+    with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token, sensors=("rgbd",)) as qcar:
         result = run_stop_sign(qcar, cfg, sign, blocks=mine, world=world_obj)
     result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
     log = result.logs["log.csv"]

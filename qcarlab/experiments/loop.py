@@ -17,6 +17,11 @@ of catch-up ticks: the schedule restarts from now, the step is told the real ``d
 last tick, and the late ticks are counted (``overruns``, ``worst_tick_s``). Whatever happens (the
 end, an exception, a student's block failing, Ctrl-C) the car is left stopped; Ctrl-C returns the
 log so far with ``interrupted`` set, so the run's results can still be saved.
+
+Recorded and replayed runs: before each step the loop hands a recording car (``note_step``) the
+``t`` and ``dt`` it gives the step, which go into the recording with the tick's command; a replay
+of a real-time run (``recorded_step``) gives the step the ``t`` and ``dt`` it was given then, so
+the lab computes the same commands from the same inputs.
 """
 
 from __future__ import annotations
@@ -142,14 +147,22 @@ def run_loop(
         tracker = progress(n_ticks * period)
         on_tick = _with_progress(on_tick, tracker)
     ends = hasattr(car, "ended")  # --car replay: the recording runs out
+    note_step = getattr(car, "note_step", None)  # --record: the step's t and dt go with the tick's command
+    recorded_step = getattr(car, "recorded_step", None)  # --car replay: the t and dt the step was given then
     try:
         for k in range(n_ticks):
             if ends and car.ended:  # the recording has run out
                 log.stopped_early = True
                 break
             readout = read()
-            t = readout.t - t0
-            out = step(t, readout, dt)
+            t, step_dt = readout.t - t0, dt
+            if recorded_step is not None:  # a real-time run's recording: its ticks, as they were
+                given = recorded_step()
+                if given is not None:
+                    t, step_dt = given
+            if note_step is not None:
+                note_step(t, step_dt)
+            out = step(t, readout, step_dt)
             if out is STOP:
                 log.stopped_early = True
                 break

@@ -29,7 +29,8 @@ from qcarlab.car.lamps import ALL_OFF
 from qcarlab.wire.frames import make_frame
 from qcarlab.wire.protocol import MsgType as M
 
-_OWN = frozenset({"inner", "recorder", "closed", "_t", "_last", "follow_truth"})
+_OWN = frozenset({"inner", "recorder", "closed", "_t", "_last", "follow_truth", "_step", "_truth_tick"})
+_CLOSED = object()  # _truth_tick after stop(): the tick is over, the next truth is recorded
 _REPLY = {"lidar": M.LIDAR, "rgbd": M.RGBD, "csi": M.CSI}
 TRUTH_PERIOD_S = 0.02  # follow_truth: the truth recorded at most this often (the recorder's pose rate)
 
@@ -44,6 +45,8 @@ class RecordingCar(Car):
         object.__setattr__(self, "follow_truth", bool(follow_truth))
         object.__setattr__(self, "_t", None)  # time of the latest readout: the tick commands belong to
         object.__setattr__(self, "_last", {})  # sensor -> the latest recorded frame
+        object.__setattr__(self, "_step", None)  # (t, dt) the lab's step is given this tick (note_step)
+        object.__setattr__(self, "_truth_tick", None)  # the tick whose truth is recorded (one a tick)
         ident = car.identity()
         recorder.metadata("qcarlab.car", {"name": ident.name, "backend": ident.backend,
                                           "throttle_limit": car.throttle_limit, "stepped": car.stepped})
@@ -98,14 +101,24 @@ class RecordingCar(Car):
     def validate(self, throttle, steering, leds=None) -> Command:
         return self.inner.validate(throttle, steering, leds)
 
+    def note_step(self, t: float, dt: float) -> None:
+        """The control loop, each tick before the lab's step: the ``t`` and ``dt`` it gives the step,
+        recorded with the tick's command (a replay gives the step the same again; on a real-time
+        car, dt is the wall clock's gap, which nothing else records)."""
+        object.__setattr__(self, "_step", (float(t), float(dt)))
+
     def write(self, throttle, steering, leds=None) -> Command:
         cmd = self.inner.write(throttle, steering, leds)
-        self.recorder.command(self._tick(), cmd)
+        step = self._step
+        if step is not None:
+            object.__setattr__(self, "_step", None)
+        self.recorder.command(self._tick(), cmd, step=step)
         return cmd
 
     def stop(self) -> None:
         self.inner.stop()
         self.recorder.command(self._tick(), Command(0.0, 0.0, ALL_OFF), stop=True)
+        object.__setattr__(self, "_truth_tick", _CLOSED)  # the run's end: the truth after it is recorded
 
     def _apply(self, cmd: Command) -> None:  # not reached: write() and stop() go to the car
         self.inner._apply(cmd)
@@ -134,17 +147,26 @@ class RecordingCar(Car):
             self._follow(self.inner.time)
 
     def truth(self) -> Truth | None:
+        """The wrapped car's truth, recorded once a tick (the first asked for after the tick's
+        read: on a real-time car every call has a time of its own, and a lab and its referee both
+        ask), or, following the truth (a served car), when due."""
         tr = self.inner.truth()
-        if tr is not None and self._last.get("truth") != tr.t:
-            self._last["truth"] = tr.t
-            self.recorder.truth(tr)
+        if tr is None or self._last.get("truth") == tr.t:
+            return tr
+        tick = self._t
+        if tick is not None and not self.follow_truth:
+            if self._truth_tick == tick:
+                return tr  # this tick's truth is recorded
+            object.__setattr__(self, "_truth_tick", tick)  # (after stop(): one more, the run's last)
+        self._last["truth"] = tr.t
+        self.recorder.truth(tr)
         return tr
 
     def _frame(self, kind: str, frame: Any, record) -> Any:
         last = self._last.get(kind)
         if frame is not None and frame is not last and (last is None or getattr(last, "t", None) != frame.t):
             self._last[kind] = frame
-            record(frame)
+            record(frame, self._t)  # (the tick at which the lab first had it: a replay gives it then)
         return frame
 
     def read_lidar(self) -> Any:

@@ -22,8 +22,9 @@ per-tick readouts, commands and truth, JSON with a JSON Schema for the rest)::
                                                  very numbers it had
 
 Times: a message's log time is ``t0_ns + round(t * 1e9)`` with ``t`` the car's time (s since it
-was opened) and ``t0_ns`` the wall clock when recording started (in the file's ``qcarlab``
-metadata). The messages carry ``t`` as the exact float (recordings of version 1 wrote readouts,
+was opened) and ``t0_ns`` (in the file's ``qcarlab`` metadata) the wall clock less the car's time
+when recording started: the run's first messages are stamped when it started, whatever time the
+car's clock showed then (a served or real-time car's start-up). The messages carry ``t`` as the exact float (recordings of version 1 wrote readouts,
 commands and truth as JSON; the reader reads both).
 
 LIDAR no-returns (range 0 in qcarlab) are written as NaN, which Foxglove leaves out of the scan;
@@ -71,6 +72,26 @@ CAMERA_FRAME = "camera_color_optical_frame"
 CSI_FRAMES = {view: f"csi_{view}_optical_frame" for view in CSI_VIEWS}
 CSI_YAW = {"right": -math.pi / 2.0, "rear": math.pi, "left": math.pi / 2.0, "front": 0.0}
 
+SENSOR_TOPICS = {"lidar": (LIDAR,), "rgbd": (COLOR, DEPTH, CALIBRATION), "csi": tuple(CSI.values())}
+
+
+def live_topics(capabilities: Any, sensors: Any = None, scene: bool = True) -> set[str]:
+    """The channels a run sends, which a live view advertises: the readouts, commands, the lab's
+    values and the dead-reckoned pose always; the truth and true pose with a ``truth`` capability;
+    the scene when there is a world or path; each of ``sensors`` ("lidar", "rgbd", "csi"; None:
+    every one the car has) that the car has."""
+    caps = set(capabilities or ())
+    out = {READOUT, COMMAND, LAB, POSE_ESTIMATE, TF}
+    if "truth" in caps:
+        out |= {TRUTH, POSE_TRUE}
+    if scene:
+        out.add(SCENE)
+    for sensor in (SENSOR_TOPICS if sensors is None else sensors):
+        if sensor in caps:
+            out.update(SENSOR_TOPICS[sensor])
+    return out
+
+
 PROFILES = ("compact", "exact")
 JPEG_QUALITY = 80  # its artefacts (mean 2.2 levels) are below the simulated camera's own noise
 DEPTH_EVERY = 15  # compact: every 15th depth frame (2 Hz at 30 fps)
@@ -87,8 +108,9 @@ JSON_SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
     }),
     FRAMES: ("qcarlab.FrameInfo", {
         "type": "object",
-        "title": "A sensor frame's exact time (and the LIDAR's beam angles when they change)",
-        "properties": {"sensor": {"type": "string"}, "t": _NUM, "stamp": {"type": "integer"},
+        "title": "A sensor frame's exact time, the tick the lab first read it at (and the LIDAR's beam angles "
+                 "when they change)",
+        "properties": {"sensor": {"type": "string"}, "t": _NUM, "stamp": {"type": "integer"}, "tick": _NUM,
                        "angles": {"type": "string", "contentEncoding": "base64"}},
     }),
 }
@@ -141,7 +163,7 @@ def json_bytes(values: Mapping[str, Any]) -> bytes:
 PB_PACKAGE = "qcarlab"
 READOUT_FIELDS = ("t", "encoder_counts", "tach", "motor_current", "battery_voltage", "gyro", "accel",
                   "steering", "throttle", "leds")
-COMMAND_FIELDS = ("t", "throttle", "steering", "leds", "stop")
+COMMAND_FIELDS = ("t", "throttle", "steering", "leds", "stop", "step_t", "step_dt")
 TRUTH_FIELDS = ("t", "x", "y", "yaw", "speed", "wheel_speed", "steering", "distance", "wheel_distance")
 PB_SCHEMAS = {READOUT: "qcarlab.Readout", COMMAND: "qcarlab.Command", TRUTH: "qcarlab.Truth"}
 
@@ -149,7 +171,8 @@ PB_SCHEMAS = {READOUT: "qcarlab.Readout", COMMAND: "qcarlab.Command", TRUTH: "qc
 # battery_voltage = 5; repeated double gyro = 6, accel = 7 (packed, 3 each); double steering = 8,
 # throttle = 9; repeated double leds = 10}: a tag byte ((field << 3) | wire type) before each value
 _READOUT_PB = struct.Struct("<BdBqBdBdBdBB3dBB3dBdBd")
-_COMMAND_PB = struct.Struct("<BdBdBd")  # Command {double t = 1, throttle = 2, steering = 3; leds = 4; bool stop = 5}
+_COMMAND_PB = struct.Struct("<BdBdBd")  # Command {double t = 1, throttle = 2, steering = 3; leds = 4; bool stop = 5;
+_STEP_PB = struct.Struct("<BdBd")  # double step_t = 6, step_dt = 7}: the t and dt the lab's step was given
 _TRUTH_PB = struct.Struct("<" + "Bd" * 9)  # Truth {double t = 1 ... wheel_distance = 9}
 _LEDS_PB: dict[tuple[int, Any], bytes] = {}  # (field tag, lamp tuple) -> the packed field (the same few tuples every tick)
 _KEYS: dict[str, str] = {}  # a lab value's name -> its JSON key text
@@ -197,10 +220,15 @@ def readout_pb(r: Any) -> bytes:
                             ) + _packed(0x52, r.leds)
 
 
-def command_pb(t: float, cmd: Any, stop: bool = False) -> bytes:
-    """A command as ``qcarlab.Command`` protobuf bytes (``stop``: the car's stop(), not a write)."""
+def command_pb(t: float, cmd: Any, stop: bool = False, step: tuple[float, float] | None = None) -> bytes:
+    """A command as ``qcarlab.Command`` protobuf bytes (``stop``: the car's stop(), not a write;
+    ``step``: the (t, dt) the lab's step was called with at this tick, which a replay gives it again)."""
     out = _COMMAND_PB.pack(0x09, t, 0x11, cmd.throttle, 0x19, cmd.steering) + _packed(0x22, cmd.leds)
-    return out + b"\x28\x01" if stop else out
+    if stop:
+        out += b"\x28\x01"
+    if step is not None:
+        out += _STEP_PB.pack(0x31, step[0], 0x39, step[1])
+    return out
 
 
 def truth_pb(tr: Any) -> bytes:
@@ -223,7 +251,7 @@ def pb_descriptor() -> bytes:
                     ("accel", double, many), ("steering", double, one), ("throttle", double, one),
                     ("leds", double, many)],
         "Command": [("t", double, one), ("throttle", double, one), ("steering", double, one), ("leds", double, many),
-                    ("stop", boolean, one)],
+                    ("stop", boolean, one), ("step_t", double, one), ("step_dt", double, one)],
         "Truth": [(name, double, one) for name in TRUTH_FIELDS],
     }
     fds = D.FileDescriptorSet()

@@ -60,14 +60,17 @@ POLL_S, POLL_MAX_S = 0.001, 0.004  # the child's pauses between reads of its pip
 
 
 def open_recorder(path: str | Path | None, *, profile: str = "compact", live: Any = None,
-                  params: QCarParams = DEFAULT_PARAMS, metadata: dict[str, Any] | None = None) -> Any:
+                  params: QCarParams = DEFAULT_PARAMS, metadata: dict[str, Any] | None = None,
+                  t0_ns: int | None = None, live_topics: Any = None) -> Any:
     """A :class:`RecorderProcess` for a file-only recording where a child can help (see the module
-    docstring), else an in-process :class:`~qcarlab.recording.writer.Recorder`."""
+    docstring), else an in-process :class:`~qcarlab.recording.writer.Recorder`. ``t0_ns``: the
+    wall clock (ns) at which the car's clock read 0 (now, when not given)."""
     if path is not None and live is None and RecorderProcess.available():
-        return RecorderProcess(path, profile=profile, params=params, metadata=metadata)
+        return RecorderProcess(path, profile=profile, params=params, metadata=metadata, t0_ns=t0_ns)
     from qcarlab.recording.writer import Recorder
 
-    return Recorder(path, profile=profile, live=live, params=params, metadata=metadata)
+    return Recorder(path, profile=profile, live=live, params=params, metadata=metadata, t0_ns=t0_ns,
+                    live_topics=live_topics)
 
 
 class RecorderProcess:
@@ -125,8 +128,8 @@ class RecorderProcess:
                                 g.tolist() if type(g) is np.ndarray else g, a.tolist() if type(a) is np.ndarray else a,
                                 r.steering, r.throttle, r.leds))
 
-    def command(self, t: float, cmd: Any, stop: bool = False) -> None:
-        self._call("_command", (t, cmd.throttle, cmd.steering, cmd.leds, stop))
+    def command(self, t: float, cmd: Any, stop: bool = False, step: tuple[float, float] | None = None) -> None:
+        self._call("_command", (t, cmd.throttle, cmd.steering, cmd.leds, stop, step))
 
     def truth(self, tr: Any) -> None:
         self._call("truth", tuple(tr))
@@ -143,29 +146,29 @@ class RecorderProcess:
     def scene(self, world: Any = None, path: Any = None, t: float = 0.0) -> None:
         self._call("scene", (world, None if path is None else np.asarray(path, dtype=float), t))
 
-    def scan(self, scan: Any) -> None:
+    def scan(self, scan: Any, tick: float | None = None) -> None:
         angles = scan.angles
         if angles is self._angles and isinstance(angles, np.ndarray) and not angles.flags.writeable:
             angles = None  # the child has them (the simulator hands the same read-only array each scan)
         else:
             self._angles = angles
-        self._call("_scan", (scan.t, angles, scan.ranges))
+        self._call("_scan", (scan.t, angles, scan.ranges, tick))
 
-    def rgbd(self, frame: Any) -> None:
+    def rgbd(self, frame: Any, tick: float | None = None) -> None:
         if self.closed:  # (a recorder that failed: the error was raised once; the run's last calls go nowhere)
             return
         k = self._rgbd_count
         self._rgbd_count += 1
         with_depth = self.exact or k % C.DEPTH_EVERY == 0  # (the Recorder's own rule: it counts the frames too)
         specs = self._images([frame.color, frame.depth] if with_depth else [frame.color], bgr=1)
-        self._calls.append(("_rgbd", (frame.t, specs[0], specs[1] if with_depth else None, self._head)))
+        self._calls.append(("_rgbd", (frame.t, specs[0], specs[1] if with_depth else None, self._head, tick)))
         self.flush()  # (at once: the child encodes the image while it is still in the caches)
 
-    def csi(self, frames: Any) -> None:
+    def csi(self, frames: Any, tick: float | None = None) -> None:
         if self.closed:
             return
         images = self._images(frames.as_list(), bgr=4)
-        self._calls.append(("_csi", (frames.t, images, self._head)))
+        self._calls.append(("_csi", (frames.t, images, self._head, tick)))
         self.flush()
 
     def flush(self) -> None:
@@ -471,22 +474,22 @@ class _Child:
             self.rec.readout(Readout(t, counts, tach, current, volts, np.asarray(g, dtype=float),
                                      np.asarray(a, dtype=float), steering, throttle, leds))
         elif name == "_command":
-            t, throttle, steering, leds, stop = args
-            self.rec.command(t, Command(throttle, steering, leds), stop)
+            t, throttle, steering, leds, stop, step = args
+            self.rec.command(t, Command(throttle, steering, leds), stop, step)
         elif name == "truth":
             self.rec.truth(Truth(*args))
         elif name == "_scan":
-            t, angles, ranges = args
+            t, angles, ranges, tick = args
             if angles is not None:
                 self.angles = angles
-            self.rec.scan(LidarScan(t, self.angles, ranges))
+            self.rec.scan(LidarScan(t, self.angles, ranges), tick)
         elif name == "_rgbd":
-            t, color, depth, end = args
-            self.rec.rgbd(RGBDFrame(t, self._view(color), None if depth is None else self._view(depth)))
+            t, color, depth, end, tick = args
+            self.rec.rgbd(RGBDFrame(t, self._view(color), None if depth is None else self._view(depth)), tick)
             self.freed[0] = end  # (encoded or copied: the ring's bytes can take another frame)
         elif name == "_csi":
-            t, images, end = args
-            self.rec.csi(CSIFrames(t, *(self._view(i) for i in images)))
+            t, images, end, tick = args
+            self.rec.csi(CSIFrames(t, *(self._view(i) for i in images)), tick)
             self.freed[0] = end
         else:
             getattr(self.rec, name)(*args)

@@ -40,8 +40,13 @@ EPS = 1e-6  # s: two times closer than this are the same instant
 class Tape:
     """What a replayed car plays: light streams in memory, camera frames streamed on demand.
 
-    ``rgbd()`` / ``csi()`` return iterators of ``(t, load)`` in time order, ``load()`` decoding
+    ``rgbd()`` / ``csi()`` return iterators of ``(when, load)`` in time order, ``load()`` decoding
     the frame; a compact recording's RGBD frames without depth carry the latest depth before them.
+    ``when`` (and ``scan_ticks``) is the time of the tick at which the lab first read the frame
+    (the frame's own time in recordings that do not say). ``steps`` holds, beside each command, the
+    (t, dt) the lab's step was given at its tick (None when not recorded). ``realtime``: recorded
+    from a car whose clock is the wall's (a real car, a served or real-time simulator), whose
+    ticks a replay plays one by one.
     """
 
     source: str
@@ -50,13 +55,16 @@ class Tape:
     metadata: dict[str, Any] = field(default_factory=dict)
     readouts: list[Readout] = field(default_factory=list)
     commands: list[tuple[float, Command, bool]] = field(default_factory=list)
+    steps: list[tuple[float, float] | None] = field(default_factory=list)
     truths: list[Truth] = field(default_factory=list)
     scans: list[LidarScan] = field(default_factory=list)
+    scan_ticks: list[float] = field(default_factory=list)
     lab: list[dict[str, Any]] = field(default_factory=list)
     rgbd: Callable[[], Iterator[tuple[float, Callable[[], RGBDFrame]]]] | None = None
     csi: Callable[[], Iterator[tuple[float, Callable[[], CSIFrames]]]] | None = None
     notes: list[str] = field(default_factory=list)  # what the replay should know (lossy frames, ...)
     span: tuple[float, float] | None = None  # (start, end) when the source knows it (a rosbag2)
+    realtime: bool = False
 
     @property
     def start(self) -> float:
@@ -324,8 +332,10 @@ class Recording:
         car_meta = self.metadata.get("qcarlab.car", {})
         t0 = int(qc.get("t0_ns", 0) or 0)
         tape = Tape(source=str(self.path), params=_params(self.metadata.get("qcarlab.params", {})),
-                    throttle_limit=car_meta.get("throttle_limit"), metadata=qc)
+                    throttle_limit=car_meta.get("throttle_limit"), metadata=qc,
+                    realtime=car_meta.get("stepped") is False)
         frame_t: dict[tuple[str, int], float] = {}
+        frame_tick: dict[tuple[str, int], float] = {}  # when the lab first read the frame (recorded since v2.1)
         angles_at: list[tuple[int, np.ndarray]] = []
         depth_in: dict[int, bool] = {}
         laser: list[tuple[int, Any]] = []
@@ -340,6 +350,8 @@ class Recording:
                 tape.commands.append((float(msg["t"]), Command(float(msg["throttle"]), float(msg["steering"]),
                                                                tuple(float(v) for v in msg.get("leds", ()))),
                                       bool(msg.get("stop", False))))
+                step_dt = float(msg.get("step_dt", 0.0) or 0.0)  # (proto3: 0 when not recorded; a tick's dt is > 0)
+                tape.steps.append((float(msg.get("step_t", 0.0)), step_dt) if step_dt > 0.0 else None)
             elif topic == C.TRUTH:
                 tape.truths.append(Truth(**{k: float(msg[k]) for k in C.TRUTH_FIELDS}))
             elif topic == C.LAB:
@@ -347,6 +359,8 @@ class Recording:
             elif topic == C.FRAMES:
                 stamp = int(msg.get("stamp", ns))
                 frame_t[(msg["sensor"], stamp)] = float(msg["t"])
+                if msg.get("tick") is not None:
+                    frame_tick[(msg["sensor"], stamp)] = float(msg["tick"])
                 if msg.get("angles"):
                     angles_at.append((stamp, C.decode_angles(msg["angles"])))
                 if msg["sensor"] == "rgbd":
@@ -359,7 +373,9 @@ class Recording:
                 has_csi = True
         for seq in (tape.readouts, tape.truths):
             seq.sort(key=lambda r: r.t)
-        tape.commands.sort(key=lambda c: c[0])
+        order = sorted(range(len(tape.commands)), key=lambda i: tape.commands[i][0])  # (stable: a tick's in order)
+        tape.commands = [tape.commands[i] for i in order]
+        tape.steps = [tape.steps[i] for i in order]
         angles_at.sort(key=lambda a: a[0])
         k = -1
         for stamp, msg in sorted(laser, key=lambda m: m[0]):
@@ -373,17 +389,19 @@ class Recording:
                 angles = np.linspace(msg.start_angle, msg.end_angle, len(ranges)) if len(ranges) else np.zeros(0)
             t = frame_t.get(("lidar", stamp), (stamp - t0) / 1e9)
             tape.scans.append(LidarScan(t=t, angles=angles, ranges=ranges))
+            when = frame_tick.get(("lidar", stamp), t)
+            tape.scan_ticks.append(max(when, tape.scan_ticks[-1]) if tape.scan_ticks else when)
         if has_color:
-            tape.rgbd = lambda: self._rgbd_frames(frame_t, depth_in, t0)
+            tape.rgbd = lambda: self._rgbd_frames(frame_t, depth_in, t0, frame_tick)
             if qc.get("profile", "compact") != "exact":
                 tape.notes.append(f"camera frames are lossy (JPEG colour, depth every {C.DEPTH_EVERY}th frame held "
                                   "between): camera decisions can differ from the recorded ones; record with "
                                   "--record-exact for an exact replay")
         if has_csi:
-            tape.csi = lambda: self._csi_frames(frame_t, t0)
+            tape.csi = lambda: self._csi_frames(frame_t, t0, frame_tick)
         return tape
 
-    def _rgbd_frames(self, frame_t, depth_in, t0) -> Iterator[tuple[float, Callable[[], RGBDFrame]]]:
+    def _rgbd_frames(self, frame_t, depth_in, t0, frame_tick) -> Iterator[tuple[float, Callable[[], RGBDFrame]]]:
         depth_msg = None
         pending = None  # (stamp, colour message) waiting for its depth
         for topic, _name, ns, msg in self.messages([C.COLOR, C.DEPTH]):
@@ -391,20 +409,20 @@ class Recording:
             if topic == C.DEPTH:
                 depth_msg = msg
                 if pending is not None and pending[0] == stamp:
-                    yield self._rgbd_item(pending, depth_msg, frame_t, t0)
+                    yield self._rgbd_item(pending, depth_msg, frame_t, t0, frame_tick)
                     pending = None
                 continue
             if pending is not None:
-                yield self._rgbd_item(pending, depth_msg, frame_t, t0)
+                yield self._rgbd_item(pending, depth_msg, frame_t, t0, frame_tick)
             pending = (stamp, msg)
             if not depth_in.get(stamp, False):
-                yield self._rgbd_item(pending, depth_msg, frame_t, t0)
+                yield self._rgbd_item(pending, depth_msg, frame_t, t0, frame_tick)
                 pending = None
         if pending is not None:
-            yield self._rgbd_item(pending, depth_msg, frame_t, t0)
+            yield self._rgbd_item(pending, depth_msg, frame_t, t0, frame_tick)
 
     @staticmethod
-    def _rgbd_item(pending, depth_msg, frame_t, t0):
+    def _rgbd_item(pending, depth_msg, frame_t, t0, frame_tick):
         stamp, color_msg = pending
         t = frame_t.get(("rgbd", stamp), (stamp - t0) / 1e9)
 
@@ -413,29 +431,29 @@ class Recording:
             depth = decode_depth(depth_msg) if depth_msg is not None else np.zeros(color.shape[:2], np.float32)
             return RGBDFrame(t=t, color=color, depth=depth)
 
-        return t, load
+        return frame_tick.get(("rgbd", stamp), t), load
 
-    def _csi_frames(self, frame_t, t0) -> Iterator[tuple[float, Callable[[], CSIFrames]]]:
+    def _csi_frames(self, frame_t, t0, frame_tick) -> Iterator[tuple[float, Callable[[], CSIFrames]]]:
         views: dict[str, Any] = {}
         current = None
         topics = {v: k for k, v in C.CSI.items()}
         for topic, _name, ns, msg in self.messages(list(C.CSI.values())):
             stamp = _stamp(msg) or ns
             if current is not None and stamp != current and len(views) == 4:
-                yield self._csi_item(current, dict(views), frame_t, t0)
+                yield self._csi_item(current, dict(views), frame_t, t0, frame_tick)
             current = stamp
             views[topics[topic]] = msg
         if current is not None and len(views) == 4:
-            yield self._csi_item(current, dict(views), frame_t, t0)
+            yield self._csi_item(current, dict(views), frame_t, t0, frame_tick)
 
     @staticmethod
-    def _csi_item(stamp, views, frame_t, t0):
+    def _csi_item(stamp, views, frame_t, t0, frame_tick):
         t = frame_t.get(("csi", stamp), (stamp - t0) / 1e9)
 
         def load() -> CSIFrames:
             return CSIFrames(t=t, **{v: decode_color(views[v]) for v in C.CSI_VIEWS})
 
-        return t, load
+        return frame_tick.get(("csi", stamp), t), load
 
 
 def _readout(msg: dict[str, Any]) -> Readout:

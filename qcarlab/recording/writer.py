@@ -80,6 +80,7 @@ class Recorder:
         params: QCarParams = DEFAULT_PARAMS,
         metadata: dict[str, Any] | None = None,
         t0_ns: int | None = None,
+        live_topics: Any = None,
     ):
         require("--record" if path is not None else "--live")
         import foxglove
@@ -122,16 +123,18 @@ class Recorder:
         self._scene: dict[str, Any] = {}  # the scene's entities by id, sent again to a live viewer who joins later
         self._scene_due = False
         if live is not None:
-            # every channel exists before a viewer connects: it gets them in its first advertisement
-            # (a channel advertised while a client is connected can refuse a subscription that comes
-            # within milliseconds, foxglove-sdk 0.30)
+            # the channels this run will send exist before a viewer connects: it gets them in its
+            # first advertisement (a channel advertised while a client is connected can refuse a
+            # subscription that comes within milliseconds, foxglove-sdk 0.30). ``live_topics``: those
+            # channels (None: all of them); one not among them is made when first sent.
             image = "RawImage" if self.exact else "CompressedImage"
             for topic, kind in ((C.READOUT, None), (C.COMMAND, None), (C.TRUTH, None), (C.LAB, None),
                                 (C.LIDAR, _PB_SCAN), (C.COLOR, image), (C.DEPTH, "RawImage"),
                                 (C.CALIBRATION, "CameraCalibration"), (C.POSE_TRUE, _PB_POSE),
                                 (C.POSE_ESTIMATE, _PB_POSE), (C.TF, _PB_TF),
                                 (C.SCENE, "SceneUpdate"), *((C.CSI[v], image) for v in C.CSI_VIEWS)):
-                self._channel(topic, kind)
+                if live_topics is None or topic in live_topics:
+                    self._channel(topic, kind)
             live.attach(self.ctx, on_subscribe=self._subscribed)
         self._angles: np.ndarray | None = None
         self._angles_src: Any = None  # a read-only angles array known to equal _angles
@@ -263,8 +266,9 @@ class Recorder:
         """A basic-sensor readout; also advances the dead-reckoning pose estimate."""
         self._defer(self._readout, (r,))
 
-    def command(self, t: float, cmd: Any, stop: bool = False) -> None:
-        self._defer(self._command, (t, cmd, stop))
+    def command(self, t: float, cmd: Any, stop: bool = False, step: tuple[float, float] | None = None) -> None:
+        """What was applied at the tick of time ``t``; ``step``: the (t, dt) the lab's step was given."""
+        self._defer(self._command, (t, cmd, stop, step))
 
     def truth(self, tr: Any) -> None:
         self._defer(self._truth, (tr,))
@@ -278,8 +282,8 @@ class Recorder:
         if not self._has_truth:
             self._poses(ns, None, est)
 
-    def _command(self, t: float, cmd: Any, stop: bool) -> None:
-        self._bytes(C.COMMAND, C.command_pb, self.ns(t), t, cmd, stop)
+    def _command(self, t: float, cmd: Any, stop: bool, step: tuple[float, float] | None = None) -> None:
+        self._bytes(C.COMMAND, C.command_pb, self.ns(t), t, cmd, stop, step)
 
     def _truth(self, tr: Any) -> None:
         ns = self.ns(tr.t)
@@ -336,14 +340,17 @@ class Recorder:
                     counts[topic] = counts.get(topic, 0) + 1
 
     # --- sensors --------------------------------------------------------------------------------
-    def scan(self, scan: Any) -> None:
-        """A LIDAR scan (queued with the per-tick messages: its arrays are not written to after)."""
-        self._defer(self._scan, (scan,))
+    def scan(self, scan: Any, tick: float | None = None) -> None:
+        """A LIDAR scan (queued with the per-tick messages: its arrays are not written to after);
+        ``tick``: the time of the tick at which the lab first read it."""
+        self._defer(self._scan, (scan, tick))
 
-    def _scan(self, scan: Any) -> None:
+    def _scan(self, scan: Any, tick: float | None = None) -> None:
         M = self._M
         ns = self.ns(scan.t)
         info: dict[str, Any] = {"sensor": "lidar", "t": float(scan.t), "stamp": ns}
+        if tick is not None:
+            info["tick"] = float(tick)
         src = scan.angles
         if src is not self._angles_src:  # (the simulator hands the same angles array every scan)
             angles = np.asarray(src, dtype=np.float64)
@@ -358,10 +365,10 @@ class Recorder:
             ch.base.log(M.pb_laser_scan(scan, ns), ns)
             self.counts[C.LIDAR] = self.counts.get(C.LIDAR, 0) + 1
 
-    def rgbd(self, frame: Any) -> None:
+    def rgbd(self, frame: Any, tick: float | None = None) -> None:
         """An RGBD frame: its colour and (every DEPTH_EVERY-th, or every one when exact) depth,
         queued in order with the per-tick messages; JPEG and millimetre depth encoded meanwhile on
-        the encoder's thread (see :class:`_Frames`)."""
+        the encoder's thread (see :class:`_Frames`). ``tick``: as for :meth:`scan`."""
         M = self._M
         ns = self.ns(frame.t)
         k = self._rgbd_count
@@ -379,13 +386,15 @@ class Recorder:
         with self._flush_lock:  # (the frame's messages stay together, in the order they came)
             pending = self._pending
             if self.writer is not None:
-                pending.append((self._log, (C.FRAMES, None, {"sensor": "rgbd", "t": float(frame.t), "stamp": ns,
-                                                             "depth": with_depth}, ns)))
+                info = {"sensor": "rgbd", "t": float(frame.t), "stamp": ns, "depth": with_depth}
+                if tick is not None:
+                    info["tick"] = float(tick)
+                pending.append((self._log, (C.FRAMES, None, info, ns)))
             if k % CALIBRATION_EVERY == 0:
                 pending.append((self._log, (C.CALIBRATION, "CameraCalibration", M.calibration(self.params, ns), ns)))
             self._queue_jobs(jobs)
 
-    def csi(self, frames: Any) -> None:
+    def csi(self, frames: Any, tick: float | None = None) -> None:
         ns = self.ns(frames.t)
         kind = "RawImage" if self.exact else "CompressedImage"
         jobs = []
@@ -395,8 +404,10 @@ class Recorder:
                 jobs.append(self._frames.color(ch, C.CSI[view], image, ns, C.CSI_FRAMES[view], self.exact))
         with self._flush_lock:
             if self.writer is not None:
-                self._pending.append((self._log, (C.FRAMES, None, {"sensor": "csi", "t": float(frames.t), "stamp": ns},
-                                                  ns)))
+                info = {"sensor": "csi", "t": float(frames.t), "stamp": ns}
+                if tick is not None:
+                    info["tick"] = float(tick)
+                self._pending.append((self._log, (C.FRAMES, None, info, ns)))
             self._queue_jobs(jobs)
 
     def _queue_jobs(self, jobs: list[_Job]) -> None:
