@@ -380,7 +380,13 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
         stderr.print(f"qcarlab {name}: goal missed: {m.get('failure') or 'see the results'}", markup=False)
         raise typer.Exit(1)
     replay = m.get("replay") or {}
-    if replay.get("recorded_ticks") and not replay.get("within_tolerance", True):
+    if replay.get("recorded_ticks") and not replay.get("within_tolerance", True) and replay.get("lossy"):
+        stderr.print(f"{name}: note: the replay's commands differ from the recording in "
+                     f"{replay['ticks_beyond_tolerance']} tick(s): the recording keeps the camera's frames "
+                     "compressed (JPEG colour, 2 Hz depth), so the lab saw other pixels than the car did; record "
+                     "with --record-exact for a replay that must reproduce them (or give --replay-tolerance to "
+                     "hold this one to a bound)", markup=False)
+    elif replay.get("recorded_ticks") and not replay.get("within_tolerance", True):
         stderr.print(f"qcarlab {name}: the replay differs from the recording: {replay['ticks_beyond_tolerance']} "
                      f"tick(s) beyond the tolerance ({replay['tolerance']:.3g}; largest difference throttle "
                      f"{replay['max_throttle_difference']:.3g}, steering {replay['max_steering_difference_rad']:.3g} rad)",
