@@ -190,7 +190,7 @@ def lane_follow_cmd(
         where = hsv if hsv is not None else (out / "hsv.yaml" if out else None)
         tuned = run_hsv_tuner([f.color for _, f in frames], None, where,
                               None if json_out else stdout, lane=lane, start=(cfg.hsv_min, cfg.hsv_max))
-        result = hsv_tune(frames, cfg)
+        result = hsv_tune(frames, cfg, load_params(params), mine)
         result.metrics["tuned"] = tuned_metrics(tuned, where)
     else:
         with open_from_options(car, world_obj, seed, realtime, params, start=pose, token=token, sensors=("rgbd",)) as qcar:

@@ -585,23 +585,29 @@ def tune_spots(centre: np.ndarray | None, start: tuple[float, float, float], cou
     return spots
 
 
-def hsv_tune(frames: list, cfg: LaneFollowConfig) -> Result:
-    """Threshold each ``(pose, RGBDFrame)`` of ``frames`` with the HSV range: per spot the yellow
-    pixel count (in the lane's region of interest and in the whole image) and the figure
+def hsv_tune(frames: list, cfg: LaneFollowConfig, params: QCarParams | None = None,
+             blocks: Mapping[str, Any] | None = None) -> Result:
+    """Threshold each ``(pose, RGBDFrame)`` of ``frames`` as the lab's chain does, with its blocks
+    (the student's ``color_thresholding_hsv``, ``image_selector`` and ``linear_poly_fit`` when
+    given, else qcarlab's with the HSV range): per spot the yellow pixel count (in the lane's region
+    of interest and in the whole image), whether a line was fitted, and the figure
     ``hsv_tune.png``: colour | thresholded mask | lane mask (red over the kept pixels), one row
     per spot."""
     cfg.check()
+    from qcarlab.constants import DEFAULT_PARAMS
+
+    lab = LaneFollowingLab(cfg, params or DEFAULT_PARAMS, 1.0, blocks)
     spots, rows = [], []
     for pose, frame in frames:
-        full = color_thresholding_hsv(frame.color, cfg.hsv_min, cfg.hsv_max)
-        roi = image_selector(full, cfg.lane)
-        det = detect_lane(frame.color, cfg.lane, cfg.hsv_min, cfg.hsv_max, cfg.min_pixels, white_backup=False)
+        full = np.asarray(lab.color_thresholding_hsv(frame.color))
+        roi = np.asarray(lab.image_selector(full))
+        fit = lab.linear_poly_fit(roi)
         spots.append({
             "pose": [round(v, 3) for v in pose],
             "pixels_whole_image": int(np.count_nonzero(full)),
             "pixels_in_region": int(np.count_nonzero(roi)),
-            "line_found": det.fit is not None,
-            "slope": det.fit.slope if det.fit else None,
+            "line_found": fit is not None,
+            "slope": fit.slope if fit is not None else None,
         })
         rows.append(_tune_row(frame.color, full, roi, spots[-1]))
     metrics = {
