@@ -21,6 +21,7 @@ log so far with ``interrupted`` set, so the run's results can still be saved.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -30,7 +31,9 @@ from typing import Any
 import numpy as np
 
 from qcarlab.car.base import Car, Command, Readout
-from qcarlab.errors import InputError
+from qcarlab.errors import CarError, InputError
+
+_log = logging.getLogger("qcarlab")
 
 STOP = object()  # returned by a step function to end the run
 
@@ -202,10 +205,23 @@ def run_loop(
         raise
     finally:
         log.ticks = ticks
-    car.stop()
+    if log.interrupted:
+        _stop_after_interrupt(car)
+    else:
+        car.stop()
     if keep_rows:
         _pad(cols, log.ticks)
     return log
+
+
+def _stop_after_interrupt(car: Car) -> None:
+    """Stop the car after Ctrl-C or SIGTERM; the run so far is saved whatever happens here. A
+    served car whose connection the interruption broke is stopped by its server (a controller's
+    connection closing stops the car), which is said in one line."""
+    try:
+        car.stop()
+    except CarError as exc:
+        _log.warning("could not stop the car after the interruption (%s); its server stops it as the connection closes", exc)
 
 
 def _stop_quietly(car: Car) -> None:
