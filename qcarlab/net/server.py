@@ -1027,9 +1027,10 @@ class _Session:
         if isinstance(client, str):  # free text going into a log line: printable, short
             self.client = "".join(ch if ch.isprintable() else "?" for ch in client[:64])
         if server.token is not None:
-            wait = server.tokens.wait_s(self.addr)
+            wait, everyone = server.tokens.admit(self.addr)
             if wait > 0:
-                raise self.fatal("bad_token", f"too many wrong tokens from {self.addr}; try again in {wait:.1f} s",
+                whose = "from addresses without a right token lately" if everyone else f"from {self.addr}"
+                raise self.fatal("bad_token", f"too many wrong tokens {whose}; try again in {wait:.1f} s",
                                  frame.seq, {"retry_after_s": round(wait, 3)})
             if not token_matches(msg.get("token"), server.token):
                 wait = server.tokens.failed(self.addr)

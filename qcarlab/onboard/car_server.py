@@ -898,6 +898,7 @@ def _quietly(fn, *args):
 # =================================================================================================
 MIN_TOKEN, MAX_TOKEN = 16, 256
 FREE_FAILURES, PENALTY_BASE_S, PENALTY_MAX_S, FORGET_S = 3, 0.5, 30.0, 600.0
+MAX_ADDRESSES, GLOBAL_BURST, GLOBAL_PER_S, TRUSTED_S, MAX_TRUSTED = 4096, 30, 0.1, 86400.0, 256
 
 
 def check_token(token):
@@ -927,25 +928,68 @@ def penalty_s(failures):
 
 
 class TokenGuard(object):
-    """Wrong tokens per client address: the wait before a token from it is compared again."""
+    """Wrong tokens per client address (the wait before a token from it is compared again), and one
+    budget for every address that has not shown the right token lately (qcarlab/net/guard.py: the
+    same rules and numbers): rotating addresses does not multiply the guesses, and churning
+    addresses cannot make the table forget a penalised one."""
 
-    def __init__(self):
+    def __init__(self, clock=time.monotonic):
+        self.clock = clock
         self.lock = threading.Lock()
         self.seen = {}  # address -> (failures in a row, wait until, last failure)
+        self.trusted = {}  # address -> when it last showed the right token
+        self.budget = float(GLOBAL_BURST)
+        self.budget_at = clock()
+        self.compared = 0
+
+    def _own_wait(self, addr, now):
+        entry = self.seen.get(addr)
+        if entry is None:
+            return 0.0
+        if now - entry[2] > FORGET_S:
+            del self.seen[addr]
+            return 0.0
+        return max(0.0, entry[1] - now)
+
+    def _is_trusted(self, addr, now):
+        when = self.trusted.get(addr)
+        if when is None:
+            return False
+        if now - when > TRUSTED_S:
+            del self.trusted[addr]
+            return False
+        return True
+
+    def _global_wait(self, now):
+        self.budget = min(float(GLOBAL_BURST), self.budget + (now - self.budget_at) * GLOBAL_PER_S)
+        self.budget_at = now
+        return 0.0 if self.budget >= 1.0 else (1.0 - self.budget) / GLOBAL_PER_S
 
     def wait_s(self, addr):
-        now = time.monotonic()
+        now = self.clock()
         with self.lock:
-            entry = self.seen.get(addr)
-            if entry is None:
-                return 0.0
-            if now - entry[2] > FORGET_S:
-                del self.seen[addr]
-                return 0.0
-            return max(0.0, entry[1] - now)
+            own = self._own_wait(addr, now)
+            if own > 0.0 or self._is_trusted(addr, now):
+                return own
+            return self._global_wait(now)
+
+    def admit(self, addr):
+        """(seconds to wait, whether it is the global budget's); a 0 takes one unit of the budget."""
+        now = self.clock()
+        with self.lock:
+            own = self._own_wait(addr, now)
+            if own > 0.0:
+                return own, False
+            if self._is_trusted(addr, now):
+                return 0.0, False
+            wait = self._global_wait(now)
+            if wait == 0.0:
+                self.budget -= 1.0
+                self.compared += 1
+            return wait, wait > 0.0
 
     def failed(self, addr):
-        now = time.monotonic()
+        now = self.clock()
         with self.lock:
             failures, _, last = self.seen.pop(addr, (0, 0.0, now))
             if now - last > FORGET_S:
@@ -953,14 +997,26 @@ class TokenGuard(object):
             failures += 1
             wait = penalty_s(failures)
             self.seen[addr] = (failures, now + wait, now)
-            if len(self.seen) > 4096:
-                oldest = min(self.seen, key=lambda a: self.seen[a][2])
-                del self.seen[oldest]
+            if len(self.seen) > MAX_ADDRESSES:  # the oldest whose wait is over; a penalised one last
+                done = [a for a, e in self.seen.items() if e[1] <= now or now - e[2] > FORGET_S]
+                pool = done or list(self.seen)
+                del self.seen[min(pool, key=lambda a: self.seen[a][2])]
             return wait
 
     def succeeded(self, addr):
+        now = self.clock()
         with self.lock:
             self.seen.pop(addr, None)
+            if not self._is_trusted(addr, now):
+                self._global_wait(now)
+                self.budget = min(float(GLOBAL_BURST), self.budget + 1.0)
+            self.trusted[addr] = now
+            if len(self.trusted) > MAX_TRUSTED:
+                del self.trusted[min(self.trusted, key=self.trusted.get)]
+
+    def failures(self, addr):
+        with self.lock:
+            return self.seen.get(addr, (0, 0.0, 0.0))[0]
 
 
 def is_loopback_address(addr):
@@ -1647,10 +1703,11 @@ class _Session(object):
         if isinstance(client, str):
             self.client = "".join(ch if ch.isprintable() else "?" for ch in client[:64])
         if server.token is not None:
-            wait = server.tokens.wait_s(self.host)
+            wait, everyone = server.tokens.admit(self.host)
             if wait > 0:
-                raise self.fatal("bad_token", "too many wrong tokens from {}; try again in {:.1f} s".format(
-                    self.host, wait), seq, {"retry_after_s": round(wait, 3)})
+                whose = "from addresses without a right token lately" if everyone else "from " + self.host
+                raise self.fatal("bad_token", "too many wrong tokens {}; try again in {:.1f} s".format(
+                    whose, wait), seq, {"retry_after_s": round(wait, 3)})
             if not token_matches(msg.get("token"), server.token):
                 wait = server.tokens.failed(self.host)
                 raise self.fatal("bad_token", "wrong or missing token", seq,
