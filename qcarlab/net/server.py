@@ -48,7 +48,7 @@ import socket
 import sys
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import deque
 from dataclasses import fields as dc_fields
 from typing import Any
 
@@ -59,6 +59,7 @@ from qcarlab.wire import protocol as P
 from qcarlab.net.guard import RefusalLog, TokenGuard, token_matches, token_problem
 from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.sensors import SENSORS, NoData, SensorHub
+from qcarlab.onboard.car_server import Admission  # one implementation for both servers (standard library only)
 
 log = logging.getLogger("qcarlab.net")
 
@@ -208,6 +209,7 @@ class CarServer:
         lockstep: bool | None = None,
         max_clients: int = 16,
         max_pending: int = 16,
+        max_silent: int = 256,
         hello_timeout: float = 2.0,
         io_timeout: float = 5.0,
         monitor_rate: float = 10.0,
@@ -233,6 +235,8 @@ class CarServer:
             raise InputError(f"--max-clients must be in 2-1024 (one slot is kept for the controller), got {max_clients}")
         if not 1 <= max_pending <= 1024:
             raise InputError(f"max pending connections must be in 1-1024, got {max_pending}")
+        if not 1 <= max_silent <= 4096:
+            raise InputError(f"max silent connections must be in 1-4096, got {max_silent}")
         if not (math.isfinite(monitor_rate) and 0.1 <= monitor_rate <= 1000.0):
             raise InputError(f"--monitor-rate must be between 0.1 and 1000 Hz, got {monitor_rate}")
         self.car = car
@@ -247,7 +251,9 @@ class CarServer:
         if not self.lockstep and car.stepped:
             raise InputError("a stepped simulator can only be served in lock-step (its time moves only on advance)")
         self.max_clients = max_clients
-        self.max_pending = max_pending
+        self.max_pending = max_pending  # connections reading their hello on a thread at once
+        self.max_silent = max_silent  # connections waiting for their first bytes, without a thread
+        self.admission: Admission | None = None  # holds connections before their hello (once started)
         self.hello_timeout = float(hello_timeout)
         self.io_timeout = float(io_timeout)
         self.monitor_rate = float(monitor_rate)
@@ -266,7 +272,6 @@ class CarServer:
         self.control_free = threading.Condition(self.state_lock)
         self.controller: _Session | None = None
         self.sessions: set[_Session] = set()
-        self.pending: OrderedDict[_Session, None] = OrderedDict()  # connected, no hello yet (oldest first)
         self.monitors: set[_Session] = set()
         self.last_feed = time.monotonic()
         self.tripped = False
@@ -276,7 +281,6 @@ class CarServer:
         self.watchdog_priority = "normal"  # what raise_thread_priority() got for the watchdog thread
         self.trip_delays: deque[float] = deque(maxlen=1000)  # s from the last command to each stop
         self.takeovers = 0
-        self.evicted = 0
         self.stopping = False
         self._stop_evt = threading.Event()
         self._stop_requested = False  # set by request_stop (a signal handler): a plain flag
@@ -288,8 +292,6 @@ class CarServer:
                                  stop_event=self._stop_evt)
         self.cache_readout: Readout | None = None  # lock-step: the controller's last readout
         self._listener: socket.socket | None = None
-        self._wake_r: socket.socket | None = None
-        self._wake_w: socket.socket | None = None
         self._threads: list[threading.Thread] = []
         self._started = False
         self._bound: tuple[str, int] | None = None
@@ -371,7 +373,8 @@ class CarServer:
         listener.listen(128)  # ready: a client that connects from now on is answered at once
         self._listener = listener
         self._bound = (bound[0], bound[1])
-        self._wake_r, self._wake_w = socket.socketpair()
+        self.admission = Admission(listener, self._start_session, self._refused_early, self.hello_timeout,
+                                   self.max_pending, self.max_silent, plain=self.tls is None)
         self._started = True
         try:
             self.tuned = os.sched_getscheduler(0) != os.SCHED_OTHER
@@ -448,11 +451,8 @@ class CarServer:
         self._stop_evt.set()
         self._kick.set()
         self.safe_stop("server stopping")  # first: nothing below may delay it
-        if self._wake_w is not None:
-            try:
-                self._wake_w.send(b"x")
-            except OSError:
-                pass
+        if self.admission is not None:
+            self.admission.wake()
         with self.state_lock:
             sessions = list(self.sessions)
             self.control_free.notify_all()
@@ -463,7 +463,7 @@ class CarServer:
                 thread.join(timeout=3.0)
         for s in sessions:
             s.close_socket()
-        for sock in (self._listener, self._wake_r, self._wake_w):
+        for sock in (self._listener,):
             if sock is not None:
                 try:
                     sock.close()
@@ -595,56 +595,41 @@ class CarServer:
 
     # --- connections ------------------------------------------------------------------------------
     def _accept_loop(self) -> None:
-        assert self._listener is not None and self._wake_r is not None
+        """Connections before their hello: qcarlab.onboard.car_server.Admission (a flood of silent
+        sockets costs no threads and cannot push out a client whose bytes have come)."""
+        assert self.admission is not None
         ordinary_thread_priority()  # and so are the connections it starts, until they say hello
-        while not self.stopping:
-            try:
-                ready, _, _ = select.select([self._listener, self._wake_r], [], [], 1.0)
-            except (OSError, ValueError):
-                break
-            if self.stopping:
-                break
-            if self._listener not in ready:
-                continue
-            try:
-                sock, addr = self._listener.accept()
-            except OSError:
-                continue
-            try:
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-            except OSError:
-                pass
-            if self.tls is not None:  # wrapped here (no I/O); the handshake runs on the connection's thread
-                try:
-                    from qcarlab.wire.tls import TLSSocket
+        self.admission.run(lambda: self.stopping)
 
-                    sock = TLSSocket(self.tls.wrap_socket(sock, server_side=True, do_handshake_on_connect=False))
-                except (OSError, ValueError):
-                    try:
-                        sock.close()
-                    except OSError:
-                        pass
-                    continue
-            session = _Session(self, sock, addr)
-            victim = None
+    @property
+    def evicted(self) -> int:
+        """Connections before their hello dropped to make room for others."""
+        return 0 if self.admission is None else self.admission.evicted + self.admission.dropped
+
+    @property
+    def pending(self) -> int:
+        return 0 if self.admission is None else self.admission.pending
+
+    def _refused_early(self, code: str, peer: str, detail: str) -> None:
+        self.refusals.refused(code, "%s (no hello) disconnected: %s", peer, _one_line(detail))
+
+    def _start_session(self, sock: socket.socket, addr: Any, deadline: float) -> _Session:
+        """A connection whose first bytes came (Admission): its own thread reads the hello by ``deadline``."""
+        if self.tls is not None:  # wrapped here (no I/O); the handshake runs on the connection's thread
+            from qcarlab.wire.tls import TLSSocket
+
+            sock = TLSSocket(self.tls.wrap_socket(sock, server_side=True, do_handshake_on_connect=False))
+        session = _Session(self, sock, addr, deadline)
+        with self.state_lock:
+            self.sessions.add(session)
+        try:
+            session.thread = self._spawn(session.run, f"qcarlab-client-{session.peer}")
+        except RuntimeError:
             with self.state_lock:
-                if len(self.pending) >= self.max_pending:  # the oldest connection without a hello makes room
-                    victim, _ = self.pending.popitem(last=False)
-                    victim.evicted = True
-                    self.evicted += 1
-                self.pending[session] = None
-                self.sessions.add(session)
-            if victim is not None:
-                victim.interrupt()
-            try:
-                session.thread = self._spawn(session.run, f"qcarlab-client-{session.peer}")
-            except RuntimeError:  # cannot start a thread: drop this one
-                with self.state_lock:
-                    self.pending.pop(session, None)
-                    self.sessions.discard(session)
-                session.close_socket()
-            self._threads = [t for t in self._threads if t.is_alive()]
+                self.sessions.discard(session)
+            raise
+        self._threads = [t for t in self._threads if t.is_alive()]
+        return session
 
     def claim_control(self, session: _Session) -> str | None:
         """Make ``session`` the controller; returns None, or the refusal's message (``busy``)."""
@@ -683,8 +668,9 @@ class CarServer:
     def release(self, session: _Session) -> bool:
         """``session`` leaves; True if it was the controller (then the car was stopped)."""
         was = False
+        if self.admission is not None:
+            self.admission.done(session)
         with self.state_lock:
-            self.pending.pop(session, None)
             self.monitors.discard(session)
             self.sessions.discard(session)
             if self.controller is session:
@@ -730,7 +716,7 @@ _POLL_GONE = getattr(select, "POLLRDHUP", 0) | select.POLLHUP | select.POLLERR i
 class _Session:
     """One client connection, served by its own thread."""
 
-    def __init__(self, server: CarServer, sock: socket.socket, addr: Any):
+    def __init__(self, server: CarServer, sock: socket.socket, addr: Any, deadline: float | None = None):
         self.server = server
         self.car = server.car
         self.sock = sock
@@ -759,7 +745,8 @@ class _Session:
         self.writer = P.FrameWriter(sock, self.waiter, self.send_timeout)  # one preallocated buffer for replies
         self.reader = P.FrameReader(sock, P.MAX_REQUEST, bufsize=P.MAX_REQUEST + P.HEADER_SIZE + 4096,
                                     frame_timeout=server.io_timeout, waiter=self.waiter)
-        self.reader.deadline = self.accepted + server.hello_timeout
+        # the hello's deadline: from the accept, not counting time the server kept its bytes waiting
+        self.reader.deadline = self.accepted + server.hello_timeout if deadline is None else deadline
         self.handlers = {
             M.COMMAND: self._command,
             M.STOP: self._stop,
@@ -816,6 +803,11 @@ class _Session:
         return _End(f"{code}: {message}", code)
 
     # --- the connection's life --------------------------------------------------------------------
+    def evict(self) -> None:
+        """Admission dropped this connection (still in its hello) to make room for another."""
+        self.evicted = True
+        self.interrupt()
+
     def interrupt(self) -> None:
         """Wake the thread blocked in recv (server shutdown, eviction, revocation)."""
         try:
@@ -958,8 +950,8 @@ class _Session:
                 if self.revoked is not None:
                     return "control_lost"
                 if self.evicted:
-                    raise self.fatal("too_many_clients", f"more than {server.max_pending} connections were waiting "
-                                     "for their hello; this one, the oldest, was dropped")
+                    raise self.fatal("too_many_clients", f"more than {server.max_pending} connections were reading "
+                                     "their hello at once; this one, the oldest of the busiest address, was dropped")
                 if server.stopping:
                     try:
                         self.send(M.BYE, 0, P.encode_json({"reason": "server stopping"}))
@@ -1044,9 +1036,9 @@ class _Session:
                 full = True
             else:
                 full = False
-                server.pending.pop(self, None)
                 if role == "monitor":
                     server.monitors.add(self)
+        server.admission.done(self)  # said hello: no longer one of the connections before theirs
         if full:
             raise self.fatal("too_many_clients", f"the server already has {server.max_clients - 1} monitors "
                              "(one more slot is kept for a controller); try again later", frame.seq)

@@ -1093,6 +1093,246 @@ def _log(level, msg, *args):
         pass
 
 
+class _Waiting(object):
+    """A connection that has not been handed to a thread: accepted, maybe readable."""
+
+    __slots__ = ("sock", "addr", "peer", "source", "accepted", "ready_at")
+
+    def __init__(self, sock, addr, now):
+        self.sock, self.addr, self.accepted, self.ready_at = sock, addr, now, None
+        self.peer = _peer_name(addr)
+        self.source = str(addr[0]) if isinstance(addr, tuple) and addr else self.peer
+
+
+class Admission(object):
+    """Connections before their hello, kept so that a flood cannot use them against a real client
+    (docs/protocol.md, section 3; ``qcarlab serve`` uses this same class):
+
+    - a connection is held **without a thread** until its first bytes come (a HELLO's, a TLS
+      ClientHello's, anything): ``max_silent`` (256) such connections cost a file descriptor each;
+      one that says nothing within ``hello_timeout`` of its accept is closed (``timeout``);
+    - when they are all taken, the one that makes room is the **oldest silent** connection of the
+      **source address with the most** of them; a connection whose bytes have come is never dropped
+      for a new silent one (when nothing silent is left, the new one is refused);
+    - a connection whose bytes came gets a thread (``start``); at most ``max_started`` of those are
+      reading their hello at once; a waiting one goes first from the source with the fewest started
+      (fairness), and when every slot is taken the oldest started one of the source with the most
+      makes room (it is told ``too_many_clients``), so stalled half-hellos cannot lock a client out;
+    - the hello deadline counts the client's own time: from the accept, plus nothing for the time
+      its bytes waited here for a thread (time the server spent, not the client).
+
+    ``start(sock, addr, deadline)`` runs on the accepting thread and returns a handle with
+    ``evict()``; the server calls :meth:`done` with it once that connection said hello or ended.
+    ``refused(code, peer, detail)`` counts the connections dropped here (for a rate-limited log).
+    Runs its loop in :meth:`run` until ``stopping()``; :meth:`wake` from any thread."""
+
+    def __init__(self, listener, start, refused, hello_timeout=2.0, max_started=16, max_silent=256,
+                 plain=True):
+        self.listener = listener
+        self.start = start
+        self.refused = refused
+        self.hello_timeout = float(hello_timeout)
+        self.max_started = int(max_started)
+        self.max_silent = int(max_silent)
+        self.plain = plain  # False: TLS, nothing can be said to a connection before its handshake
+        self.lock = threading.Lock()
+        self.silent = {}  # fd -> _Waiting, no bytes yet (in the selector)
+        self.ready = []  # _Waiting whose bytes came, waiting for a thread (oldest first)
+        self.started = {}  # handle -> (source, when started), oldest first (dicts keep order from 3.6 on)
+        self.evicted = 0  # started connections dropped to make room
+        self.dropped = 0  # silent connections dropped to make room, or new ones refused
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        import selectors
+
+        self.selector = selectors.DefaultSelector()
+        self._events = selectors.EVENT_READ
+
+    # --- other threads -----------------------------------------------------------------------------
+    def done(self, handle):
+        """The started connection ``handle`` said hello or ended: its slot is free."""
+        with self.lock:
+            gone = self.started.pop(handle, None) is not None
+        if gone:
+            self.wake()
+
+    def wake(self):
+        try:
+            self._wake_w.send(b"x")
+        except OSError:
+            pass
+
+    @property
+    def pending(self):
+        return len(self.silent) + len(self.ready) + len(self.started)
+
+    # --- the accepting thread ------------------------------------------------------------------------
+    def run(self, stopping):
+        self.listener.setblocking(False)
+        self.selector.register(self.listener, self._events, None)
+        self.selector.register(self._wake_r, self._events, None)
+        try:
+            while not stopping():
+                now = time.monotonic()
+                wait = 1.0
+                if self.silent:
+                    first = min(w.accepted for w in self.silent.values()) + self.hello_timeout
+                    wait = max(0.0, min(wait, first - now))
+                try:
+                    events = self.selector.select(wait)
+                except (OSError, ValueError):
+                    if stopping():
+                        break
+                    continue
+                if stopping():
+                    break
+                for key, _ in events:
+                    obj = key.fileobj
+                    if obj is self.listener:
+                        self._accept_some()
+                    elif obj is self._wake_r:
+                        try:
+                            while self._wake_r.recv(4096):
+                                pass
+                        except OSError:
+                            pass
+                    else:
+                        self._readable(key.data)
+                self._expire(time.monotonic())
+                self._promote()
+        finally:
+            self.close()
+
+    def _accept_some(self):
+        for _ in range(64):  # a burst is taken in one go; the rest next time round
+            try:
+                sock, addr = self.listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+            now = time.monotonic()
+            try:
+                sock.setblocking(False)
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+            except OSError:
+                pass
+            new = _Waiting(sock, addr, now)
+            if len(self.silent) + len(self.ready) >= self.max_silent:
+                victim = self._silent_victim()
+                if victim is None:  # everything held has begun its hello: the newcomer waits outside
+                    self.dropped += 1
+                    self._close(new, "full", "every waiting connection has begun its hello; refused at once")
+                    continue
+                self.dropped += 1
+                self._forget(victim)
+                self._close(victim, "evicted", "dropped to make room (its source held the most silent connections)",
+                            "too_many_clients", "more than {} connections were waiting for their hello; this one, "
+                            "silent and from the busiest address, was dropped".format(self.max_silent))
+            try:
+                self.selector.register(sock, self._events, new)
+            except (OSError, ValueError):
+                self._close(new, "no_hello", "could not be watched")
+                continue
+            self.silent[sock.fileno()] = new
+
+    def _silent_victim(self):
+        counts = {}
+        for w in self.silent.values():
+            counts[w.source] = counts.get(w.source, 0) + 1
+        if not counts:
+            return None
+        most = max(counts.values())
+        busiest = [w for w in self.silent.values() if counts[w.source] == most]
+        return min(busiest, key=lambda w: w.accepted)
+
+    def _forget(self, w):
+        self.silent.pop(w.sock.fileno(), None)
+        try:
+            self.selector.unregister(w.sock)
+        except (KeyError, ValueError, OSError):
+            pass
+
+    def _readable(self, w):
+        if w is None:
+            return
+        self._forget(w)
+        try:
+            data = w.sock.recv(1, socket.MSG_PEEK)
+        except (BlockingIOError, InterruptedError):
+            self.silent[w.sock.fileno()] = w  # spurious: watch it again
+            self.selector.register(w.sock, self._events, w)
+            return
+        except OSError as exc:
+            self._close(w, "no_hello", "connection error: {}".format(exc.strerror or exc), error=False)
+            return
+        if not data:
+            self._close(w, "no_hello", "closed without a hello", error=False)
+            return
+        w.ready_at = time.monotonic()
+        self.ready.append(w)
+
+    def _expire(self, now):
+        late = [w for w in self.silent.values() if now - w.accepted >= self.hello_timeout]
+        for w in late:
+            self._forget(w)
+            self._close(w, "no_hello", "no hello within {:g} s of connecting".format(self.hello_timeout),
+                        "timeout", "no hello within {:g} s of connecting".format(self.hello_timeout))
+
+    def _promote(self):
+        while self.ready:
+            with self.lock:
+                counts = {}
+                for source, _ in self.started.values():
+                    counts[source] = counts.get(source, 0) + 1
+                pick = min(self.ready, key=lambda w: (counts.get(w.source, 0), w.ready_at))
+                victim = None
+                if len(self.started) >= self.max_started:
+                    most = max(counts.values())
+                    victim = next(h for h, (source, _) in self.started.items() if counts[source] == most)
+                    del self.started[victim]
+                    self.evicted += 1
+            if victim is not None:
+                try:
+                    victim.evict()
+                except Exception:
+                    pass
+            self.ready.remove(pick)
+            now = time.monotonic()
+            deadline = pick.accepted + self.hello_timeout + (now - pick.ready_at)  # its wait for a thread is not its own
+            with self.lock:  # held while its thread starts: its done() comes after it is counted
+                try:
+                    handle = self.start(pick.sock, pick.addr, deadline)
+                except Exception as exc:  # no thread to be had: this one is dropped
+                    handle = exc
+                else:
+                    self.started[handle] = (pick.source, now)
+            if isinstance(handle, Exception):
+                self._close(pick, "no_hello", "could not be served: {}".format(handle), error=False)
+
+    def _close(self, w, code, detail, err_code=None, err_message=None, error=True):
+        if error and err_code and self.plain:
+            body = json.dumps({"code": err_code, "message": err_message, "fatal": True}).encode("utf-8")
+            try:
+                w.sock.send(HEADER.pack(MAGIC, PROTOCOL, ERROR, 1, 0, len(body)) + body)
+            except OSError:
+                pass
+        _quietly(w.sock.close)
+        try:
+            self.refused(code, w.peer, detail)
+        except Exception:
+            pass
+
+    def close(self):
+        for w in list(self.silent.values()) + list(self.ready):
+            _quietly(w.sock.close)
+        self.silent, self.ready = {}, []
+        _quietly(self.selector.close)
+        _quietly(self._wake_r.close)
+        _quietly(self._wake_w.close)
+
+
 _POLL_GONE = (getattr(select, "POLLRDHUP", 0) | select.POLLHUP | select.POLLERR) if hasattr(select, "poll") else 0
 
 
@@ -1101,7 +1341,7 @@ class CarServer(object):
 
     def __init__(self, car, host="127.0.0.1", port=DEFAULT_PORT, token=None, watchdog=0.25,
                  controller_timeout=None, throttle_limit=0.3, max_clients=16, max_pending=16,
-                 monitor_rate=10.0, hello_timeout=2.0, frame_timeout=5.0, send_timeout=5.0):
+                 monitor_rate=10.0, hello_timeout=2.0, frame_timeout=5.0, send_timeout=5.0, max_silent=256):
         if not (isinstance(port, int) and 0 <= port < 65536):
             raise InputError("--port must be in 0-65535, got {!r}".format(port))
         if not (math.isfinite(watchdog) and 0.01 <= watchdog <= 60.0):
@@ -1124,7 +1364,9 @@ class CarServer(object):
         self.throttle_limit = float(throttle_limit)
         self.steering_limit = MAX_STEERING
         self.max_clients = max_clients
-        self.max_pending = max_pending
+        self.max_pending = max_pending  # connections reading their hello on a thread at once
+        self.max_silent = max_silent  # connections waiting for their first bytes (no thread)
+        self.admission = None  # the Admission that holds connections before their hello, once started
         self.monitor_rate = float(monitor_rate)
         self.hello_timeout = hello_timeout
         self.frame_timeout = frame_timeout
@@ -1135,7 +1377,6 @@ class CarServer(object):
         self.state_lock = threading.Lock()  # the session sets
         self.controller = None
         self.sessions = set()
-        self.pending = []  # sessions that have not said hello, oldest first
         self.monitors = set()
         self.last_feed = time.monotonic()
         self.tripped = False
@@ -1193,6 +1434,8 @@ class CarServer(object):
 
     def start(self):
         self.bind()
+        self.admission = Admission(self._listener, self._start_session, self.refusals.refused, self.hello_timeout,
+                                   self.max_pending, self.max_silent)
         for target, name in ((self._accept_loop, "accept"), (self._watchdog_loop, "watchdog")):
             t = threading.Thread(target=target, name="qcarlab-" + name)
             t.daemon = True
@@ -1247,6 +1490,8 @@ class CarServer(object):
         self.stopping = True
         self._stop_evt.set()
         self.safe_stop(why)
+        if self.admission is not None:
+            self.admission.wake()
         with self.drive_lock:
             self.control_free.notify_all()
         with self.state_lock:
@@ -1380,8 +1625,8 @@ class CarServer(object):
         with self.state_lock:
             self.sessions.discard(session)
             self.monitors.discard(session)
-            if session in self.pending:
-                self.pending.remove(session)
+        if self.admission is not None:
+            self.admission.done(session)
         with self.drive_lock:
             was = self.controller is session
         if not was:
@@ -1396,41 +1641,31 @@ class CarServer(object):
 
     # --- connections ----------------------------------------------------------------------------
     def _accept_loop(self):
-        while not self.stopping:
-            try:
-                ready, _, _ = select.select([self._listener], [], [], 0.25)
-            except (OSError, ValueError):
-                break
-            self.refusals.flush()
-            if self.stopping:
-                break
-            if not ready:
-                continue
-            try:
-                sock, addr = self._listener.accept()
-            except OSError:
-                continue
-            peer = _peer_name(addr)
-            host = str(addr[0]) if isinstance(addr, tuple) else peer
-            evict = None
-            with self.state_lock:
-                if len(self.pending) >= self.max_pending:  # the oldest connection without a hello makes room
-                    evict = self.pending.pop(0)
-                    evict.evicted = True
-                session = _Session(self, sock, peer, host)
-                self.sessions.add(session)
-                self.pending.append(session)
-            if evict is not None:
-                evict.interrupt()
-            try:
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-            except OSError:
-                pass
-            t = threading.Thread(target=session.run, name="qcarlab-client-" + peer)
-            t.daemon = True
-            session.thread = t
+        self.admission.run(lambda: self.stopping)
+
+    @property
+    def evicted(self):
+        return 0 if self.admission is None else self.admission.evicted + self.admission.dropped
+
+    def _start_session(self, sock, addr, deadline):
+        """A connection whose first bytes came (Admission): its own thread reads the hello by ``deadline``."""
+        sock.setblocking(True)
+        peer = _peer_name(addr)
+        host = str(addr[0]) if isinstance(addr, tuple) else peer
+        session = _Session(self, sock, peer, host)
+        session.hello_deadline = deadline
+        with self.state_lock:
+            self.sessions.add(session)
+        t = threading.Thread(target=session.run, name="qcarlab-client-" + peer)
+        t.daemon = True
+        session.thread = t
+        try:
             t.start()
+        except RuntimeError:
+            with self.state_lock:
+                self.sessions.discard(session)
+            raise
+        return session
 
 
 class _Session(object):
@@ -1451,6 +1686,7 @@ class _Session(object):
         self.buf = bytearray()
         self.first_byte_t = None
         self.accepted = time.monotonic()
+        self.hello_deadline = self.accepted + server.hello_timeout  # set by the server from the accept
         self.last_rx = self.accepted
         self.send_lock = threading.Lock()
         self.revoked = None
@@ -1492,6 +1728,11 @@ class _Session(object):
         if self.role is None:
             self.refusal = (code, message)
         return _End("{}: {}".format(code, message))
+
+    def evict(self):
+        """Admission dropped this connection (still in its hello) to make room for another."""
+        self.evicted = True
+        self.interrupt()
 
     def interrupt(self):
         try:
@@ -1570,8 +1811,9 @@ class _Session(object):
             if self.server.stopping:
                 raise _End("server stopping", bye=self.role is not None)
             if self.evicted:
-                raise self.fatal("too_many_clients", "more than {} connections were waiting for their hello; this, the "
-                                 "oldest, was dropped to make room".format(self.server.max_pending))
+                raise self.fatal("too_many_clients", "more than {} connections were reading their hello at once; this "
+                                 "one, the oldest of the busiest address, was dropped to make room".format(
+                                     self.server.max_pending))
             wait = 0.25
             if deadline is not None:
                 left = deadline - time.monotonic()
@@ -1618,7 +1860,7 @@ class _Session(object):
                     self.last_rx = time.monotonic()
                     return mtype, seq, ref, payload
             if self.role is None:
-                deadline = self.accepted + server.hello_timeout
+                deadline = self.hello_deadline
             elif buf:
                 deadline = self.first_byte_t + server.frame_timeout
             else:
@@ -1718,10 +1960,9 @@ class _Session(object):
                 raise self.fatal("too_many_clients", "the server is busy with other connections; try again", seq)
             full = role == "monitor" and len(server.monitors) >= server.max_clients - 1
             if not full:
-                if self in server.pending:
-                    server.pending.remove(self)
                 if role == "monitor":
                     server.monitors.add(self)
+        server.admission.done(self)  # said hello: no longer one of the connections before theirs
         if full:
             raise self.fatal("too_many_clients", "the server already has {} monitors (one more slot is kept for a "
                              "controller); try again later".format(server.max_clients - 1), seq)
