@@ -59,7 +59,7 @@ from qcarlab.wire import protocol as P
 from qcarlab.net.guard import RefusalLog, TokenGuard, token_matches, token_problem
 from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.sensors import SENSORS, NoData, SensorHub
-from qcarlab.onboard.car_server import Admission  # one implementation for both servers (standard library only)
+from qcarlab.onboard.car_server import Admission, ProgressWatch, SourceLog  # one implementation for both servers (standard library only)
 
 log = logging.getLogger("qcarlab.net")
 
@@ -287,6 +287,7 @@ class CarServer:
         self._kick = threading.Event()  # wakes the watchdog: a controller came or went
         self._notes: deque[tuple[int, str, tuple[Any, ...]]] = deque(maxlen=1000)
         self.refusals = RefusalLog(log)
+        self.clientlog = SourceLog(_log)  # lines about clients, at a bounded rate per address
         self.tokens = TokenGuard()
         self.sensors = SensorHub(car, self.drive_lock, lockstep=self.lockstep, monitor_rate=self.monitor_rate,
                                  stop_event=self._stop_evt)
@@ -474,6 +475,7 @@ class CarServer:
             self.worker.close()
         self._flush_notes()
         self.refusals.flush(math.inf)
+        self.clientlog.flush(force=True)
 
     def __enter__(self) -> CarServer:
         return self.start()
@@ -570,7 +572,7 @@ class CarServer:
 
     # --- housekeeping: log lines, the real-time simulator's clock ---------------------------------
     def _housekeeping_loop(self) -> None:
-        next_sync = 0.0
+        next_sync = next_check = 0.0
         heartbeat = getattr(self.car, "heartbeat", None)
         while not self._stop_evt.wait(HOUSEKEEPING_S):
             now = time.monotonic()
@@ -590,8 +592,16 @@ class CarServer:
                 except Exception as exc:
                     _log(logging.WARNING, "live view: %s", _one_line(str(exc)))
                     heartbeat = None
+            if now >= next_check:  # replies left unread: the no-progress rule (docs/protocol.md, section 6)
+                next_check = now + 0.25
+                with self.state_lock:
+                    clients = [s for s in self.sessions if s.role is not None and s.stalled is None]
+                for s in clients:
+                    if s.progress.stalled(s.sock, now):
+                        s.cut(f"not reading its replies: none of them taken for {self.io_timeout:g} s")
             self._flush_notes()
             self.refusals.flush(now)
+            self.clientlog.flush(now)
 
     # --- connections ------------------------------------------------------------------------------
     def _accept_loop(self) -> None:
@@ -734,6 +744,8 @@ class _Session:
         self.busy = False  # a request is being served (lock-step watchdog)
         self.ending = False
         self.evicted = False
+        self.stalled: str | None = None  # why another thread ended this connection (not reading its replies)
+        self.progress = ProgressWatch(server.io_timeout)
         self.revoked: str | None = None
         self.refusal: str | None = None  # the error code this connection was refused with
         self.pace: dict[int, float] = {}  # a monitor's next sensor slots
@@ -790,9 +802,9 @@ class _Session:
             return
         self.errors += 1
         if self.errors <= MAX_LOGGED_ERRORS:
-            _log(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
+            self.say(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
             if self.errors == MAX_LOGGED_ERRORS:
-                _log(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
+                self.say(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
 
     def fatal(self, code: str, message: str, ref: int = 0, extra: dict[str, Any] | None = None) -> _End:
         payload = {"code": code, "message": message, "fatal": True, **(extra or {})}
@@ -803,6 +815,15 @@ class _Session:
         return _End(f"{code}: {message}", code)
 
     # --- the connection's life --------------------------------------------------------------------
+    def say(self, level: int, msg: str, *args: Any) -> None:
+        """A log line about this client, at a bounded rate per client address."""
+        self.server.clientlog.line(self.addr, level, msg, *args)
+
+    def cut(self, reason: str) -> None:
+        """End this connection from another thread (a rule the server checks now and then)."""
+        self.stalled = reason
+        self.interrupt()
+
     def evict(self) -> None:
         """Admission dropped this connection (still in its hello) to make room for another."""
         self.evicted = True
@@ -881,9 +902,9 @@ class _Session:
             line = "%s (%s) disconnected: %s%s"
             args = (self.peer, self.role, _one_line(reason), stopped)
             if reason.startswith(("internal", "connection error", "not reading", "control_lost")) or "STOPPING" in stopped:
-                _log(logging.WARNING, line, *args)
+                self.say(logging.WARNING, line, *args)
             else:
-                _log(logging.INFO, line, *args)
+                self.say(logging.INFO, line, *args)
         if self.bye_ref is not None:
             try:
                 self.send(M.BYE, self.bye_ref)
@@ -921,6 +942,8 @@ class _Session:
         while True:
             if self.revoked is not None:
                 return "control_lost"
+            if self.stalled is not None:
+                return self.stalled
             if server.spin and server.controller is self:
                 self._wait_for_request()
             try:
@@ -949,6 +972,8 @@ class _Session:
             if frame is None:
                 if self.revoked is not None:
                     return "control_lost"
+                if self.stalled is not None:
+                    return self.stalled
                 if self.evicted:
                     raise self.fatal("too_many_clients", f"more than {server.max_pending} connections were reading "
                                      "their hello at once; this one, the oldest of the busiest address, was dropped")
@@ -1060,7 +1085,7 @@ class _Session:
         self.reader.deadline = None
         self.reader.idle_timeout = server.io_timeout
         welcome = dict(server.welcome_base, role=role)
-        _log(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
+        self.say(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
         self.send(M.WELCOME, frame.seq, P.encode_json(welcome))
 
     # --- requests ---------------------------------------------------------------------------------

@@ -1093,6 +1093,94 @@ def _log(level, msg, *args):
         pass
 
 
+try:
+    import fcntl
+    import termios
+
+    _OUTQ = termios.TIOCOUTQ
+except (ImportError, AttributeError):  # not Linux/Unix: the rule below has nothing to measure
+    fcntl, _OUTQ = None, None
+_TCP_INFO = getattr(socket, "TCP_INFO", 11 if sys.platform.startswith("linux") else None)
+_BYTES_ACKED = struct.Struct("=Q")  # tcp_info's tcpi_bytes_acked, at offset 120 (Linux 4.1 and later)
+
+
+def send_progress(sock):
+    """(bytes sent that the peer has not acknowledged, bytes it acknowledged in all), or None where
+    the system does not say. A peer that does not read fills its receive buffer and then
+    acknowledges nothing more, however large our own send buffer lets the replies pile up."""
+    if fcntl is None or _TCP_INFO is None:
+        return None
+    raw = getattr(sock, "_s", sock)  # a TLS wrapper's socket
+    try:
+        info = raw.getsockopt(socket.IPPROTO_TCP, _TCP_INFO, 136)
+        if len(info) < 128:
+            return None
+        outq = struct.unpack("i", fcntl.ioctl(raw.fileno(), _OUTQ, b"\0\0\0\0"))[0]
+        return outq, _BYTES_ACKED.unpack_from(info, 120)[0]
+    except (OSError, ValueError, struct.error):
+        return None
+
+
+class ProgressWatch(object):
+    """docs/protocol.md's "no reply stalled for 5 s": True from :meth:`stalled` once replies have
+    waited for the client for ``limit`` s without any of them being taken (sampled now and then)."""
+
+    def __init__(self, limit):
+        self.limit = limit
+        self.acked = None
+        self.since = None
+
+    def stalled(self, sock, now):
+        got = send_progress(sock)
+        if got is None:
+            return False
+        outq, acked = got
+        if outq <= 0 or acked != self.acked or self.since is None:
+            self.acked, self.since = acked, now
+            return False
+        return now - self.since >= self.limit
+
+
+class SourceLog(object):
+    """Log lines about clients at a bounded rate per client address: at most ``per_source`` lines
+    an address in ``interval`` s, the rest counted and said in one line per address when the
+    interval ends ("127.0.0.9: 1,234 more lines not logged in the last 10 s"). ``emit(level, msg,
+    *args)`` writes a line. Lines about a failed stop of the car are never held back."""
+
+    def __init__(self, emit, interval=10.0, per_source=20, max_sources=4096, clock=time.monotonic):
+        self.emit, self.interval, self.per_source, self.max_sources, self.clock = (
+            emit, interval, per_source, max_sources, clock)
+        self.lock = threading.Lock()
+        self.start = clock()
+        self.counts = {}  # address -> lines in this interval
+        self.suppressed = 0
+
+    def line(self, source, level, msg, *args):
+        now = self.clock()
+        self.flush(now)
+        with self.lock:
+            key = source if source in self.counts or len(self.counts) < self.max_sources else "(other addresses)"
+            n = self.counts.get(key, 0) + 1
+            self.counts[key] = n
+            ok = n <= self.per_source or "FAILED" in msg or any("FAILED" in str(a) for a in args)
+            if not ok:
+                self.suppressed += 1
+        if ok:
+            self.emit(level, msg, *args)
+
+    def flush(self, now=None, force=False):
+        now = self.clock() if now is None else now
+        with self.lock:
+            if not force and now - self.start < self.interval:
+                return
+            over = [(a, n - self.per_source) for a, n in self.counts.items() if n > self.per_source]
+            span = now - self.start
+            self.start, self.counts = now, {}
+        for addr, n in sorted(over, key=lambda kv: -kv[1])[:20]:
+            self.emit(logging.WARNING, "%s: %s more line%s about its connections not logged in the last %.0f s",
+                      addr, "{:,}".format(n), "" if n == 1 else "s", span)
+
+
 class _Waiting(object):
     """A connection that has not been handed to a thread: accepted, maybe readable."""
 
@@ -1167,14 +1255,23 @@ class Admission(object):
         return len(self.silent) + len(self.ready) + len(self.started)
 
     # --- the accepting thread ------------------------------------------------------------------------
-    def run(self, stopping):
+    def run(self, stopping, tick=None, every=0.25):
+        """Accept and hold connections until ``stopping()``; ``tick(now)`` is called about every
+        ``every`` s (the server's periodic checks)."""
+        next_tick = 0.0
         self.listener.setblocking(False)
         self.selector.register(self.listener, self._events, None)
         self.selector.register(self._wake_r, self._events, None)
         try:
             while not stopping():
                 now = time.monotonic()
-                wait = 1.0
+                wait = 1.0 if tick is None else max(0.0, min(1.0, next_tick - now))
+                if tick is not None and now >= next_tick:
+                    next_tick = now + every
+                    try:
+                        tick(now)
+                    except Exception as exc:  # a check must not end the accepting thread
+                        _log(logging.WARNING, "periodic check failed: %s", _one_line(str(exc)))
                 if self.silent:
                     first = min(w.accepted for w in self.silent.values()) + self.hello_timeout
                     wait = max(0.0, min(wait, first - now))
@@ -1384,6 +1481,7 @@ class CarServer(object):
         self.takeovers = 0
         self.stopping = False
         self.refusals = RefusalLog()
+        self.clientlog = SourceLog(_log)
         self.tokens = TokenGuard()
         self.sensor_cache = {}  # reply type -> (monotonic time read, payload parts)
         self.sensor_locks = {LIDAR: threading.Lock(), RGBD: threading.Lock(), CSI: threading.Lock()}
@@ -1510,6 +1608,7 @@ class CarServer(object):
         if self._listener is not None:
             _quietly(self._listener.close)
         self.refusals.flush(force=True)
+        self.clientlog.flush(force=True)
 
     # --- the car --------------------------------------------------------------------------------
     def safe_stop(self, why):
@@ -1641,7 +1740,17 @@ class CarServer(object):
 
     # --- connections ----------------------------------------------------------------------------
     def _accept_loop(self):
-        self.admission.run(lambda: self.stopping)
+        self.admission.run(lambda: self.stopping, self._periodic)
+
+    def _periodic(self, now):
+        """Every quarter second, on the accepting thread: clients that leave their replies unread
+        for ``send_timeout`` s are dropped (a controller's car is stopped); the log's counts."""
+        with self.state_lock:
+            clients = [s for s in self.sessions if s.role is not None and not s.stalled]
+        for s in clients:
+            if s.progress.stalled(s.sock, now):
+                s.cut("not reading its replies: none of them taken for {:g} s".format(self.send_timeout))
+        self.clientlog.flush(now)
 
     @property
     def evicted(self):
@@ -1691,6 +1800,8 @@ class _Session(object):
         self.send_lock = threading.Lock()
         self.revoked = None
         self.evicted = False
+        self.stalled = None  # why another thread ended this connection (not reading its replies)
+        self.progress = ProgressWatch(server.send_timeout)
         self.ending = False
         self.bye_ref = None
         self.refusal = None  # (code, detail) when this connection never became a client
@@ -1714,9 +1825,9 @@ class _Session(object):
             return
         self.errors += 1
         if self.errors <= 5:
-            _log(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
+            self.say(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
             if self.errors == 5:
-                _log(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
+                self.say(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
 
     def fatal(self, code, message, ref=0, extra=None):
         body = {"code": code, "message": message, "fatal": True}
@@ -1728,6 +1839,15 @@ class _Session(object):
         if self.role is None:
             self.refusal = (code, message)
         return _End("{}: {}".format(code, message))
+
+    def say(self, level, msg, *args):
+        """A log line about this client: at a bounded rate per client address (SourceLog)."""
+        self.server.clientlog.line(self.host, level, msg, *args)
+
+    def cut(self, reason):
+        """End this connection from another thread (it broke a rule the server checks now and then)."""
+        self.stalled = reason
+        self.interrupt()
 
     def evict(self):
         """Admission dropped this connection (still in its hello) to make room for another."""
@@ -1801,7 +1921,7 @@ class _Session(object):
         level = logging.INFO
         if reason.startswith(("internal", "connection error", "not reading", "control_lost")) or "FAILED" in stopped:
             level = logging.WARNING
-        _log(level, line, *args)
+        self.say(level, line, *args)
 
     def _recv_more(self, deadline):
         """Receive more bytes (False at end of stream, None at the deadline); ``deadline`` or None."""
@@ -1810,6 +1930,8 @@ class _Session(object):
                 raise self.fatal("control_lost", self.revoked)
             if self.server.stopping:
                 raise _End("server stopping", bye=self.role is not None)
+            if self.stalled:
+                raise _End(self.stalled)
             if self.evicted:
                 raise self.fatal("too_many_clients", "more than {} connections were reading their hello at once; this "
                                  "one, the oldest of the busiest address, was dropped to make room".format(
@@ -1826,7 +1948,7 @@ class _Session(object):
             except socket.timeout:
                 continue
             if not data:
-                if self.revoked or self.server.stopping or self.evicted:
+                if self.revoked or self.server.stopping or self.evicted or self.stalled:
                     continue  # woken by shutdown(): say why
                 return False
             if not self.buf:
@@ -1891,6 +2013,8 @@ class _Session(object):
     def _loop(self):
         while True:
             frame = self._read_frame()
+            if self.stalled:
+                return self.stalled
             if frame is None:
                 return "closed by the client"
             mtype, seq, ref, payload = frame
@@ -1971,7 +2095,7 @@ class _Session(object):
             if refusal is not None:
                 raise self.fatal("busy", refusal, seq)
         self.role = role
-        _log(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
+        self.say(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
         self.send(WELCOME, seq, json.dumps(server.welcome(role), separators=(",", ":")).encode("utf-8"))
 
     # --- requests -------------------------------------------------------------------------------
