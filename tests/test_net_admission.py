@@ -258,3 +258,18 @@ def test_silent_connections_cost_no_thread(server):
     finally:
         for s in silent:
             s.close()
+
+
+def test_the_default_client_limit_admits_a_controller_with_8_state_and_8_camera_monitors(server):
+    """Issue 30, item 3: was --max-clients 16 by default, which refused the 17th client of that set."""
+    srv, address = server
+    clients = []
+    try:
+        for role in ["monitor"] * 16 + ["control"]:
+            raw = RawClient(address, timeout=5.0)
+            clients.append(raw)
+            frame = raw.hello(role, token=TOKEN)
+            assert frame.type == M.WELCOME, error_of(frame)
+    finally:
+        for raw in clients:
+            raw.close()

@@ -207,7 +207,7 @@ class CarServer:
         watchdog: float = 0.25,
         controller_timeout: float | None = None,
         lockstep: bool | None = None,
-        max_clients: int = 16,
+        max_clients: int = 24,
         max_pending: int = 16,
         max_silent: int = 256,
         hello_timeout: float = 2.0,

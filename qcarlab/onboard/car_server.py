@@ -1437,7 +1437,7 @@ class CarServer(object):
     """Serve ``car`` (a :class:`DryRunCar` or :class:`QuanserCar`) on ``host:port``."""
 
     def __init__(self, car, host="127.0.0.1", port=DEFAULT_PORT, token=None, watchdog=0.25,
-                 controller_timeout=None, throttle_limit=0.3, max_clients=16, max_pending=16,
+                 controller_timeout=None, throttle_limit=0.3, max_clients=24, max_pending=16,
                  monitor_rate=10.0, hello_timeout=2.0, frame_timeout=5.0, send_timeout=5.0, max_silent=256):
         if not (isinstance(port, int) and 0 <= port < 65536):
             raise InputError("--port must be in 0-65535, got {!r}".format(port))
@@ -2265,7 +2265,7 @@ def build_parser():
     p.add_argument("--controller-timeout", type=float, default=None,
                    help="a controller silent this long after the watchdog stopped the car loses control (default 4 x watchdog)")
     p.add_argument("--throttle-limit", type=float, default=0.3, help="largest |throttle| (duty fraction) applied")
-    p.add_argument("--max-clients", type=int, default=16, help="connections after hello (one slot kept for a controller)")
+    p.add_argument("--max-clients", type=int, default=24, help="connections after hello (one slot kept for a controller)")
     p.add_argument("--monitor-rate", type=float, default=10.0, help="sensor frames per second per monitor and sensor")
     p.add_argument("--no-lidar", action="store_true", help="do not open the LIDAR")
     p.add_argument("--no-rgbd", action="store_true", help="do not open the RealSense camera")
