@@ -506,6 +506,19 @@ def _camera_monitor(port: int, rate: float | None, start, stop, results) -> None
     car.close()
 
 
+def _state_monitor(port: int, rate: float | None, start, stop, results) -> None:
+    """A monitor reading the car's state (readouts) flat out: the server serves it 1,000 times a second at most."""
+    _as_remote()
+    car = _car(port, "monitor")
+    start.wait(60)
+    n, t0 = 0, time.perf_counter()
+    while not stop.is_set():
+        car.read()
+        n += 1
+    results.put(n / (time.perf_counter() - t0))
+    car.close()
+
+
 def _as_own_machine() -> str:
     """The measured controller stands in for a laptop of its own: real-time priority where allowed
     (else nice -10), so that the other work on this shared machine does not decide its figures
@@ -551,11 +564,14 @@ def bench_camera(seconds: float, monitors: int = 8, kind: str = "sim") -> dict:
     out = {}
     ticks = int(seconds * 100)
     with Served(kind, watchdog=0.25) as port:
-        for label, rate in (("none", None), ("10 Hz", 10.0), ("flat out", None)):
+        for label, rate in (("none", None), ("10 Hz", 10.0), ("flat out", None), ("8 state + 8 camera", None)):
             start, stop, res_m, res_c = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
             n_mon = 0 if label == "none" else monitors
             procs = [ctx.Process(target=_camera_monitor, args=(port, rate, start, stop, res_m), daemon=True)
                      for _ in range(n_mon)]
+            if label.startswith("8 state"):  # issue 30: 17 clients, within the default --max-clients
+                procs += [ctx.Process(target=_state_monitor, args=(port, None, start, stop, res_m), daemon=True)
+                          for _ in range(8)]
             ctl = ctx.Process(target=_ticking_controller, args=(port, 100.0, ticks, start, res_c), daemon=True)
             for proc in procs + [ctl]:
                 proc.start()
@@ -791,7 +807,12 @@ def main() -> None:
     if "camera" in only:
         r = bench_camera(duration)
         for label, v in r.items():
-            mons = "no monitors" if label == "none" else f"8 RGBD monitors {label} (got {v['monitor_fps']:.1f} frames/s each)"
+            if label == "none":
+                mons = "no monitors"
+            elif label.startswith("8 state"):
+                mons = "8 state monitors reading flat out + 8 RGBD monitors flat out (17 clients, default --max-clients)"
+            else:
+                mons = f"8 RGBD monitors {label} (got {v['monitor_fps']:.1f} frames/s each)"
             print(f"controller 100 Hz, {mons}: command round trip median {v['median_ms']:.3f} ms, "
                   f"p99 {v['p99_ms']:.3f} ms, max {v['max_ms']:.1f} ms; {v['missed']} of {v['ticks']:,} ticks missed")
             if label != "none":

@@ -27,6 +27,7 @@ from typing import Any
 from qcarlab.car.base import Car, Command, Identity, Readout, Truth
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams, params_from_mapping
 from qcarlab.errors import CarError, InputError, NotBuiltError
+from qcarlab.wire import interrupts
 from qcarlab.wire import protocol as P
 from qcarlab.wire.frames import make_frame
 from qcarlab.wire.protocol import MsgType as M
@@ -34,6 +35,7 @@ from qcarlab.wire.protocol import MsgType as M
 log = logging.getLogger("qcarlab")
 
 TOKEN_ENV = "QCARLAB_TOKEN"
+_get_ident = threading.get_ident
 _new_tuple = tuple.__new__  # a Readout from its ten values without the Python-level _make
 _READOUT, _APPLIED = (int(M.READOUT),), (int(M.APPLIED),)  # every tick's replies (plain ints: no enum lookups)
 
@@ -91,6 +93,7 @@ class TcpCar(Car):
         self._lock = threading.RLock()
         self._seq = 0
         self._rx = 0
+        self._owed = 0  # the last request whose reply an interruption left unread (0: none)
         self._sock: socket.socket | None = None
         self._waiter: P.Waiter | None = None
         self._reader: P.FrameReader | None = None
@@ -260,15 +263,21 @@ class TcpCar(Car):
             reader, writer = self._reader, self._writer
             if self._sock is None or reader is None or writer is None:
                 raise TcpConnectError(f"{self.uri}: not connected (the connection was closed)", "lost")
-            self._seq += 1
-            seq = self._seq
+            sending = sent = False
+            seq = self._seq + 1
+            hold = _get_ident() == interrupts.MAIN  # Ctrl-C/SIGTERM (the CLI's handler) wait for the reply
+            if hold:
+                interrupts.depth += 1
             try:
+                self._seq = seq
                 if timeout is not None:
                     reader.recv_timeout = timeout
+                sending = True
                 if framed is None:
                     writer.send(mtype, seq, 0, *parts)
                 else:
                     writer.send_struct(framed, mtype, seq, 0, values)
+                sent = True
                 reader.spin(self.spin)
                 while True:
                     frame = reader.read_frame()
@@ -276,14 +285,15 @@ class TcpCar(Car):
                         self._drop()
                         raise TcpConnectError(f"{self.uri}: the server closed the connection", "lost")
                     rx = self._rx + 1
-                    if frame.seq != rx:
+                    if frame.seq != rx and not (self._owed and frame.seq > rx):
                         self._drop()
                         raise TcpConnectError(f"{self.uri}: reply out of order (seq {frame.seq}, expected {rx})",
                                               "protocol")
-                    self._rx = rx
-                    if frame.ref < seq and frame.type == M.PONG:
-                        continue  # a late reply to a request we gave up on (a lost ping)
+                    self._rx = frame.seq
+                    if frame.ref < seq and (frame.type == M.PONG or frame.ref <= self._owed):
+                        continue  # a late reply to a request we gave up on (a lost ping, an interrupted request)
                     break
+                self._owed = 0
             except TimeoutError:
                 if reader.broken or not keep_on_timeout:
                     self._drop()
@@ -298,8 +308,15 @@ class TcpCar(Car):
             except OSError as exc:
                 self._drop()
                 raise TcpConnectError(f"{self.uri}: the connection to the car was lost ({exc.strerror or exc})", "lost") from None
+            except BaseException:  # KeyboardInterrupt (Ctrl-C; SIGTERM in the CLI) in the middle of the request
+                self._interrupted(seq, sending, sent, reader)
+                raise
             finally:
                 reader.recv_timeout = self.timeout
+                if hold:
+                    interrupts.depth -= 1
+                    if interrupts.held and not interrupts.depth:
+                        interrupts.release()  # the signal that came during the request
         if frame.ref == seq and frame.type in expect:  # the common case (expect never holds ERROR; BYE only for BYE)
             return frame
         if frame.type == M.ERROR:
@@ -315,6 +332,19 @@ class TcpCar(Car):
             self._drop()
             raise TcpConnectError(f"{self.uri}: unexpected {frame.name} in reply to {M(mtype).name}", "protocol")
         return frame
+
+    def _interrupted(self, seq: int, sending: bool, sent: bool, reader: P.FrameReader) -> None:
+        """A KeyboardInterrupt (Ctrl-C; SIGTERM in the CLI) landed inside a request: keep the stream
+        in step so that the run's own stop and bye still work. Its reply, if one is coming, is
+        skipped by the next request; a request that never left is forgotten; a request cut in the
+        middle of its bytes (or a reply in the middle of a large payload) leaves the stream broken:
+        the connection is dropped, and the server stops the car on its own."""
+        if reader.broken or (sending and not sent):
+            self._drop()
+        elif not sending:
+            self._seq = seq - 1
+        else:
+            self._owed = seq
 
     def _raise_error(self, frame: P.Frame) -> None:
         err = _error_fields(frame)

@@ -74,18 +74,16 @@ def _command_name(argv: list[str]) -> str:
     return "qcarlab"
 
 
-def _interrupt(signum: int, _frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def _term_as_interrupt() -> object:
     """SIGTERM ends a run like Ctrl-C: the car is stopped and the results so far are saved. SIGINT
-    is Ctrl-C even when the process was started with it ignored (a background job of a script)."""
+    is Ctrl-C even when the process was started with it ignored (a background job of a script).
+    Both are held off while a request to a served car is on the wire (qcarlab.wire.interrupts).
+    Returns what to restore."""
     if threading.current_thread() is not threading.main_thread():
         return None
-    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-    return signal.signal(signal.SIGTERM, _interrupt)
+    from qcarlab.wire import interrupts
+
+    return signal.signal(signal.SIGINT, interrupts.handler), signal.signal(signal.SIGTERM, interrupts.handler)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -135,5 +133,6 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(1)
     finally:
         if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGINT, previous[0])
+            signal.signal(signal.SIGTERM, previous[1])
     sys.exit(code if isinstance(code, int) else 0)

@@ -68,7 +68,7 @@ def serve_cmd(
     throttle_limit: Annotated[float, typer.Option(help="Throttle limit enforced by the server, whatever clients send.")] = 0.3,
     max_clients: Annotated[
         int, typer.Option(min=2, max=1024, help="Most clients at once: one controller (its slot is kept) and the rest monitors.")
-    ] = 16,
+    ] = 24,
     world: WorldOpt = None,
     seed: SeedOpt = 0,
     realism: RealismOpt = None,

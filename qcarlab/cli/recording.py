@@ -51,7 +51,9 @@ def request(record: Path | None, exact: bool, live: bool, live_port: str | None,
         live = True  # --live-port alone asks for the live view too
     previous, handler_set = None, False
     if (record is not None or live) and threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _interrupt)
+        from qcarlab.wire import interrupts
+
+        previous = signal.signal(signal.SIGTERM, interrupts.handler)
         handler_set = True
     _REQ = _Request(record, exact, live, live_port, topics, tolerance=tolerance)
     if record is not None and not live:
@@ -71,10 +73,6 @@ def request(record: Path | None, exact: bool, live: bool, live_port: str | None,
         _REQ = _Request()
         if handler_set:
             signal.signal(signal.SIGTERM, previous)
-
-
-def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
 
 
 def replay_topics() -> dict[str, str] | None:

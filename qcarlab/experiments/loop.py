@@ -27,6 +27,7 @@ the lab computes the same commands from the same inputs.
 from __future__ import annotations
 
 import contextvars
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -36,7 +37,9 @@ from typing import Any
 import numpy as np
 
 from qcarlab.car.base import Car, Command, Readout
-from qcarlab.errors import InputError
+from qcarlab.errors import CarError, InputError
+
+_log = logging.getLogger("qcarlab")
 
 STOP = object()  # returned by a step function to end the run
 
@@ -230,7 +233,10 @@ def run_loop(
         log.ticks = ticks
         if tracker is not None:
             tracker.close()
-    car.stop()
+    if log.interrupted:
+        _stop_after_interrupt(car)
+    else:
+        car.stop()
     if keep_rows:
         _pad(cols, log.ticks)
     return log
@@ -246,6 +252,16 @@ def _with_progress(on_tick: Callable[[float, Readout, Command], None] | None, tr
         tracker(t)
 
     return both
+
+
+def _stop_after_interrupt(car: Car) -> None:
+    """Stop the car after Ctrl-C or SIGTERM; the run so far is saved whatever happens here. A
+    served car whose connection the interruption broke is stopped by its server (a controller's
+    connection closing stops the car), which is said in one line."""
+    try:
+        car.stop()
+    except CarError as exc:
+        _log.warning("could not stop the car after the interruption (%s); its server stops it as the connection closes", exc)
 
 
 def _stop_quietly(car: Car) -> None:

@@ -48,7 +48,7 @@ import socket
 import sys
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import deque
 from dataclasses import fields as dc_fields
 from typing import Any
 
@@ -59,6 +59,7 @@ from qcarlab.wire import protocol as P
 from qcarlab.net.guard import RefusalLog, TokenGuard, token_matches, token_problem
 from qcarlab.wire.protocol import MsgType as M
 from qcarlab.net.sensors import SENSORS, NoData, SensorHub
+from qcarlab.onboard.car_server import Admission, ProgressWatch, SourceLog  # one implementation for both servers (standard library only)
 
 log = logging.getLogger("qcarlab.net")
 
@@ -206,8 +207,9 @@ class CarServer:
         watchdog: float = 0.25,
         controller_timeout: float | None = None,
         lockstep: bool | None = None,
-        max_clients: int = 16,
+        max_clients: int = 24,
         max_pending: int = 16,
+        max_silent: int = 256,
         hello_timeout: float = 2.0,
         io_timeout: float = 5.0,
         monitor_rate: float = 10.0,
@@ -233,6 +235,8 @@ class CarServer:
             raise InputError(f"--max-clients must be in 2-1024 (one slot is kept for the controller), got {max_clients}")
         if not 1 <= max_pending <= 1024:
             raise InputError(f"max pending connections must be in 1-1024, got {max_pending}")
+        if not 1 <= max_silent <= 4096:
+            raise InputError(f"max silent connections must be in 1-4096, got {max_silent}")
         if not (math.isfinite(monitor_rate) and 0.1 <= monitor_rate <= 1000.0):
             raise InputError(f"--monitor-rate must be between 0.1 and 1000 Hz, got {monitor_rate}")
         self.car = car
@@ -247,7 +251,9 @@ class CarServer:
         if not self.lockstep and car.stepped:
             raise InputError("a stepped simulator can only be served in lock-step (its time moves only on advance)")
         self.max_clients = max_clients
-        self.max_pending = max_pending
+        self.max_pending = max_pending  # connections reading their hello on a thread at once
+        self.max_silent = max_silent  # connections waiting for their first bytes, without a thread
+        self.admission: Admission | None = None  # holds connections before their hello (once started)
         self.hello_timeout = float(hello_timeout)
         self.io_timeout = float(io_timeout)
         self.monitor_rate = float(monitor_rate)
@@ -266,7 +272,6 @@ class CarServer:
         self.control_free = threading.Condition(self.state_lock)
         self.controller: _Session | None = None
         self.sessions: set[_Session] = set()
-        self.pending: OrderedDict[_Session, None] = OrderedDict()  # connected, no hello yet (oldest first)
         self.monitors: set[_Session] = set()
         self.last_feed = time.monotonic()
         self.tripped = False
@@ -276,20 +281,18 @@ class CarServer:
         self.watchdog_priority = "normal"  # what raise_thread_priority() got for the watchdog thread
         self.trip_delays: deque[float] = deque(maxlen=1000)  # s from the last command to each stop
         self.takeovers = 0
-        self.evicted = 0
         self.stopping = False
         self._stop_evt = threading.Event()
         self._stop_requested = False  # set by request_stop (a signal handler): a plain flag
         self._kick = threading.Event()  # wakes the watchdog: a controller came or went
         self._notes: deque[tuple[int, str, tuple[Any, ...]]] = deque(maxlen=1000)
         self.refusals = RefusalLog(log)
+        self.clientlog = SourceLog(_log)  # lines about clients, at a bounded rate per address
         self.tokens = TokenGuard()
         self.sensors = SensorHub(car, self.drive_lock, lockstep=self.lockstep, monitor_rate=self.monitor_rate,
                                  stop_event=self._stop_evt)
         self.cache_readout: Readout | None = None  # lock-step: the controller's last readout
         self._listener: socket.socket | None = None
-        self._wake_r: socket.socket | None = None
-        self._wake_w: socket.socket | None = None
         self._threads: list[threading.Thread] = []
         self._started = False
         self._bound: tuple[str, int] | None = None
@@ -371,7 +374,8 @@ class CarServer:
         listener.listen(128)  # ready: a client that connects from now on is answered at once
         self._listener = listener
         self._bound = (bound[0], bound[1])
-        self._wake_r, self._wake_w = socket.socketpair()
+        self.admission = Admission(listener, self._start_session, self._refused_early, self.hello_timeout,
+                                   self.max_pending, self.max_silent, plain=self.tls is None)
         self._started = True
         try:
             self.tuned = os.sched_getscheduler(0) != os.SCHED_OTHER
@@ -448,11 +452,8 @@ class CarServer:
         self._stop_evt.set()
         self._kick.set()
         self.safe_stop("server stopping")  # first: nothing below may delay it
-        if self._wake_w is not None:
-            try:
-                self._wake_w.send(b"x")
-            except OSError:
-                pass
+        if self.admission is not None:
+            self.admission.wake()
         with self.state_lock:
             sessions = list(self.sessions)
             self.control_free.notify_all()
@@ -463,7 +464,7 @@ class CarServer:
                 thread.join(timeout=3.0)
         for s in sessions:
             s.close_socket()
-        for sock in (self._listener, self._wake_r, self._wake_w):
+        for sock in (self._listener,):
             if sock is not None:
                 try:
                     sock.close()
@@ -474,6 +475,7 @@ class CarServer:
             self.worker.close()
         self._flush_notes()
         self.refusals.flush(math.inf)
+        self.clientlog.flush(force=True)
 
     def __enter__(self) -> CarServer:
         return self.start()
@@ -570,7 +572,7 @@ class CarServer:
 
     # --- housekeeping: log lines, the real-time simulator's clock ---------------------------------
     def _housekeeping_loop(self) -> None:
-        next_sync = 0.0
+        next_sync = next_check = 0.0
         heartbeat = getattr(self.car, "heartbeat", None)
         while not self._stop_evt.wait(HOUSEKEEPING_S):
             now = time.monotonic()
@@ -590,61 +592,54 @@ class CarServer:
                 except Exception as exc:
                     _log(logging.WARNING, "live view: %s", _one_line(str(exc)))
                     heartbeat = None
+            if now >= next_check:  # replies left unread: the no-progress rule (docs/protocol.md, section 6)
+                next_check = now + 0.25
+                with self.state_lock:
+                    clients = [s for s in self.sessions if s.role is not None and s.stalled is None]
+                for s in clients:
+                    if s.progress.stalled(s.sock, now):
+                        s.cut(f"not reading its replies: none of them taken for {self.io_timeout:g} s")
             self._flush_notes()
             self.refusals.flush(now)
+            self.clientlog.flush(now)
 
     # --- connections ------------------------------------------------------------------------------
     def _accept_loop(self) -> None:
-        assert self._listener is not None and self._wake_r is not None
+        """Connections before their hello: qcarlab.onboard.car_server.Admission (a flood of silent
+        sockets costs no threads and cannot push out a client whose bytes have come)."""
+        assert self.admission is not None
         ordinary_thread_priority()  # and so are the connections it starts, until they say hello
-        while not self.stopping:
-            try:
-                ready, _, _ = select.select([self._listener, self._wake_r], [], [], 1.0)
-            except (OSError, ValueError):
-                break
-            if self.stopping:
-                break
-            if self._listener not in ready:
-                continue
-            try:
-                sock, addr = self._listener.accept()
-            except OSError:
-                continue
-            try:
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-            except OSError:
-                pass
-            if self.tls is not None:  # wrapped here (no I/O); the handshake runs on the connection's thread
-                try:
-                    from qcarlab.wire.tls import TLSSocket
+        self.admission.run(lambda: self.stopping)
 
-                    sock = TLSSocket(self.tls.wrap_socket(sock, server_side=True, do_handshake_on_connect=False))
-                except (OSError, ValueError):
-                    try:
-                        sock.close()
-                    except OSError:
-                        pass
-                    continue
-            session = _Session(self, sock, addr)
-            victim = None
+    @property
+    def evicted(self) -> int:
+        """Connections before their hello dropped to make room for others."""
+        return 0 if self.admission is None else self.admission.evicted + self.admission.dropped
+
+    @property
+    def pending(self) -> int:
+        return 0 if self.admission is None else self.admission.pending
+
+    def _refused_early(self, code: str, peer: str, detail: str) -> None:
+        self.refusals.refused(code, "%s (no hello) disconnected: %s", peer, _one_line(detail))
+
+    def _start_session(self, sock: socket.socket, addr: Any, deadline: float) -> _Session:
+        """A connection whose first bytes came (Admission): its own thread reads the hello by ``deadline``."""
+        if self.tls is not None:  # wrapped here (no I/O); the handshake runs on the connection's thread
+            from qcarlab.wire.tls import TLSSocket
+
+            sock = TLSSocket(self.tls.wrap_socket(sock, server_side=True, do_handshake_on_connect=False))
+        session = _Session(self, sock, addr, deadline)
+        with self.state_lock:
+            self.sessions.add(session)
+        try:
+            session.thread = self._spawn(session.run, f"qcarlab-client-{session.peer}")
+        except RuntimeError:
             with self.state_lock:
-                if len(self.pending) >= self.max_pending:  # the oldest connection without a hello makes room
-                    victim, _ = self.pending.popitem(last=False)
-                    victim.evicted = True
-                    self.evicted += 1
-                self.pending[session] = None
-                self.sessions.add(session)
-            if victim is not None:
-                victim.interrupt()
-            try:
-                session.thread = self._spawn(session.run, f"qcarlab-client-{session.peer}")
-            except RuntimeError:  # cannot start a thread: drop this one
-                with self.state_lock:
-                    self.pending.pop(session, None)
-                    self.sessions.discard(session)
-                session.close_socket()
-            self._threads = [t for t in self._threads if t.is_alive()]
+                self.sessions.discard(session)
+            raise
+        self._threads = [t for t in self._threads if t.is_alive()]
+        return session
 
     def claim_control(self, session: _Session) -> str | None:
         """Make ``session`` the controller; returns None, or the refusal's message (``busy``)."""
@@ -683,8 +678,9 @@ class CarServer:
     def release(self, session: _Session) -> bool:
         """``session`` leaves; True if it was the controller (then the car was stopped)."""
         was = False
+        if self.admission is not None:
+            self.admission.done(session)
         with self.state_lock:
-            self.pending.pop(session, None)
             self.monitors.discard(session)
             self.sessions.discard(session)
             if self.controller is session:
@@ -730,7 +726,7 @@ _POLL_GONE = getattr(select, "POLLRDHUP", 0) | select.POLLHUP | select.POLLERR i
 class _Session:
     """One client connection, served by its own thread."""
 
-    def __init__(self, server: CarServer, sock: socket.socket, addr: Any):
+    def __init__(self, server: CarServer, sock: socket.socket, addr: Any, deadline: float | None = None):
         self.server = server
         self.car = server.car
         self.sock = sock
@@ -748,6 +744,8 @@ class _Session:
         self.busy = False  # a request is being served (lock-step watchdog)
         self.ending = False
         self.evicted = False
+        self.stalled: str | None = None  # why another thread ended this connection (not reading its replies)
+        self.progress = ProgressWatch(server.io_timeout)
         self.revoked: str | None = None
         self.refusal: str | None = None  # the error code this connection was refused with
         self.pace: dict[int, float] = {}  # a monitor's next sensor slots
@@ -759,7 +757,8 @@ class _Session:
         self.writer = P.FrameWriter(sock, self.waiter, self.send_timeout)  # one preallocated buffer for replies
         self.reader = P.FrameReader(sock, P.MAX_REQUEST, bufsize=P.MAX_REQUEST + P.HEADER_SIZE + 4096,
                                     frame_timeout=server.io_timeout, waiter=self.waiter)
-        self.reader.deadline = self.accepted + server.hello_timeout
+        # the hello's deadline: from the accept, not counting time the server kept its bytes waiting
+        self.reader.deadline = self.accepted + server.hello_timeout if deadline is None else deadline
         self.handlers = {
             M.COMMAND: self._command,
             M.STOP: self._stop,
@@ -803,9 +802,9 @@ class _Session:
             return
         self.errors += 1
         if self.errors <= MAX_LOGGED_ERRORS:
-            _log(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
+            self.say(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
             if self.errors == MAX_LOGGED_ERRORS:
-                _log(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
+                self.say(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
 
     def fatal(self, code: str, message: str, ref: int = 0, extra: dict[str, Any] | None = None) -> _End:
         payload = {"code": code, "message": message, "fatal": True, **(extra or {})}
@@ -816,6 +815,20 @@ class _Session:
         return _End(f"{code}: {message}", code)
 
     # --- the connection's life --------------------------------------------------------------------
+    def say(self, level: int, msg: str, *args: Any) -> None:
+        """A log line about this client, at a bounded rate per client address."""
+        self.server.clientlog.line(self.addr, level, msg, *args)
+
+    def cut(self, reason: str) -> None:
+        """End this connection from another thread (a rule the server checks now and then)."""
+        self.stalled = reason
+        self.interrupt()
+
+    def evict(self) -> None:
+        """Admission dropped this connection (still in its hello) to make room for another."""
+        self.evicted = True
+        self.interrupt()
+
     def interrupt(self) -> None:
         """Wake the thread blocked in recv (server shutdown, eviction, revocation)."""
         try:
@@ -889,9 +902,9 @@ class _Session:
             line = "%s (%s) disconnected: %s%s"
             args = (self.peer, self.role, _one_line(reason), stopped)
             if reason.startswith(("internal", "connection error", "not reading", "control_lost")) or "STOPPING" in stopped:
-                _log(logging.WARNING, line, *args)
+                self.say(logging.WARNING, line, *args)
             else:
-                _log(logging.INFO, line, *args)
+                self.say(logging.INFO, line, *args)
         if self.bye_ref is not None:
             try:
                 self.send(M.BYE, self.bye_ref)
@@ -929,6 +942,8 @@ class _Session:
         while True:
             if self.revoked is not None:
                 return "control_lost"
+            if self.stalled is not None:
+                return self.stalled
             if server.spin and server.controller is self:
                 self._wait_for_request()
             try:
@@ -957,9 +972,11 @@ class _Session:
             if frame is None:
                 if self.revoked is not None:
                     return "control_lost"
+                if self.stalled is not None:
+                    return self.stalled
                 if self.evicted:
-                    raise self.fatal("too_many_clients", f"more than {server.max_pending} connections were waiting "
-                                     "for their hello; this one, the oldest, was dropped")
+                    raise self.fatal("too_many_clients", f"more than {server.max_pending} connections were reading "
+                                     "their hello at once; this one, the oldest of the busiest address, was dropped")
                 if server.stopping:
                     try:
                         self.send(M.BYE, 0, P.encode_json({"reason": "server stopping"}))
@@ -1027,9 +1044,10 @@ class _Session:
         if isinstance(client, str):  # free text going into a log line: printable, short
             self.client = "".join(ch if ch.isprintable() else "?" for ch in client[:64])
         if server.token is not None:
-            wait = server.tokens.wait_s(self.addr)
+            wait, everyone = server.tokens.admit(self.addr)
             if wait > 0:
-                raise self.fatal("bad_token", f"too many wrong tokens from {self.addr}; try again in {wait:.1f} s",
+                whose = "from addresses without a right token lately" if everyone else f"from {self.addr}"
+                raise self.fatal("bad_token", f"too many wrong tokens {whose}; try again in {wait:.1f} s",
                                  frame.seq, {"retry_after_s": round(wait, 3)})
             if not token_matches(msg.get("token"), server.token):
                 wait = server.tokens.failed(self.addr)
@@ -1043,9 +1061,9 @@ class _Session:
                 full = True
             else:
                 full = False
-                server.pending.pop(self, None)
                 if role == "monitor":
                     server.monitors.add(self)
+        server.admission.done(self)  # said hello: no longer one of the connections before theirs
         if full:
             raise self.fatal("too_many_clients", f"the server already has {server.max_clients - 1} monitors "
                              "(one more slot is kept for a controller); try again later", frame.seq)
@@ -1067,7 +1085,7 @@ class _Session:
         self.reader.deadline = None
         self.reader.idle_timeout = server.io_timeout
         welcome = dict(server.welcome_base, role=role)
-        _log(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
+        self.say(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
         self.send(M.WELCOME, frame.seq, P.encode_json(welcome))
 
     # --- requests ---------------------------------------------------------------------------------

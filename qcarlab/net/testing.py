@@ -135,8 +135,10 @@ class SyntheticCar(Car):
 class RawClient:
     """Speaks raw frames (or raw bytes) to a server: for tests of bad input."""
 
-    def __init__(self, address: tuple[str, int], timeout: float = 2.0):
-        self.sock = socket.create_connection(address, timeout=timeout)
+    def __init__(self, address: tuple[str, int], timeout: float = 2.0, source: str | None = None):
+        # source: the local address to connect from (on Linux any 127.x.y.z stands for another machine)
+        self.sock = socket.create_connection(address, timeout=timeout,
+                                             source_address=None if source is None else (source, 0))
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.reader = P.FrameReader(self.sock, P.MAX_REPLY)
         self.seq = 0

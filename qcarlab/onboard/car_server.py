@@ -898,6 +898,7 @@ def _quietly(fn, *args):
 # =================================================================================================
 MIN_TOKEN, MAX_TOKEN = 16, 256
 FREE_FAILURES, PENALTY_BASE_S, PENALTY_MAX_S, FORGET_S = 3, 0.5, 30.0, 600.0
+MAX_ADDRESSES, GLOBAL_BURST, GLOBAL_PER_S, TRUSTED_S, MAX_TRUSTED = 4096, 30, 0.1, 86400.0, 256
 
 
 def check_token(token):
@@ -927,25 +928,68 @@ def penalty_s(failures):
 
 
 class TokenGuard(object):
-    """Wrong tokens per client address: the wait before a token from it is compared again."""
+    """Wrong tokens per client address (the wait before a token from it is compared again), and one
+    budget for every address that has not shown the right token lately (qcarlab/net/guard.py: the
+    same rules and numbers): rotating addresses does not multiply the guesses, and churning
+    addresses cannot make the table forget a penalised one."""
 
-    def __init__(self):
+    def __init__(self, clock=time.monotonic):
+        self.clock = clock
         self.lock = threading.Lock()
         self.seen = {}  # address -> (failures in a row, wait until, last failure)
+        self.trusted = {}  # address -> when it last showed the right token
+        self.budget = float(GLOBAL_BURST)
+        self.budget_at = clock()
+        self.compared = 0
+
+    def _own_wait(self, addr, now):
+        entry = self.seen.get(addr)
+        if entry is None:
+            return 0.0
+        if now - entry[2] > FORGET_S:
+            del self.seen[addr]
+            return 0.0
+        return max(0.0, entry[1] - now)
+
+    def _is_trusted(self, addr, now):
+        when = self.trusted.get(addr)
+        if when is None:
+            return False
+        if now - when > TRUSTED_S:
+            del self.trusted[addr]
+            return False
+        return True
+
+    def _global_wait(self, now):
+        self.budget = min(float(GLOBAL_BURST), self.budget + (now - self.budget_at) * GLOBAL_PER_S)
+        self.budget_at = now
+        return 0.0 if self.budget >= 1.0 else (1.0 - self.budget) / GLOBAL_PER_S
 
     def wait_s(self, addr):
-        now = time.monotonic()
+        now = self.clock()
         with self.lock:
-            entry = self.seen.get(addr)
-            if entry is None:
-                return 0.0
-            if now - entry[2] > FORGET_S:
-                del self.seen[addr]
-                return 0.0
-            return max(0.0, entry[1] - now)
+            own = self._own_wait(addr, now)
+            if own > 0.0 or self._is_trusted(addr, now):
+                return own
+            return self._global_wait(now)
+
+    def admit(self, addr):
+        """(seconds to wait, whether it is the global budget's); a 0 takes one unit of the budget."""
+        now = self.clock()
+        with self.lock:
+            own = self._own_wait(addr, now)
+            if own > 0.0:
+                return own, False
+            if self._is_trusted(addr, now):
+                return 0.0, False
+            wait = self._global_wait(now)
+            if wait == 0.0:
+                self.budget -= 1.0
+                self.compared += 1
+            return wait, wait > 0.0
 
     def failed(self, addr):
-        now = time.monotonic()
+        now = self.clock()
         with self.lock:
             failures, _, last = self.seen.pop(addr, (0, 0.0, now))
             if now - last > FORGET_S:
@@ -953,14 +997,26 @@ class TokenGuard(object):
             failures += 1
             wait = penalty_s(failures)
             self.seen[addr] = (failures, now + wait, now)
-            if len(self.seen) > 4096:
-                oldest = min(self.seen, key=lambda a: self.seen[a][2])
-                del self.seen[oldest]
+            if len(self.seen) > MAX_ADDRESSES:  # the oldest whose wait is over; a penalised one last
+                done = [a for a, e in self.seen.items() if e[1] <= now or now - e[2] > FORGET_S]
+                pool = done or list(self.seen)
+                del self.seen[min(pool, key=lambda a: self.seen[a][2])]
             return wait
 
     def succeeded(self, addr):
+        now = self.clock()
         with self.lock:
             self.seen.pop(addr, None)
+            if not self._is_trusted(addr, now):
+                self._global_wait(now)
+                self.budget = min(float(GLOBAL_BURST), self.budget + 1.0)
+            self.trusted[addr] = now
+            if len(self.trusted) > MAX_TRUSTED:
+                del self.trusted[min(self.trusted, key=self.trusted.get)]
+
+    def failures(self, addr):
+        with self.lock:
+            return self.seen.get(addr, (0, 0.0, 0.0))[0]
 
 
 def is_loopback_address(addr):
@@ -1037,6 +1093,343 @@ def _log(level, msg, *args):
         pass
 
 
+try:
+    import fcntl
+    import termios
+
+    _OUTQ = termios.TIOCOUTQ
+except (ImportError, AttributeError):  # not Linux/Unix: the rule below has nothing to measure
+    fcntl, _OUTQ = None, None
+_TCP_INFO = getattr(socket, "TCP_INFO", 11 if sys.platform.startswith("linux") else None)
+_BYTES_ACKED = struct.Struct("=Q")  # tcp_info's tcpi_bytes_acked, at offset 120 (Linux 4.1 and later)
+
+
+def send_progress(sock):
+    """(bytes sent that the peer has not acknowledged, bytes it acknowledged in all), or None where
+    the system does not say. A peer that does not read fills its receive buffer and then
+    acknowledges nothing more, however large our own send buffer lets the replies pile up."""
+    if fcntl is None or _TCP_INFO is None:
+        return None
+    raw = getattr(sock, "_s", sock)  # a TLS wrapper's socket
+    try:
+        info = raw.getsockopt(socket.IPPROTO_TCP, _TCP_INFO, 136)
+        if len(info) < 128:
+            return None
+        outq = struct.unpack("i", fcntl.ioctl(raw.fileno(), _OUTQ, b"\0\0\0\0"))[0]
+        return outq, _BYTES_ACKED.unpack_from(info, 120)[0]
+    except (OSError, ValueError, struct.error):
+        return None
+
+
+class ProgressWatch(object):
+    """docs/protocol.md's "no reply stalled for 5 s": True from :meth:`stalled` once replies have
+    waited for the client for ``limit`` s without any of them being taken (sampled now and then)."""
+
+    def __init__(self, limit):
+        self.limit = limit
+        self.acked = None
+        self.since = None
+
+    def stalled(self, sock, now):
+        got = send_progress(sock)
+        if got is None:
+            return False
+        outq, acked = got
+        if outq <= 0 or acked != self.acked or self.since is None:
+            self.acked, self.since = acked, now
+            return False
+        return now - self.since >= self.limit
+
+
+class SourceLog(object):
+    """Log lines about clients at a bounded rate per client address: at most ``per_source`` lines
+    an address in ``interval`` s, the rest counted and said in one line per address when the
+    interval ends ("127.0.0.9: 1,234 more lines not logged in the last 10 s"). ``emit(level, msg,
+    *args)`` writes a line. Lines about a failed stop of the car are never held back."""
+
+    def __init__(self, emit, interval=10.0, per_source=20, max_sources=4096, clock=time.monotonic):
+        self.emit, self.interval, self.per_source, self.max_sources, self.clock = (
+            emit, interval, per_source, max_sources, clock)
+        self.lock = threading.Lock()
+        self.start = clock()
+        self.counts = {}  # address -> lines in this interval
+        self.suppressed = 0
+
+    def line(self, source, level, msg, *args):
+        now = self.clock()
+        self.flush(now)
+        with self.lock:
+            key = source if source in self.counts or len(self.counts) < self.max_sources else "(other addresses)"
+            n = self.counts.get(key, 0) + 1
+            self.counts[key] = n
+            ok = n <= self.per_source or "FAILED" in msg or any("FAILED" in str(a) for a in args)
+            if not ok:
+                self.suppressed += 1
+        if ok:
+            self.emit(level, msg, *args)
+
+    def flush(self, now=None, force=False):
+        now = self.clock() if now is None else now
+        with self.lock:
+            if not force and now - self.start < self.interval:
+                return
+            over = [(a, n - self.per_source) for a, n in self.counts.items() if n > self.per_source]
+            span = now - self.start
+            self.start, self.counts = now, {}
+        for addr, n in sorted(over, key=lambda kv: -kv[1])[:20]:
+            self.emit(logging.WARNING, "%s: %s more line%s about its connections not logged in the last %.0f s",
+                      addr, "{:,}".format(n), "" if n == 1 else "s", span)
+
+
+class _Waiting(object):
+    """A connection that has not been handed to a thread: accepted, maybe readable."""
+
+    __slots__ = ("sock", "addr", "peer", "source", "accepted", "ready_at")
+
+    def __init__(self, sock, addr, now):
+        self.sock, self.addr, self.accepted, self.ready_at = sock, addr, now, None
+        self.peer = _peer_name(addr)
+        self.source = str(addr[0]) if isinstance(addr, tuple) and addr else self.peer
+
+
+class Admission(object):
+    """Connections before their hello, kept so that a flood cannot use them against a real client
+    (docs/protocol.md, section 3; ``qcarlab serve`` uses this same class):
+
+    - a connection is held **without a thread** until its first bytes come (a HELLO's, a TLS
+      ClientHello's, anything): ``max_silent`` (256) such connections cost a file descriptor each;
+      one that says nothing within ``hello_timeout`` of its accept is closed (``timeout``);
+    - when they are all taken, the one that makes room is the **oldest silent** connection of the
+      **source address with the most** of them; a connection whose bytes have come is never dropped
+      for a new silent one (when nothing silent is left, the new one is refused);
+    - a connection whose bytes came gets a thread (``start``); at most ``max_started`` of those are
+      reading their hello at once; a waiting one goes first from the source with the fewest started
+      (fairness), and when every slot is taken the oldest started one of the source with the most
+      makes room (it is told ``too_many_clients``), so stalled half-hellos cannot lock a client out;
+    - the hello deadline counts the client's own time: from the accept, plus nothing for the time
+      its bytes waited here for a thread (time the server spent, not the client).
+
+    ``start(sock, addr, deadline)`` runs on the accepting thread and returns a handle with
+    ``evict()``; the server calls :meth:`done` with it once that connection said hello or ended.
+    ``refused(code, peer, detail)`` counts the connections dropped here (for a rate-limited log).
+    Runs its loop in :meth:`run` until ``stopping()``; :meth:`wake` from any thread."""
+
+    def __init__(self, listener, start, refused, hello_timeout=2.0, max_started=16, max_silent=256,
+                 plain=True):
+        self.listener = listener
+        self.start = start
+        self.refused = refused
+        self.hello_timeout = float(hello_timeout)
+        self.max_started = int(max_started)
+        self.max_silent = int(max_silent)
+        self.plain = plain  # False: TLS, nothing can be said to a connection before its handshake
+        self.lock = threading.Lock()
+        self.silent = {}  # fd -> _Waiting, no bytes yet (in the selector)
+        self.ready = []  # _Waiting whose bytes came, waiting for a thread (oldest first)
+        self.started = {}  # handle -> (source, when started), oldest first (dicts keep order from 3.6 on)
+        self.evicted = 0  # started connections dropped to make room
+        self.dropped = 0  # silent connections dropped to make room, or new ones refused
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        import selectors
+
+        self.selector = selectors.DefaultSelector()
+        self._events = selectors.EVENT_READ
+
+    # --- other threads -----------------------------------------------------------------------------
+    def done(self, handle):
+        """The started connection ``handle`` said hello or ended: its slot is free."""
+        with self.lock:
+            gone = self.started.pop(handle, None) is not None
+        if gone:
+            self.wake()
+
+    def wake(self):
+        try:
+            self._wake_w.send(b"x")
+        except OSError:
+            pass
+
+    @property
+    def pending(self):
+        return len(self.silent) + len(self.ready) + len(self.started)
+
+    # --- the accepting thread ------------------------------------------------------------------------
+    def run(self, stopping, tick=None, every=0.25):
+        """Accept and hold connections until ``stopping()``; ``tick(now)`` is called about every
+        ``every`` s (the server's periodic checks)."""
+        next_tick = 0.0
+        self.listener.setblocking(False)
+        self.selector.register(self.listener, self._events, None)
+        self.selector.register(self._wake_r, self._events, None)
+        try:
+            while not stopping():
+                now = time.monotonic()
+                wait = 1.0 if tick is None else max(0.0, min(1.0, next_tick - now))
+                if tick is not None and now >= next_tick:
+                    next_tick = now + every
+                    try:
+                        tick(now)
+                    except Exception as exc:  # a check must not end the accepting thread
+                        _log(logging.WARNING, "periodic check failed: %s", _one_line(str(exc)))
+                if self.silent:
+                    first = min(w.accepted for w in self.silent.values()) + self.hello_timeout
+                    wait = max(0.0, min(wait, first - now))
+                try:
+                    events = self.selector.select(wait)
+                except (OSError, ValueError):
+                    if stopping():
+                        break
+                    continue
+                if stopping():
+                    break
+                for key, _ in events:
+                    obj = key.fileobj
+                    if obj is self.listener:
+                        self._accept_some()
+                    elif obj is self._wake_r:
+                        try:
+                            while self._wake_r.recv(4096):
+                                pass
+                        except OSError:
+                            pass
+                    else:
+                        self._readable(key.data)
+                self._expire(time.monotonic())
+                self._promote()
+        finally:
+            self.close()
+
+    def _accept_some(self):
+        for _ in range(64):  # a burst is taken in one go; the rest next time round
+            try:
+                sock, addr = self.listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+            now = time.monotonic()
+            try:
+                sock.setblocking(False)
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+            except OSError:
+                pass
+            new = _Waiting(sock, addr, now)
+            if len(self.silent) + len(self.ready) >= self.max_silent:
+                victim = self._silent_victim()
+                if victim is None:  # everything held has begun its hello: the newcomer waits outside
+                    self.dropped += 1
+                    self._close(new, "full", "every waiting connection has begun its hello; refused at once")
+                    continue
+                self.dropped += 1
+                self._forget(victim)
+                self._close(victim, "evicted", "dropped to make room (its source held the most silent connections)",
+                            "too_many_clients", "more than {} connections were waiting for their hello; this one, "
+                            "silent and from the busiest address, was dropped".format(self.max_silent))
+            try:
+                self.selector.register(sock, self._events, new)
+            except (OSError, ValueError):
+                self._close(new, "no_hello", "could not be watched")
+                continue
+            self.silent[sock.fileno()] = new
+
+    def _silent_victim(self):
+        counts = {}
+        for w in self.silent.values():
+            counts[w.source] = counts.get(w.source, 0) + 1
+        if not counts:
+            return None
+        most = max(counts.values())
+        busiest = [w for w in self.silent.values() if counts[w.source] == most]
+        return min(busiest, key=lambda w: w.accepted)
+
+    def _forget(self, w):
+        self.silent.pop(w.sock.fileno(), None)
+        try:
+            self.selector.unregister(w.sock)
+        except (KeyError, ValueError, OSError):
+            pass
+
+    def _readable(self, w):
+        if w is None:
+            return
+        self._forget(w)
+        try:
+            data = w.sock.recv(1, socket.MSG_PEEK)
+        except (BlockingIOError, InterruptedError):
+            self.silent[w.sock.fileno()] = w  # spurious: watch it again
+            self.selector.register(w.sock, self._events, w)
+            return
+        except OSError as exc:
+            self._close(w, "no_hello", "connection error: {}".format(exc.strerror or exc), error=False)
+            return
+        if not data:
+            self._close(w, "no_hello", "closed without a hello", error=False)
+            return
+        w.ready_at = time.monotonic()
+        self.ready.append(w)
+
+    def _expire(self, now):
+        late = [w for w in self.silent.values() if now - w.accepted >= self.hello_timeout]
+        for w in late:
+            self._forget(w)
+            self._close(w, "no_hello", "no hello within {:g} s of connecting".format(self.hello_timeout),
+                        "timeout", "no hello within {:g} s of connecting".format(self.hello_timeout))
+
+    def _promote(self):
+        while self.ready:
+            with self.lock:
+                counts = {}
+                for source, _ in self.started.values():
+                    counts[source] = counts.get(source, 0) + 1
+                pick = min(self.ready, key=lambda w: (counts.get(w.source, 0), w.ready_at))
+                victim = None
+                if len(self.started) >= self.max_started:
+                    most = max(counts.values())
+                    victim = next(h for h, (source, _) in self.started.items() if counts[source] == most)
+                    del self.started[victim]
+                    self.evicted += 1
+            if victim is not None:
+                try:
+                    victim.evict()
+                except Exception:
+                    pass
+            self.ready.remove(pick)
+            now = time.monotonic()
+            deadline = pick.accepted + self.hello_timeout + (now - pick.ready_at)  # its wait for a thread is not its own
+            with self.lock:  # held while its thread starts: its done() comes after it is counted
+                try:
+                    handle = self.start(pick.sock, pick.addr, deadline)
+                except Exception as exc:  # no thread to be had: this one is dropped
+                    handle = exc
+                else:
+                    self.started[handle] = (pick.source, now)
+            if isinstance(handle, Exception):
+                self._close(pick, "no_hello", "could not be served: {}".format(handle), error=False)
+
+    def _close(self, w, code, detail, err_code=None, err_message=None, error=True):
+        if error and err_code and self.plain:
+            body = json.dumps({"code": err_code, "message": err_message, "fatal": True}).encode("utf-8")
+            try:
+                w.sock.send(HEADER.pack(MAGIC, PROTOCOL, ERROR, 1, 0, len(body)) + body)
+            except OSError:
+                pass
+        _quietly(w.sock.close)
+        try:
+            self.refused(code, w.peer, detail)
+        except Exception:
+            pass
+
+    def close(self):
+        for w in list(self.silent.values()) + list(self.ready):
+            _quietly(w.sock.close)
+        self.silent, self.ready = {}, []
+        _quietly(self.selector.close)
+        _quietly(self._wake_r.close)
+        _quietly(self._wake_w.close)
+
+
 _POLL_GONE = (getattr(select, "POLLRDHUP", 0) | select.POLLHUP | select.POLLERR) if hasattr(select, "poll") else 0
 
 
@@ -1044,8 +1437,8 @@ class CarServer(object):
     """Serve ``car`` (a :class:`DryRunCar` or :class:`QuanserCar`) on ``host:port``."""
 
     def __init__(self, car, host="127.0.0.1", port=DEFAULT_PORT, token=None, watchdog=0.25,
-                 controller_timeout=None, throttle_limit=0.3, max_clients=16, max_pending=16,
-                 monitor_rate=10.0, hello_timeout=2.0, frame_timeout=5.0, send_timeout=5.0):
+                 controller_timeout=None, throttle_limit=0.3, max_clients=24, max_pending=16,
+                 monitor_rate=10.0, hello_timeout=2.0, frame_timeout=5.0, send_timeout=5.0, max_silent=256):
         if not (isinstance(port, int) and 0 <= port < 65536):
             raise InputError("--port must be in 0-65535, got {!r}".format(port))
         if not (math.isfinite(watchdog) and 0.01 <= watchdog <= 60.0):
@@ -1068,7 +1461,9 @@ class CarServer(object):
         self.throttle_limit = float(throttle_limit)
         self.steering_limit = MAX_STEERING
         self.max_clients = max_clients
-        self.max_pending = max_pending
+        self.max_pending = max_pending  # connections reading their hello on a thread at once
+        self.max_silent = max_silent  # connections waiting for their first bytes (no thread)
+        self.admission = None  # the Admission that holds connections before their hello, once started
         self.monitor_rate = float(monitor_rate)
         self.hello_timeout = hello_timeout
         self.frame_timeout = frame_timeout
@@ -1079,7 +1474,6 @@ class CarServer(object):
         self.state_lock = threading.Lock()  # the session sets
         self.controller = None
         self.sessions = set()
-        self.pending = []  # sessions that have not said hello, oldest first
         self.monitors = set()
         self.last_feed = time.monotonic()
         self.tripped = False
@@ -1087,6 +1481,7 @@ class CarServer(object):
         self.takeovers = 0
         self.stopping = False
         self.refusals = RefusalLog()
+        self.clientlog = SourceLog(_log)
         self.tokens = TokenGuard()
         self.sensor_cache = {}  # reply type -> (monotonic time read, payload parts)
         self.sensor_locks = {LIDAR: threading.Lock(), RGBD: threading.Lock(), CSI: threading.Lock()}
@@ -1137,6 +1532,8 @@ class CarServer(object):
 
     def start(self):
         self.bind()
+        self.admission = Admission(self._listener, self._start_session, self.refusals.refused, self.hello_timeout,
+                                   self.max_pending, self.max_silent)
         for target, name in ((self._accept_loop, "accept"), (self._watchdog_loop, "watchdog")):
             t = threading.Thread(target=target, name="qcarlab-" + name)
             t.daemon = True
@@ -1191,6 +1588,8 @@ class CarServer(object):
         self.stopping = True
         self._stop_evt.set()
         self.safe_stop(why)
+        if self.admission is not None:
+            self.admission.wake()
         with self.drive_lock:
             self.control_free.notify_all()
         with self.state_lock:
@@ -1209,6 +1608,7 @@ class CarServer(object):
         if self._listener is not None:
             _quietly(self._listener.close)
         self.refusals.flush(force=True)
+        self.clientlog.flush(force=True)
 
     # --- the car --------------------------------------------------------------------------------
     def safe_stop(self, why):
@@ -1324,8 +1724,8 @@ class CarServer(object):
         with self.state_lock:
             self.sessions.discard(session)
             self.monitors.discard(session)
-            if session in self.pending:
-                self.pending.remove(session)
+        if self.admission is not None:
+            self.admission.done(session)
         with self.drive_lock:
             was = self.controller is session
         if not was:
@@ -1340,41 +1740,41 @@ class CarServer(object):
 
     # --- connections ----------------------------------------------------------------------------
     def _accept_loop(self):
-        while not self.stopping:
-            try:
-                ready, _, _ = select.select([self._listener], [], [], 0.25)
-            except (OSError, ValueError):
-                break
-            self.refusals.flush()
-            if self.stopping:
-                break
-            if not ready:
-                continue
-            try:
-                sock, addr = self._listener.accept()
-            except OSError:
-                continue
-            peer = _peer_name(addr)
-            host = str(addr[0]) if isinstance(addr, tuple) else peer
-            evict = None
-            with self.state_lock:
-                if len(self.pending) >= self.max_pending:  # the oldest connection without a hello makes room
-                    evict = self.pending.pop(0)
-                    evict.evicted = True
-                session = _Session(self, sock, peer, host)
-                self.sessions.add(session)
-                self.pending.append(session)
-            if evict is not None:
-                evict.interrupt()
-            try:
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-            except OSError:
-                pass
-            t = threading.Thread(target=session.run, name="qcarlab-client-" + peer)
-            t.daemon = True
-            session.thread = t
+        self.admission.run(lambda: self.stopping, self._periodic)
+
+    def _periodic(self, now):
+        """Every quarter second, on the accepting thread: clients that leave their replies unread
+        for ``send_timeout`` s are dropped (a controller's car is stopped); the log's counts."""
+        with self.state_lock:
+            clients = [s for s in self.sessions if s.role is not None and not s.stalled]
+        for s in clients:
+            if s.progress.stalled(s.sock, now):
+                s.cut("not reading its replies: none of them taken for {:g} s".format(self.send_timeout))
+        self.clientlog.flush(now)
+
+    @property
+    def evicted(self):
+        return 0 if self.admission is None else self.admission.evicted + self.admission.dropped
+
+    def _start_session(self, sock, addr, deadline):
+        """A connection whose first bytes came (Admission): its own thread reads the hello by ``deadline``."""
+        sock.setblocking(True)
+        peer = _peer_name(addr)
+        host = str(addr[0]) if isinstance(addr, tuple) else peer
+        session = _Session(self, sock, peer, host)
+        session.hello_deadline = deadline
+        with self.state_lock:
+            self.sessions.add(session)
+        t = threading.Thread(target=session.run, name="qcarlab-client-" + peer)
+        t.daemon = True
+        session.thread = t
+        try:
             t.start()
+        except RuntimeError:
+            with self.state_lock:
+                self.sessions.discard(session)
+            raise
+        return session
 
 
 class _Session(object):
@@ -1395,10 +1795,13 @@ class _Session(object):
         self.buf = bytearray()
         self.first_byte_t = None
         self.accepted = time.monotonic()
+        self.hello_deadline = self.accepted + server.hello_timeout  # set by the server from the accept
         self.last_rx = self.accepted
         self.send_lock = threading.Lock()
         self.revoked = None
         self.evicted = False
+        self.stalled = None  # why another thread ended this connection (not reading its replies)
+        self.progress = ProgressWatch(server.send_timeout)
         self.ending = False
         self.bye_ref = None
         self.refusal = None  # (code, detail) when this connection never became a client
@@ -1422,9 +1825,9 @@ class _Session(object):
             return
         self.errors += 1
         if self.errors <= 5:
-            _log(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
+            self.say(logging.WARNING, "%s (%s): %s: %s", self.peer, self.role or "no hello", code, _one_line(message))
             if self.errors == 5:
-                _log(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
+                self.say(logging.WARNING, "%s: further errors from this client are counted, not logged", self.peer)
 
     def fatal(self, code, message, ref=0, extra=None):
         body = {"code": code, "message": message, "fatal": True}
@@ -1436,6 +1839,20 @@ class _Session(object):
         if self.role is None:
             self.refusal = (code, message)
         return _End("{}: {}".format(code, message))
+
+    def say(self, level, msg, *args):
+        """A log line about this client: at a bounded rate per client address (SourceLog)."""
+        self.server.clientlog.line(self.host, level, msg, *args)
+
+    def cut(self, reason):
+        """End this connection from another thread (it broke a rule the server checks now and then)."""
+        self.stalled = reason
+        self.interrupt()
+
+    def evict(self):
+        """Admission dropped this connection (still in its hello) to make room for another."""
+        self.evicted = True
+        self.interrupt()
 
     def interrupt(self):
         try:
@@ -1504,7 +1921,7 @@ class _Session(object):
         level = logging.INFO
         if reason.startswith(("internal", "connection error", "not reading", "control_lost")) or "FAILED" in stopped:
             level = logging.WARNING
-        _log(level, line, *args)
+        self.say(level, line, *args)
 
     def _recv_more(self, deadline):
         """Receive more bytes (False at end of stream, None at the deadline); ``deadline`` or None."""
@@ -1513,9 +1930,12 @@ class _Session(object):
                 raise self.fatal("control_lost", self.revoked)
             if self.server.stopping:
                 raise _End("server stopping", bye=self.role is not None)
+            if self.stalled:
+                raise _End(self.stalled)
             if self.evicted:
-                raise self.fatal("too_many_clients", "more than {} connections were waiting for their hello; this, the "
-                                 "oldest, was dropped to make room".format(self.server.max_pending))
+                raise self.fatal("too_many_clients", "more than {} connections were reading their hello at once; this "
+                                 "one, the oldest of the busiest address, was dropped to make room".format(
+                                     self.server.max_pending))
             wait = 0.25
             if deadline is not None:
                 left = deadline - time.monotonic()
@@ -1528,7 +1948,7 @@ class _Session(object):
             except socket.timeout:
                 continue
             if not data:
-                if self.revoked or self.server.stopping or self.evicted:
+                if self.revoked or self.server.stopping or self.evicted or self.stalled:
                     continue  # woken by shutdown(): say why
                 return False
             if not self.buf:
@@ -1562,7 +1982,7 @@ class _Session(object):
                     self.last_rx = time.monotonic()
                     return mtype, seq, ref, payload
             if self.role is None:
-                deadline = self.accepted + server.hello_timeout
+                deadline = self.hello_deadline
             elif buf:
                 deadline = self.first_byte_t + server.frame_timeout
             else:
@@ -1593,6 +2013,8 @@ class _Session(object):
     def _loop(self):
         while True:
             frame = self._read_frame()
+            if self.stalled:
+                return self.stalled
             if frame is None:
                 return "closed by the client"
             mtype, seq, ref, payload = frame
@@ -1647,10 +2069,11 @@ class _Session(object):
         if isinstance(client, str):
             self.client = "".join(ch if ch.isprintable() else "?" for ch in client[:64])
         if server.token is not None:
-            wait = server.tokens.wait_s(self.host)
+            wait, everyone = server.tokens.admit(self.host)
             if wait > 0:
-                raise self.fatal("bad_token", "too many wrong tokens from {}; try again in {:.1f} s".format(
-                    self.host, wait), seq, {"retry_after_s": round(wait, 3)})
+                whose = "from addresses without a right token lately" if everyone else "from " + self.host
+                raise self.fatal("bad_token", "too many wrong tokens {}; try again in {:.1f} s".format(
+                    whose, wait), seq, {"retry_after_s": round(wait, 3)})
             if not token_matches(msg.get("token"), server.token):
                 wait = server.tokens.failed(self.host)
                 raise self.fatal("bad_token", "wrong or missing token", seq,
@@ -1661,10 +2084,9 @@ class _Session(object):
                 raise self.fatal("too_many_clients", "the server is busy with other connections; try again", seq)
             full = role == "monitor" and len(server.monitors) >= server.max_clients - 1
             if not full:
-                if self in server.pending:
-                    server.pending.remove(self)
                 if role == "monitor":
                     server.monitors.add(self)
+        server.admission.done(self)  # said hello: no longer one of the connections before theirs
         if full:
             raise self.fatal("too_many_clients", "the server already has {} monitors (one more slot is kept for a "
                              "controller); try again later".format(server.max_clients - 1), seq)
@@ -1673,7 +2095,7 @@ class _Session(object):
             if refusal is not None:
                 raise self.fatal("busy", refusal, seq)
         self.role = role
-        _log(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
+        self.say(logging.INFO, "%s connected as %s (%s)", self.peer, role, self.client)
         self.send(WELCOME, seq, json.dumps(server.welcome(role), separators=(",", ":")).encode("utf-8"))
 
     # --- requests -------------------------------------------------------------------------------
@@ -1843,7 +2265,7 @@ def build_parser():
     p.add_argument("--controller-timeout", type=float, default=None,
                    help="a controller silent this long after the watchdog stopped the car loses control (default 4 x watchdog)")
     p.add_argument("--throttle-limit", type=float, default=0.3, help="largest |throttle| (duty fraction) applied")
-    p.add_argument("--max-clients", type=int, default=16, help="connections after hello (one slot kept for a controller)")
+    p.add_argument("--max-clients", type=int, default=24, help="connections after hello (one slot kept for a controller)")
     p.add_argument("--monitor-rate", type=float, default=10.0, help="sensor frames per second per monitor and sensor")
     p.add_argument("--no-lidar", action="store_true", help="do not open the LIDAR")
     p.add_argument("--no-rgbd", action="store_true", help="do not open the RealSense camera")
