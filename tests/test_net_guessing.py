@@ -19,18 +19,7 @@ from qcarlab.wire.protocol import MsgType as M
 TOKEN = "lab-car-7-0123456789abcdef"
 
 
-@pytest.fixture(params=["serve", "onboard"])
-def server(request):
-    if request.param == "serve":
-        srv = CarServer(SyntheticCar(), "127.0.0.1", 0, token=TOKEN).start()
-        address = srv.address
-    else:
-        srv = cs.CarServer(cs.DryRunCar(1), "127.0.0.1", 0, token=TOKEN).start()
-        address = srv.bound
-    try:
-        yield srv, address
-    finally:
-        srv.stop()
+from tests.test_net_admission import server  # noqa: E402,F401  (serve and the onboard server, with TOKEN)
 
 
 def _hello(address, source, token):
