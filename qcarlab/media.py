@@ -22,7 +22,7 @@ try:  # also when OpenCV was loaded before qcarlab (its environment variables we
 except AttributeError:  # pragma: no cover - an OpenCV without its logging module
     pass
 
-__all__ = ["IMAGE_EXT", "VIDEO_EXT", "Source", "VideoOut", "check_image_size", "expand_paths", "frames_of",
+__all__ = ["H264_HINT", "IMAGE_EXT", "VIDEO_EXT", "Source", "VideoOut", "check_image_size", "expand_paths", "frames_of",
            "image_size", "read_depth", "read_image"]
 
 IMAGE_EXT = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
@@ -208,23 +208,89 @@ def read_depth(path: str | Path, shape: tuple[int, int] | None = None) -> np.nda
     return d
 
 
-class VideoOut:
-    """An MP4 written frame by frame (``mp4v``), opened on the first frame's size."""
+H264_HINT = ("wrote MPEG-4 Part 2 video (OpenCV), which browsers may not play; for H.264 install PyAV: "
+             "pip install 'qcarlab[video]'")
 
-    def __init__(self, path: Path, fps: float):
+
+class VideoOut:
+    """An MP4 written frame by frame, opened on the first frame's size.
+
+    With PyAV (``pip install 'qcarlab[video]'``) the video is H.264 (libx264), ``yuv420p`` with
+    the index at the front (``+faststart``): the MP4 browsers play. Without it, OpenCV writes
+    MPEG-4 Part 2 (``mp4v``), which Chromium and Firefox do not play; ``codec`` then is
+    ``"mpeg4"`` and ``note`` is a line saying so and how to get H.264.
+
+        video = VideoOut(Path("out.mp4"), fps=10)
+        for frame in frames:          # BGR uint8
+            video.write(frame)
+        video.close()                 # video.codec: "h264" (PyAV) or "mpeg4" (OpenCV)
+    """
+
+    def __init__(self, path: Path, fps: float, prefer_h264: bool = True):
         self.path, self.fps, self._w = path, fps, None
+        self._av = _pyav() if prefer_h264 else None
+        self.codec = "h264" if self._av is not None else "mpeg4"
+        self.note = None if self._av is not None else H264_HINT
+        self._container = self._stream = None
+
+    def _open_av(self, w: int, h: int) -> None:
+        from fractions import Fraction
+
+        av = self._av
+        try:
+            self._container = av.open(str(self.path), "w", format="mp4", options={"movflags": "+faststart"})
+        except (OSError, av.FFmpegError) as exc:
+            raise InputError(f"{self.path}: cannot write a video here ({exc})") from None
+        rate = Fraction(self.fps).limit_denominator(1001)
+        self._stream = self._container.add_stream("libx264", rate=rate)
+        # yuv420p halves the chroma: H.264 wants even sizes, so an odd width or height gets a pixel more
+        self._stream.width, self._stream.height = w + w % 2, h + h % 2
+        self._stream.pix_fmt = "yuv420p"
+        self._stream.options = {"crf": "23", "preset": "medium"}
 
     def write(self, frame: np.ndarray) -> None:
-        if self._w is None:
+        if self._w is None and self._container is None:
             h, w = frame.shape[:2]
-            self._w = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
-            if not self._w.isOpened():
-                raise InputError(f"{self.path}: cannot write a video here")
             self._size = (w, h)
+            if self._av is not None:
+                self._open_av(w, h)
+            else:
+                self._w = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
+                if not self._w.isOpened():
+                    raise InputError(f"{self.path}: cannot write a video here")
         if (frame.shape[1], frame.shape[0]) != self._size:
             frame = cv2.resize(frame, self._size)
-        self._w.write(frame)
+        if self._container is None:
+            self._w.write(frame)
+            return
+        w, h = self._size
+        if (w % 2, h % 2) != (0, 0):
+            frame = cv2.copyMakeBorder(frame, 0, h % 2, 0, w % 2, cv2.BORDER_REPLICATE)
+        if frame.ndim == 2:
+            frame = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+        vf = self._av.VideoFrame.from_ndarray(np.ascontiguousarray(frame[:, :, :3]), format="bgr24")
+        for packet in self._stream.encode(vf):
+            self._container.mux(packet)
 
     def close(self) -> None:
         if self._w is not None:
             self._w.release()
+        if self._container is not None:
+            try:
+                for packet in self._stream.encode():
+                    self._container.mux(packet)
+            finally:
+                self._container.close()
+                self._container = None
+
+
+def _pyav():
+    """PyAV when it is installed and has an H.264 encoder (its wheels carry libx264), else None."""
+    try:
+        import av
+        from av.codec import Codec
+
+        Codec("libx264", "w")
+    except Exception:  # not installed, or a build without libx264: OpenCV's writer instead
+        return None
+    return av

@@ -1,7 +1,8 @@
 """PNG figures (matplotlib, Agg, imported lazily so that ``import qcarlab`` stays fast).
 
 Figures are drawn with matplotlib's object API on an Agg canvas (no pyplot, no global state, no
-display needed). Every plot takes the output ``file`` and returns it.
+display needed). Every ``plot_*`` takes the output ``file`` and returns it; every ``*_figure``
+returns the matplotlib Figure (to check or change) and :func:`save_figure` writes it.
 """
 
 from __future__ import annotations
@@ -12,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["plot_cloud", "plot_depth", "plot_follow", "plot_path", "plot_polar_scan", "plot_speed",
-           "plot_step_response", "plot_sweep"]
+__all__ = ["camera_figure", "drive_figure", "lane_figure", "plot_cloud", "plot_depth", "plot_follow", "plot_path",
+           "plot_polar_scan", "plot_speed", "plot_step_response", "plot_sweep", "save_figure", "trials_figure"]
 
 
 def _figure(width: float = 7.6, height: float = 6.0) -> Any:
@@ -220,3 +221,183 @@ def plot_depth(depth: np.ndarray, file: str | Path) -> Path:
     ax.set_title("RGBD depth")
     ax.set_axis_off()
     return _save(fig, file)
+
+
+# ------------------------------------------------------------------ top-down maps (world frame, m)
+CAR_SIZE = (0.425, 0.192)  # m, length x width (DESIGN.md section 3): the outline drawn at a pose
+
+
+def save_figure(fig: Any, file: str | Path) -> Path:
+    """Write a Figure made by one of the ``*_figure`` functions to a PNG; returns the path."""
+    return _save(fig, file)
+
+
+def _map_axes(fig: Any, background: np.ndarray | None, extent: Sequence[float] | None, title: str) -> Any:
+    """One equal-aspect axes in metres over the world seen from above (a BGR render and its
+    ``[xmin, xmax, ymin, ymax]``, as :func:`qcarlab.experiments.worlds.topdown_map` gives them)."""
+    ax = fig.add_subplot(1, 1, 1)
+    if background is not None and extent is not None:
+        ax.imshow(background[:, :, ::-1], extent=list(extent), origin="upper", interpolation="antialiased",
+                  zorder=0)
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+    ax.set_aspect("equal")
+    ax.grid(True, alpha=0.3)
+    ax.set_xlabel("X (m)")
+    ax.set_ylabel("Y (m)")
+    ax.set_title(title, fontsize=10)
+    return ax
+
+
+def _outline(ax: Any, pose: Sequence[float], color: str, label: str | None, size: Sequence[float] = CAR_SIZE,
+             arrow: bool = False) -> None:
+    x, y, yaw = (float(v) for v in pose[:3])
+    c, s = np.cos(yaw), np.sin(yaw)
+    hl, hw = size[0] / 2.0, size[1] / 2.0
+    local = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw], [hl, hw]])
+    pts = np.column_stack((x + c * local[:, 0] - s * local[:, 1], y + s * local[:, 0] + c * local[:, 1]))
+    ax.plot(pts[:, 0], pts[:, 1], "-", color=color, lw=2, label=label, zorder=5)
+    if arrow:
+        ax.annotate("", xy=(x + 0.35 * c, y + 0.35 * s), xytext=(x, y), zorder=5,
+                    arrowprops={"arrowstyle": "->", "color": color, "lw": 2})
+
+
+def _legend_outside(ax: Any) -> None:
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, borderaxespad=0.0, framealpha=0.95,
+              markerscale=2.0)
+
+
+def lane_figure(background: np.ndarray | None, extent: Sequence[float] | None, poses: np.ndarray,
+                centre: np.ndarray | None, metrics: Mapping[str, Any] | None = None) -> Any:
+    """``lane.png``: the lane's centre (the reference), the driven path (the simulator's truth),
+    the start and the car at the end, over the track seen from above, in metres. Returns the Figure."""
+    m = metrics or {}
+    rms = m.get("rms_lateral_deviation_m")
+    title = "lane following: the driven path in the lane"
+    if rms is not None:
+        title += (f"\nRMS lateral deviation {rms * 100:.1f} cm, max {m['max_lateral_deviation_m'] * 100:.1f} cm, "
+                  f"{m.get('time_out_of_lane_s', 0.0):.2f} s out of the lane")
+    fig = _figure()
+    ax = _map_axes(fig, background, extent, title)
+    q = np.asarray(poses, dtype=float).reshape(-1, 3)
+    if centre is not None and len(centre) >= 2:
+        c = np.asarray(centre, dtype=float)
+        ax.plot(c[:, 0], c[:, 1], "--", color="tab:purple", lw=1.5, label="lane centre (reference)", zorder=3)
+    if len(q):
+        ax.plot(q[:, 0], q[:, 1], "-", color="tab:red", lw=1.8, label="driven path (truth)", zorder=4)
+        _outline(ax, q[0], "tab:green", "car at the start", arrow=True)
+        _outline(ax, q[-1], "tab:red", "car at the end")
+    _legend_outside(ax)
+    return fig
+
+
+def drive_figure(background: np.ndarray | None, extent: Sequence[float] | None, poses: np.ndarray | None,
+                 scans: Sequence[np.ndarray], metrics: Mapping[str, Any]) -> Any:
+    """``drive.png`` (``qcarlab avoid``): the driven path, LIDAR returns in the world frame (``scans``:
+    world-frame (N, 2) arrays, the last one the final scan), the car at the start and at the end and a
+    collision, over the world seen from above, in metres. Returns the Figure."""
+    m = metrics
+    clear = "n/a" if m.get("min_clearance_m") is None else f"{m['min_clearance_m'] * 100:.1f} cm"
+    title = (f"avoid ({m.get('strategy', '')}): {m.get('duration_s', 0.0):.1f} s, {m.get('distance_m', 0.0):.2f} m "
+             f"driven, {m.get('collisions', 0)} collision(s), min clearance {clear}")
+    fig = _figure(8.4, 6.0)
+    ax = _map_axes(fig, background, extent, title)
+    scans = [np.asarray(s, dtype=float).reshape(-1, 2) for s in scans]
+    if len(scans) > 1:
+        older = np.concatenate(scans[:-1])
+        ax.scatter(older[:, 0], older[:, 1], s=1.5, color="tab:blue", alpha=0.5, linewidths=0,
+                   label="LIDAR returns (every 2nd scan)", zorder=2)
+    if scans:
+        ax.scatter(scans[-1][:, 0], scans[-1][:, 1], s=6, color="tab:orange", linewidths=0,
+                   label="LIDAR returns, last scan", zorder=3)
+    if poses is not None and len(poses):
+        q = np.asarray(poses, dtype=float).reshape(-1, 3)
+        ax.plot(q[:, 0], q[:, 1], "-", color="tab:red", lw=1.8, label="driven path (truth)", zorder=4)
+        _outline(ax, q[0], "tab:green", "car at the start", arrow=True)
+        _outline(ax, q[-1], "tab:red", "car at the end")
+    hit = m.get("collision")
+    if hit:
+        ax.plot(hit["x"], hit["y"], "X", color="red", mec="black", ms=12, label="collision", zorder=6)
+    _legend_outside(ax)
+    return fig
+
+
+def trials_figure(background: np.ndarray | None, extent: Sequence[float] | None, metrics: Mapping[str, Any]) -> Any:
+    """``trials.png`` (``qcarlab trials``): every trial's path, green when it succeeded and red when
+    it failed, its start, its collision, the balls' rolls and where obstacles were moved to, over
+    the world seen from above, in metres. Returns the Figure."""
+    m = metrics
+    title = (f"{m['experiment']}: {m['successes']} of {m['trials']} trials succeeded "
+             f"({100.0 * m['success_rate']:.0f} %), {m['collisions']} collision(s)")
+    fig = _figure(8.4, 6.0)
+    ax = _map_axes(fig, background, extent, title)
+    runs = m.get("runs", [])
+    labelled: set[str] = set()
+
+    def once(label: str) -> str | None:
+        if label in labelled:
+            return None
+        labelled.add(label)
+        return label
+
+    for r in runs:
+        for b in r.get("balls", []):
+            a = b["start"]
+            e = (a[0] + b["rolls_m"] * np.cos(b["direction_rad"]), a[1] + b["rolls_m"] * np.sin(b["direction_rad"]))
+            ax.plot([a[0], e[0]], [a[1], e[1]], "--", color="tab:orange", lw=1, label=once("a ball's roll"), zorder=2)
+    for ok_pass in (True, False):  # failures drawn last, on top
+        for r in runs:
+            if r["success"] != ok_pass or len(r["path"]) < 2:
+                continue
+            p = np.asarray(r["path"], dtype=float)
+            ax.plot(p[:, 0], p[:, 1], "-", color="tab:green" if ok_pass else "tab:red", lw=1.5, zorder=3,
+                    label=once("trial succeeded" if ok_pass else "trial failed"))
+    for r in runs:
+        for mv in r.get("moved", []):
+            ax.plot(mv["to"][0], mv["to"][1], "o", color="saddlebrown", ms=3,
+                    label=once("an obstacle moved here"), zorder=4)
+    for r in runs:
+        ax.plot(r["start"][0], r["start"][1], "o", color="black", ms=4, label=once("start of a trial"), zorder=5)
+        hit = r.get("collision")
+        if hit:
+            ax.plot(hit["x"], hit["y"], "X", color="red", mec="black", ms=10, label=once("collision"), zorder=6)
+    _legend_outside(ax)
+    return fig
+
+
+# ------------------------------------------------------------- camera frames with their overlays
+def camera_figure(panels: Sequence[tuple[np.ndarray, str]], legend: Sequence[tuple[str, str, str]],
+                  title: str = "", px_per_inch: float = 100.0) -> Any:
+    """Camera images (BGR or grey, each with its panel title) side by side at about their own
+    resolution, with a legend of the overlays: ``legend`` = (what it is, matplotlib colour, kind),
+    kind ``"line"``, ``"box"``, ``"pixels"`` or ``"cross"``. Returns the Figure."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    n = max(1, len(panels))
+    h, w = panels[0][0].shape[:2] if panels else (480, 640)
+    fig = _figure(1.07 * n * w / px_per_inch + 0.3, h / px_per_inch + 1.1)  # each image at about 1:1
+    for k, (img, name) in enumerate(panels):
+        ax = fig.add_subplot(1, n, k + 1)
+        im = np.asarray(img)
+        ax.imshow(im[:, :, ::-1] if im.ndim == 3 else im, cmap=None if im.ndim == 3 else "gray",
+                  interpolation="nearest")
+        ax.set_title(name, fontsize=10)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    handles = []
+    for label, color, kind in legend:
+        if kind == "pixels":
+            handles.append(Patch(facecolor=color, edgecolor=color, label=label))
+        elif kind == "box":
+            handles.append(Patch(facecolor="none", edgecolor=color, lw=2, label=label))
+        elif kind == "cross":
+            handles.append(Line2D([], [], ls="none", marker="+", ms=10, mew=2, color=color, label=label))
+        else:
+            handles.append(Line2D([], [], color=color, lw=2, label=label))
+    if handles:
+        fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 3), fontsize=9, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.subplots_adjust(left=0.01, right=0.99, top=0.88 if title else 0.94, bottom=0.1, wspace=0.03)
+    return fig

@@ -164,6 +164,17 @@ def test_one_wrong_block_fails_exactly_the_tasks_that_use_it(cli, tmp_path):
     assert list((tmp_path / "g" / "right" / "quick" / "stop-run").glob("*.png"))
     page = (tmp_path / "g" / "report.html").read_text()
     assert page.count("src='data:image/jpeg;base64,") >= 2 and "My answers for obstacle-avoidance." in page
+    # each thumbnail links to its full-size figure, which is there beside the report (issue 29)
+    import re
+
+    from qcarlab import __version__
+
+    links = re.findall(r"<a href='([^'#]+\.png)'", page)
+    assert len(links) == page.count("src='data:image/jpeg;base64,")
+    assert "right/quick/stop-run/" + next((tmp_path / "g" / "right" / "quick" / "stop-run").glob("*.png")).name in links
+    assert all((tmp_path / "g" / link).is_file() for link in links)
+    assert f"<dt>qcarlab</dt><dd>{__version__}</dd>" in page and "<dt>date</dt>" in page
+    assert "<dt>sheets</dt><dd>" in page and "(quick)" in page
 
 
 def grade_json(path: Path) -> dict:

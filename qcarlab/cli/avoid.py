@@ -17,7 +17,7 @@ from qcarlab.cli.common import (
 )
 from qcarlab.constants import load_params
 from qcarlab.errors import InputError
-from qcarlab.experiments.avoid import STRATEGIES, AvoidConfig, AvoidLab, avoid, draw_drive
+from qcarlab.experiments.avoid import STRATEGIES, AvoidConfig, AvoidLab, avoid, drive_figure
 from qcarlab.experiments.result import Result
 from qcarlab.cli.trials import MinSuccessOpt, TrialsOpt, check_trials, given, progress, trials_summary
 
@@ -127,9 +127,9 @@ def avoid_cmd(
         result = avoid(qcar, cfg, world=world_obj, blocks=mine)
     result.metrics.update({"car": car, "world": getattr(world_obj, "name", None), "seed": seed})
     if world_obj is not None:
-        import cv2
+        from qcarlab import plots
 
-        result.figures["drive.png"] = lambda f: cv2.imwrite(str(f), draw_drive(world_obj, result))
+        result.figures["drive.png"] = lambda f: plots.save_figure(drive_figure(world_obj, result), f)
     emit(result, json_out, out, _summary)
 
 

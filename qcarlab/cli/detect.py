@@ -6,7 +6,8 @@
     qcarlab detect stop-sign lab.jpg --method hough --depth lab_depth.npy
 
 PATH is an image, a video or a folder of them. ``--json`` prints one JSON object per frame
-(JSON lines); ``--out DIR`` writes an overlay per image (PNG) or video (MP4) and
+(JSON lines); ``--out DIR`` writes an overlay per image (PNG) or video (MP4: H.264 with PyAV, the ``video``
+extra; else OpenCV's MPEG-4 Part 2, which browsers may not play) and
 ``detections.jsonl``. Exit 0 when every input was read, 2 on bad input (one line).
 """
 
@@ -56,6 +57,7 @@ class _Outputs:
         self.out, self.json_out = out, json_out
         self.rows: list[dict] = []
         self.written: list[Path] = []
+        self.notes: list[str] = []
         self._names: set[str] = set()
         self._jsonl = None
         if out is not None:
@@ -114,6 +116,9 @@ def _run(sources: list[Source], every: int, outputs: _Outputs, detect, overlay) 
             if video is not None:
                 video.close()
                 outputs.written.append(video.path)
+                if video.note and video.note not in outputs.notes:
+                    outputs.notes.append(video.note)  # once per run: the video may not play in a browser
+                    _console(outputs.json_out).print(f"note: {video.note}", markup=False, soft_wrap=True)
 
 
 def _console(json_out: bool) -> Console:

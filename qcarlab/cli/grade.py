@@ -221,7 +221,7 @@ def grade_cmd(
         entry["sandboxed"] = not any(r.get("sandbox") for r in rows)
         entry["tasks"] = rows
         report_students.append(entry)
-    from qcarlab.grading.report import report_dict, write_gradebook, write_html, write_junit
+    from qcarlab.grading.report import figure_href, report_dict, write_gradebook, write_html, write_junit
 
     single = class_dir is None
     report = report_dict(loaded, report_students, single)
@@ -246,7 +246,9 @@ def grade_cmd(
             figs = {(st["student"], r["sheet"], r["id"]): r.get("_figures") or {}
                     for st in report_students for r in st["tasks"]}
             title = "qcarlab grade: " + ", ".join(f"{s.section} {s.title}" for s in loaded)
-            written.append(write_html(out / "report.html", title, report_students, figs, answers))
+            names = [f"{s.section} {s.title} ({s.name})" for s in loaded]
+            written.append(write_html(out / "report.html", title, report_students, figs, answers, sheets=names,
+                                      href=figure_href))
     if junit is not None:
         written.append(write_junit(junit, report_students, single))
     if json_out:

@@ -348,51 +348,21 @@ def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
     return Result("avoid", metrics, logs={"log.csv": log_cols}, data={"scans": lab.scans, "log": cols})
 
 
-def draw_drive(world: Any, result: Result, px_per_m: float = 80.0, every: int = 2) -> np.ndarray:
-    """The top-down world with the driven path (red), the LIDAR returns of every ``every``-th scan
-    in the world frame (blue dots; the last scan in orange), the car at the start (green) and at the end
-    and, after a collision, a red cross where the car was. BGR image."""
-    import cv2
-
-    from qcarlab.sim.render import render_topdown, world_to_pixel
+def drive_figure(world: Any, result: Result, every: int = 2) -> Any:
+    """``drive.png``: over the world seen from above (balls where they were at the end), axes in
+    metres, the driven path, the LIDAR returns of every ``every``-th scan in the world frame (the
+    last scan apart), the car at the start and at the end and, after a collision, where it hit; a
+    legend says which is which (:func:`qcarlab.plots.drive_figure`). Returns the matplotlib Figure."""
+    from qcarlab import plots
+    from qcarlab.experiments.worlds import figure_map
 
     log = result.data["log"]
     poses = np.column_stack((log["true_x"], log["true_y"], log["true_yaw"])) if "true_x" in log else None
     t_end = float(log["t"][-1]) if len(log.get("t", [])) else 0.0
-    img = render_topdown(world, px_per_m, poses=poses, t=t_end, show_start=poses is None)
-    if poses is not None and len(poses):  # the start of this run (which --start may have moved)
-        x, y, yaw = poses[0]
-        c, s = math.cos(yaw), math.sin(yaw)
-        hl, hw = world.params.length / 2.0, world.params.width / 2.0
-        box = [(x + c * u - s * v, y + s * u + c * v) for u, v in ((hl, hw), (-hl, hw), (-hl, -hw), (hl, -hw))]
-        tip = [(x, y), (x + 0.35 * c, y + 0.35 * s)]
-        green = (60, 170, 40)
-        cv2.polylines(img, [np.round(world_to_pixel(world, box, px_per_m)).astype(np.int32)], True, green, 2,
-                      cv2.LINE_AA)
-        a, b = np.round(world_to_pixel(world, tip, px_per_m)).astype(int)
-        cv2.arrowedLine(img, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), green, 2, cv2.LINE_AA, 0, 0.25)
+    background, extent = figure_map(world, t=t_end, show_start=poses is None)
     scans = [(pts, pose) for pts, pose in result.data["scans"] if pose is not None and len(pts)]
-    for i, (pts, pose) in enumerate(scans):
-        last = i == len(scans) - 1
-        if not last and i % every:
-            continue
-        px = np.round(world_to_pixel(world, to_world_pts(pts, pose), px_per_m)).astype(int)
-        color = (0, 140, 255) if last else (200, 120, 30)
-        h, w = img.shape[:2]
-        ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        for cx, cy in px[ok]:
-            cv2.circle(img, (int(cx), int(cy)), 2 if last else 1, color, -1, cv2.LINE_AA)
-    m = result.metrics
-    hit = m.get("collision")
-    if hit:
-        c = np.round(world_to_pixel(world, [(hit["x"], hit["y"])], px_per_m)[0]).astype(int)
-        cv2.drawMarker(img, (int(c[0]), int(c[1])), (0, 0, 255), cv2.MARKER_TILTED_CROSS, 24, 3, cv2.LINE_AA)
-    text = (f"{m['strategy']}: {m['duration_s']:.1f} s, {m['distance_m']:.2f} m, "
-            f"collisions {m['collisions']}, min clearance "
-            + ("n/a" if m["min_clearance_m"] is None else f"{m['min_clearance_m'] * 100:.1f} cm"))
-    band = np.full((30, img.shape[1], 3), 255, np.uint8)  # a title band above the map
-    cv2.putText(band, text, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    return np.vstack((band, img))
+    shown = [to_world_pts(pts, pose) for i, (pts, pose) in enumerate(scans) if i % every == 0 or i == len(scans) - 1]
+    return plots.drive_figure(background, extent, poses, shown, result.metrics)
 
 
 def to_world_pts(pts: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:

@@ -86,7 +86,9 @@ from qcarlab.perception.lane import (
     detect_lane,
     draw_box,
     image_selector,
-    lane_image,
+    LANE_OVERLAYS,
+    lane_caption,
+    lane_overlay,
     lane_mask,
 )
 from qcarlab.perception.stop_sign import check_hsv
@@ -503,22 +505,39 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     if shown is not None:
         frame, det, box = shown
         result.data["frame"] = shown
-        result.figures["frame.png"] = lambda f: _imwrite(f, lane_image(frame.color, det, box))
+        result.figures["frame.png"] = lambda f: _save(f, frame_figure(frame.color, det, box))
     if world is not None and "true_x" in cols and n:
         poses = np.stack([cols["true_x"], cols["true_y"], cols["true_yaw"]], axis=1)
-        result.figures["lane.png"] = lambda f: _topdown(f, world, poses, centre)
+        result.figures["lane.png"] = lambda f: _save(f, lane_figure(world, poses, centre, metrics))
     return result
 
 
+def lane_figure(world, poses: np.ndarray, centre, metrics: Mapping[str, Any] | None = None) -> Any:
+    """``lane.png``: the driven path against the lane's centre over the track, axes in metres, a
+    legend (:func:`qcarlab.plots.lane_figure`). Returns the matplotlib Figure."""
+    from qcarlab import plots
+    from qcarlab.experiments.worlds import figure_map
+
+    background, extent = figure_map(world, show_start=False)
+    return plots.lane_figure(background, extent, poses[:: max(1, len(poses) // 2000)], centre, metrics)
 
 
-def _topdown(file, world, poses: np.ndarray, centre) -> None:
-    from qcarlab.sim.render import (
-        render_topdown,  # experiments may wire the simulator's renderer
-    )
+def frame_figure(color: np.ndarray, det, box) -> Any:
+    """``frame.png``: the camera frame the lane was last found in, with the tracked pixels, the fitted
+    line and the obstacle window, and a legend saying which is which. Returns the Figure."""
+    from qcarlab import plots
 
-    img = render_topdown(world, 100.0, poses=poses[:: max(1, len(poses) // 400)], path=centre)
-    _imwrite(file, img)
+    return plots.camera_figure([(lane_overlay(color, det, box), lane_caption(det))], LANE_OVERLAYS,
+                               "lane following: what the camera saw")
+
+
+def _save(file, fig) -> None:
+    from qcarlab import plots
+
+    try:
+        plots.save_figure(fig, file)
+    except OSError as exc:
+        raise InputError(f"cannot write {file} ({exc.strerror or exc})") from None
 
 
 def _imwrite(file, image: np.ndarray) -> None:

@@ -65,7 +65,9 @@ from qcarlab.perception.stop_sign import (
     depth_at,
     check_hsv,
     color_thresholding_hsv,
+    DETECTION_OVERLAYS,
     detection_image,
+    detection_panels,
     find_objects,
 )
 from qcarlab.perception.stop_signs import MAX_CIRCLES, MIN_RED_SHARE, circle_hough, red_share
@@ -397,16 +399,29 @@ def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None, *, blocks: Mapping[s
     if shown is not None and shown[0] is not None:
         frame, det = shown
         result.data["detection"] = (frame, det)
-        result.figures["detection.png"] = lambda f: _imwrite(f, detection_image(frame.color, det, frame.depth))
+        result.figures["detection.png"] = lambda f: _save(f, detection_figure(frame.color, det, frame.depth))
     if lab.kept:
         kept = lab.kept
         result.figures["frames"] = lambda folder: _write_frames(folder, kept)
     return result
 
 
-def _imwrite(file, image: np.ndarray) -> None:
-    if not cv2.imwrite(str(file), image):
-        raise InputError(f"cannot write {file}")
+def detection_figure(color: np.ndarray, det: StopSignDetection, depth: np.ndarray | None = None) -> Any:
+    """``detection.png``: the sheet's Figure 49 (colour with the box | the mask | the depth), panel
+    titles and a legend of the overlays (:func:`qcarlab.plots.camera_figure`). Returns the Figure."""
+    from qcarlab import plots
+
+    return plots.camera_figure(detection_panels(color, det, depth), DETECTION_OVERLAYS,
+                               "stop sign: what the camera saw (sheet 5.2, Figure 49)")
+
+
+def _save(file, fig) -> None:
+    from qcarlab import plots
+
+    try:
+        plots.save_figure(fig, file)
+    except OSError as exc:
+        raise InputError(f"cannot write {file} ({exc.strerror or exc})") from None
 
 
 def _write_frames(folder, kept: list[tuple[float, np.ndarray]]) -> None:

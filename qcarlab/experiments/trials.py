@@ -53,7 +53,7 @@ from qcarlab.experiments.result import Result
 from qcarlab.experiments.safety import Clearance
 
 __all__ = ["AVOID", "LANE_FOLLOW", "STOP_SIGN", "Randomise", "TrialWorld", "randomise_world", "run_trials",
-           "draw_trials"]
+           "trials_figure"]
 
 MIN_START_CLEARANCE = 0.05  # m between the car's footprint and any solid at the start
 MOVABLE_HEIGHT = 1.0  # m: solids lower than this (and not walls) are moved between trials
@@ -457,7 +457,7 @@ def run_trials(lab: str, world: Any, run: RunFn, n: int, seed: int = 0, spec: Ra
     }
     out = Result(lab, metrics, logs={"trials.csv": table})
     out.data["world"] = world
-    out.figures["trials.png"] = lambda f: _imwrite(f, draw_trials(world, out))
+    out.figures["trials.png"] = lambda f: _save(f, trials_figure(world, out))
     return out
 
 
@@ -465,56 +465,22 @@ def _or_nan(v: float | None) -> float:
     return math.nan if v is None else float(v)
 
 
-def _imwrite(file: Any, image: np.ndarray) -> None:
-    import cv2
+def _save(file: Any, fig: Any) -> None:
+    from qcarlab import plots
 
-    if not cv2.imwrite(str(file), image):
-        raise InputError(f"cannot write {file}")
+    try:
+        plots.save_figure(fig, file)
+    except OSError as exc:
+        raise InputError(f"cannot write {file} ({exc.strerror or exc})") from None
 
 
-def draw_trials(world: Any, result: Result, px_per_m: float = 80.0) -> np.ndarray:
-    """Every trial over the world seen from above: successful runs green, failed ones red, each
-    start a dot, each collision a cross (the ball's own place as a circle), the balls' lines
-    dashed; a title band with the success rate. BGR image."""
-    import cv2
+def trials_figure(world: Any, result: Result) -> Any:
+    """``trials.png``: every trial over the world seen from above, axes in metres: successful runs
+    green, failed ones red, each start a black dot, each collision a cross, the balls' rolls dashed,
+    where obstacles were moved to; a legend and the success rate in the title
+    (:func:`qcarlab.plots.trials_figure`). Returns the matplotlib Figure."""
+    from qcarlab import plots
+    from qcarlab.experiments.worlds import figure_map
 
-    from qcarlab.sim.render import render_topdown, world_to_pixel
-
-    img = render_topdown(world, px_per_m, show_start=False)
-    m = result.metrics
-
-    def px(pts: Any) -> np.ndarray:
-        return np.round(world_to_pixel(world, pts, px_per_m)).astype(np.int32)
-
-    for r in m["runs"]:
-        for b in r["balls"]:
-            a = b["start"]
-            e = (a[0] + b["rolls_m"] * math.cos(b["direction_rad"]), a[1] + b["rolls_m"] * math.sin(b["direction_rad"]))
-            p, q = px([a, e])
-            cv2.line(img, tuple(int(v) for v in p), tuple(int(v) for v in q), (0, 140, 255), 1, cv2.LINE_AA)
-    for ok_pass in (True, False):  # failures drawn last, on top
-        for r in m["runs"]:
-            if r["success"] != ok_pass or len(r["path"]) < 2:
-                continue
-            color = (60, 160, 40) if r["success"] else (40, 40, 220)
-            cv2.polylines(img, [px(r["path"])], False, color, 2, cv2.LINE_AA)
-    for r in m["runs"]:  # where each trial's obstacles stood
-        for mv in r["moved"]:
-            c = px([mv["to"]])[0]
-            cv2.circle(img, (int(c[0]), int(c[1])), 2, (20, 60, 110), -1, cv2.LINE_AA)
-    for r in m["runs"]:
-        s = px([r["start"][:2]])[0]
-        cv2.circle(img, (int(s[0]), int(s[1])), 4, (0, 0, 0), -1, cv2.LINE_AA)
-        hit = r["collision"]
-        if hit:
-            c = px([(hit["x"], hit["y"])])[0]
-            cv2.drawMarker(img, (int(c[0]), int(c[1])), (0, 0, 255), cv2.MARKER_TILTED_CROSS, 22, 3, cv2.LINE_AA)
-    lines = [f"{m['experiment']}: {m['successes']} of {m['trials']} trials succeeded "
-             f"({100.0 * m['success_rate']:.0f} %), {m['collisions']} collision(s)",
-             "green: ok, red: failed, black dot: start, x: collision, brown dots: obstacles moved"]
-    font, width = cv2.FONT_HERSHEY_SIMPLEX, img.shape[1] - 16
-    scale = min(0.5, min(0.5 * width / max(cv2.getTextSize(t, font, 0.5, 1)[0][0], 1) for t in lines))
-    band = np.full((14 + 22 * len(lines), img.shape[1], 3), 255, np.uint8)
-    for k, t in enumerate(lines):
-        cv2.putText(band, t, (8, 20 + 22 * k), font, scale, (0, 0, 0), 1, cv2.LINE_AA)
-    return np.vstack((band, img))
+    background, extent = figure_map(world, show_start=False)
+    return plots.trials_figure(background, extent, result.metrics)

@@ -70,16 +70,27 @@ def check_start(world: World, pose: tuple[float, float, float] | None, params: Q
         raise InputError(f"{option} {text}: the car would stand inside an obstacle (or a wall) of '{world.name}'")
 
 
-def topdown_map(world: World, px_per_m: float = 50.0) -> tuple[np.ndarray, list[float]]:
-    """The world seen from above (:func:`render_topdown`) and its extent ``[xmin, xmax, ymin, ymax]``
-    in metres, for drawing it under world-frame data (matplotlib's ``imshow(extent=...)``). The
-    extent comes from :func:`world_to_pixel`, so it includes the renderer's margin round the world."""
-    img = render_topdown(world, px_per_m=px_per_m)
+def topdown_map(world: World, px_per_m: float = 50.0, **render: Any) -> tuple[np.ndarray, list[float]]:
+    """The world seen from above (:func:`render_topdown`, given ``render``'s keywords such as
+    ``t``, ``show_start``, ``scale_bar``) and its extent ``[xmin, xmax, ymin, ymax]`` in metres,
+    for drawing it under world-frame data (matplotlib's ``imshow(extent=...)``). The extent comes
+    from :func:`world_to_pixel`, so it includes the renderer's margin round the world."""
+    img = render_topdown(world, px_per_m=px_per_m, **render)
     col0, row0 = world_to_pixel(world, [(0.0, 0.0)], px_per_m)[0]
     x0 = -(col0 + 0.5) / px_per_m  # the world x of the image's left edge (pixel centres at +0.5)
     y1 = (row0 + 0.5) / px_per_m  # the world y of its top edge
     h, w = img.shape[:2]
     return img, [x0, x0 + w / px_per_m, y1 - h / px_per_m, y1]
+
+
+def figure_map(world: World, most_px_per_m: float = 80.0, longest_px: int = 2400,
+               **render: Any) -> tuple[np.ndarray, list[float]]:
+    """:func:`topdown_map` at a resolution fit for a figure: ``most_px_per_m``, less on a large
+    world so that the longer side stays within ``longest_px``; no scale bar (the axes are in m)."""
+    xmin, ymin, xmax, ymax = world.bounds
+    span = max(xmax - xmin, ymax - ymin, 1e-6) + 0.5
+    render.setdefault("scale_bar", False)
+    return topdown_map(world, px_per_m=min(most_px_per_m, longest_px / span), **render)
 
 
 def label_views(views: dict[str, Any]) -> dict[str, np.ndarray]:

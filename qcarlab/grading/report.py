@@ -9,9 +9,12 @@
   a criterion is not met, an ``error`` when the task could not run (timeout, crash, block
   missing), ``skipped`` for tasks that need a car. GitHub Actions, GitLab and Jenkins show it.
 - ``gradebook.csv``: one row per student: points per task (``sheet/task`` columns), total, maximum.
-- ``report.html``: one file, no external resources: the table of students and tasks, then per
-  student each task's criteria, their figures (embedded, scaled down) and their ``answers.md``
-  (shown as text, never as HTML).
+- ``report.html``: one file, no external resources: a header naming the date, qcarlab's version
+  and the sheets, the table of students and tasks, then per student each task's criteria, their
+  figures (embedded, scaled down; each thumbnail links to the full-size PNG the grader wrote beside
+  the report, ``STUDENT/SHEET/TASK/NAME.png``, or, without those files, opens the embedded full
+  image in a CSS-only overlay: no JavaScript) and their ``answers.md`` (shown as text, never as
+  HTML).
 """
 
 from __future__ import annotations
@@ -19,8 +22,11 @@ from __future__ import annotations
 import base64
 import csv
 import html
+from collections.abc import Callable, Sequence
+from datetime import datetime
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 from qcarlab.grading.checks import value_text
 
@@ -152,8 +158,20 @@ table{border-collapse:collapse;margin:1em 0}
 td,th{border:1px solid #ccc;padding:.25em .5em;text-align:left;vertical-align:top;font-size:90%}
 th{background:#f3f3f3} .pass{background:#e3f6e3} .fail{background:#fbe3e3} .skip{background:#eee;color:#777}
 .figs img{max-width:360px;margin:.25em;border:1px solid #ddd} pre{background:#f7f7f7;padding:1em;white-space:pre-wrap}
+.figs a{display:inline-block;text-decoration:none} .figs figure{display:inline-block;margin:.25em}
+.figs figcaption{font-size:80%;color:#555}
+.big{display:none} .big:target{display:flex;position:fixed;inset:0;background:rgba(0,0,0,.85);z-index:9;
+ align-items:center;justify-content:center} .big img{max-width:98vw;max-height:98vh;background:#fff}
 h2{border-top:2px solid #ddd;padding-top:1em} .small{color:#666;font-size:85%}
+.head{color:#444;margin-top:-.5em} .head dt{font-weight:bold;display:inline} .head dd{display:inline;margin:0 1.5em 0 .3em}
 """
+
+
+def figure_href(student: str, sheet: str, task: str, name: str, single: bool = False) -> str:
+    """Where the grader writes a task's figure, relative to ``report.html`` in the same OUT folder
+    (``STUDENT/SHEET/TASK/NAME``, each part URL-quoted), for the report's links."""
+    parts = (sheet, task, Path(name).name) if single else (student, sheet, task, Path(name).name)
+    return "/".join(quote(str(p), safe="") for p in parts)
 
 
 def thumbnail(png: bytes, width: int = 480) -> tuple[str, bytes]:
@@ -185,13 +203,25 @@ def _cls(r: dict[str, Any]) -> str:
 
 
 def write_html(path: str | Path, title: str, students: list[dict[str, Any]], figures: dict[tuple, dict[str, bytes]],
-               answers: dict[str, list[tuple[str, str]]]) -> Path:
+               answers: dict[str, list[tuple[str, str]]], sheets: Sequence[str] = (),
+               href: Callable[[str, str, str, str], str | None] | None = None,
+               when: datetime | None = None) -> Path:
     """The class report; ``figures[(student, sheet, task)]`` are PNG bytes by name, ``answers[student]``
-    each sheet's ``answers.md`` as (sheet, text)."""
+    each sheet's ``answers.md`` as (sheet, text). The header names ``when`` (default now), qcarlab's
+    version and ``sheets``. ``href(student, sheet, task, name)`` is the full-size figure's address
+    relative to the report (:func:`figure_href` where the grader wrote the files); without it, or
+    where it gives None, a thumbnail opens the embedded full image in an overlay (CSS ``:target``)."""
+    from qcarlab import __version__
+
     e = html.escape
     cols = columns(students)
+    stamp = (when or datetime.now().astimezone()).strftime("%Y-%m-%d %H:%M %Z").strip()
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{e(title)}</title><style>{_CSS}</style>"
-             f"</head><body><h1>{e(title)}</h1>", "<table><tr><th>student</th>"]
+             f"<meta name='generator' content='qcarlab {e(__version__)}'></head><body><h1>{e(title)}</h1>",
+             f"<dl class='head'><dt>date</dt><dd>{e(stamp)}</dd><dt>qcarlab</dt><dd>{e(__version__)}</dd>"
+             + (f"<dt>sheets</dt><dd>{e('; '.join(sheets))}</dd>" if sheets else "") + "</dl>",
+             "<p class='small'>click a figure to see it full size</p>" if figures and any(figures.values()) else "",
+             "<table><tr><th>student</th>"]
     parts += [f"<th>{e(c)}</th>" for c in cols] + ["<th>total</th></tr>"]
     for st in students:
         got = {f"{r['sheet']}/{r['id']}": r for r in st["tasks"]}
@@ -205,6 +235,7 @@ def write_html(path: str | Path, title: str, students: list[dict[str, Any]], fig
                 parts.append(f"<td class='{_cls(r)}' title='{e(r['problem'] or '')}'>{shown}</td>")
         parts.append(f"<td><b>{st['points']:g}</b>/{st['max_points']:g}</td></tr>")
     parts.append("</table>")
+    n_big = 0
     for st in students:
         parts.append(f"<h2 id='s-{e(st['student'])}'>{e(st['student'])}: {st['points']:g} of "
                      f"{st['max_points']:g} points</h2>")
@@ -239,8 +270,18 @@ def write_html(path: str | Path, title: str, students: list[dict[str, Any]], fig
                 parts.append("<div class='figs'>")
                 for name, png in sorted(figs.items()):
                     mime, data = thumbnail(png)
-                    parts.append(f"<img alt='{e(name)}' title='{e(name)}' "
-                                 f"src='data:{mime};base64,{base64.b64encode(data).decode()}'>")
+                    thumb = (f"<img alt='{e(name)}' title='{e(name)}: click for full size' "
+                             f"src='data:{mime};base64,{base64.b64encode(data).decode()}'>")
+                    target = href(st["student"], r["sheet"], r["id"], name) if href is not None else None
+                    if target is not None:
+                        parts.append(f"<figure><a href='{e(target)}' target='_blank' rel='noopener'>{thumb}</a>"
+                                     f"<figcaption>{e(name)}</figcaption></figure>")
+                    else:  # the full image embedded, shown over the page while the URL's fragment names it
+                        n_big += 1
+                        big = f"fig-{n_big}"
+                        parts.append(f"<figure><a href='#{big}'>{thumb}</a><figcaption>{e(name)}</figcaption></figure>"
+                                     f"<a class='big' id='{big}' href='#_' title='close'><img alt='{e(name)}' "
+                                     f"src='data:image/png;base64,{base64.b64encode(png).decode()}'></a>")
                 parts.append("</div>")
         given = answers.get(st["student"]) or []
         if not given:
@@ -255,4 +296,4 @@ def write_html(path: str | Path, title: str, students: list[dict[str, Any]], fig
     return out
 
 
-__all__ = ["junit_classname", "report_dict", "thumbnail", "write_gradebook", "write_html", "write_junit"]
+__all__ = ["figure_href", "junit_classname", "report_dict", "thumbnail", "write_gradebook", "write_html", "write_junit"]

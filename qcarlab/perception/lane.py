@@ -67,7 +67,10 @@ __all__ = [
     "detect_lane",
     "draw_box",
     "image_selector",
+    "LANE_OVERLAYS",
+    "lane_caption",
     "lane_image",
+    "lane_overlay",
     "lane_mask",
     "line_components",
     "linear_poly_fit",
@@ -453,12 +456,20 @@ def detect_lane(
     return LaneDetection(fit, "white", ny, nw, _paste(line, (h, w), r0, c0w), yellow_full)
 
 
-def lane_image(color: np.ndarray, det: LaneDetection, box: tuple[int, int, int, int] | None = None,
-               text: str | None = None) -> np.ndarray:
-    """The processed frame: the tracked line's pixels in red (Figure 58), the fitted line in green,
-    the obstacle window (``box``) in red, a caption bar. BGR uint8."""
+LANE_OVERLAYS = (("the tracked line's pixels (HSV mask)", "red", "pixels"),
+                 ("the line fitted to them", "lime", "line"),
+                 ("the obstacle window (depth averaged in it)", "red", "box"))
+"""What :func:`lane_overlay` draws, as (meaning, matplotlib colour, kind) for a figure's legend."""
+
+
+def lane_caption(det: LaneDetection) -> str:
+    return f"tracking the {det.source} line" if det.source else "no line found"
+
+
+def lane_overlay(color: np.ndarray, det: LaneDetection, box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """The processed frame without a caption: the tracked line's pixels in red (Figure 58), the
+    fitted line in green, the obstacle window (``box``) in red (:data:`LANE_OVERLAYS`). BGR uint8."""
     img = lane_mask(color, det.mask if det.mask is not None else np.zeros(color.shape[:2], np.uint8))
-    _h, w = img.shape[:2]
     if det.fit is not None:
         v0, v1 = det.fit.rows
         p0 = (round(det.fit.column_at(v0)), v0)
@@ -466,7 +477,15 @@ def lane_image(color: np.ndarray, det: LaneDetection, box: tuple[int, int, int, 
         cv2.line(img, p0, p1, (0, 255, 0), 2, cv2.LINE_AA)
     if box is not None:
         cv2.rectangle(img, (box[0], box[1]), (box[2] - 1, box[3] - 1), (0, 0, 255), 2)
+    return img
+
+
+def lane_image(color: np.ndarray, det: LaneDetection, box: tuple[int, int, int, int] | None = None,
+               text: str | None = None) -> np.ndarray:
+    """:func:`lane_overlay` under a caption bar (for recordings and live frames). BGR uint8."""
+    img = lane_overlay(color, det, box)
+    _h, w = img.shape[:2]
     bar = np.full((28, w, 3), 255, np.uint8)
-    caption = text or (f"tracking the {det.source} line" if det.source else "no line found")
+    caption = text or lane_caption(det)
     cv2.putText(bar, caption, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
     return np.vstack([bar, img])

@@ -44,7 +44,9 @@ __all__ = [
     "depth_at",
     "color_thresholding_hsv",
     "detect_stop_sign",
+    "DETECTION_OVERLAYS",
     "detection_image",
+    "detection_panels",
     "find_objects",
 ]
 
@@ -253,10 +255,15 @@ def detect_stop_sign(
     return StopSignDetection(True, obj.centroid, obj.bbox, obj.area, dist, mask=mask)
 
 
-def detection_image(color: np.ndarray, detection: StopSignDetection, depth: np.ndarray | None = None,
-                    max_depth: float = 3.0) -> np.ndarray:
-    """The sheet's Figure 49 side by side: colour with the detection box and centre | the
-    thresholded mask | (with ``depth``) the depth image, darker = closer. BGR uint8."""
+DETECTION_OVERLAYS = (("the detected sign's box", "lime", "box"), ("its centre (the distance is read there)", "lime", "cross"))
+"""What :func:`detection_panels` draws, as (meaning, matplotlib colour, kind) for a figure's legend."""
+
+
+def detection_panels(color: np.ndarray, detection: StopSignDetection, depth: np.ndarray | None = None,
+                     max_depth: float = 3.0) -> list[tuple[np.ndarray, str]]:
+    """The sheet's Figure 49 as (BGR image, title) panels: colour with the detection box and centre,
+    the thresholded mask (white = red enough), and (with ``depth``) the depth image, black at 0 m to
+    white at ``max_depth``, dark purple where there is no depth."""
     img = np.ascontiguousarray(color).copy()
     h, w = img.shape[:2]
     mask = detection.mask if detection.mask is not None else np.zeros((h, w), np.uint8)
@@ -277,9 +284,21 @@ def detection_image(color: np.ndarray, detection: StopSignDetection, depth: np.n
         text = f"stop sign {detection.distance:.2f} m" if detection.distance > 0 else "stop sign (no depth)"
     else:
         text = "no stop sign"
-    labels = ["colour: " + text, "HSV threshold (mask)", "depth (darker = closer)"]
+    labels = ["colour: " + text, "HSV threshold (mask: white = red enough)",
+              f"depth: black 0 m to white {max_depth:g} m, purple = no data"]
+    return list(zip(panels, labels))
+
+
+def detection_image(color: np.ndarray, detection: StopSignDetection, depth: np.ndarray | None = None,
+                    max_depth: float = 3.0) -> np.ndarray:
+    """:func:`detection_panels` side by side, each under a caption bar (for recordings and live
+    frames; ``detection.png`` is a figure with a legend). BGR uint8."""
+    panels = detection_panels(color, detection, depth, max_depth)
+    h, w = panels[0][0].shape[:2]
     out = []
-    for p, label in zip(panels, labels):
+    for p, label in panels:
+        if label.startswith("depth"):
+            label = "depth (darker = closer)"
         bar = np.full((28, w, 3), 255, np.uint8)
         cv2.putText(bar, label, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
         out.append(np.vstack([bar, p]))

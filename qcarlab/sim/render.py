@@ -66,8 +66,10 @@ def render_topdown(
     path: Any = None,
     t: float = 0.0,
     show_start: bool = True,
+    scale_bar: bool = True,
 ) -> np.ndarray:
-    """The world seen from above as a BGR image (see the module docstring); balls at time ``t``."""
+    """The world seen from above as a BGR image (see the module docstring); balls at time ``t``;
+    ``scale_bar=False`` leaves the 1 m bar out (for figures that have axes in metres)."""
     w = world if isinstance(world, World) else load_world(world)
     ppm = float(px_per_m)
     if not (math.isfinite(ppm) and ppm > 0):
@@ -143,7 +145,7 @@ def render_topdown(
     # 1 m scale bar
     bx, by = 10, H - 12
     blen = int(round(ppm))
-    if blen < W - 20:
+    if scale_bar and blen < W - 20:
         cv2.rectangle(img, (bx - 3, by - 16), (bx + blen + 30, by + 6), (255, 255, 255), -1)
         cv2.line(img, (bx, by), (bx + blen, by), (0, 0, 0), 2)
         for xx in (bx, bx + blen):
