@@ -371,24 +371,33 @@ def camera_figure(panels: Sequence[tuple[np.ndarray, str]], legend: Sequence[tup
     """Camera images (BGR or grey, each with its panel title) side by side at about their own
     resolution, with a legend of the overlays: ``legend`` = (what it is, matplotlib colour, kind),
     kind ``"line"``, ``"box"``, ``"pixels"`` or ``"cross"``. Returns the Figure."""
+    return camera_grid([list(panels)], legend, title, px_per_inch)
+
+
+def camera_grid(rows: Sequence[Sequence[tuple[np.ndarray, str]]], legend: Sequence[tuple[str, str, str]],
+                title: str = "", px_per_inch: float = 100.0) -> Any:
+    """:func:`camera_figure` with several rows of panels (e.g. one row per spot). Returns the Figure."""
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    n = max(1, len(panels))
-    h, w = panels[0][0].shape[:2] if panels else (480, 640)
-    fig = _figure(1.07 * n * w / px_per_inch + 0.3, h / px_per_inch + 1.1)  # each image at about 1:1
-    for k, (img, name) in enumerate(panels):
-        ax = fig.add_subplot(1, n, k + 1)
-        im = np.asarray(img)
-        ax.imshow(im[:, :, ::-1] if im.ndim == 3 else im, cmap=None if im.ndim == 3 else "gray",
-                  interpolation="nearest")
-        ax.set_title(name, fontsize=10)
-        ax.set_xticks([])
-        ax.set_yticks([])
+    n_rows = max(1, len(rows))
+    n = max([len(r) for r in rows] + [1])
+    first = rows[0][0][0] if rows and rows[0] else None
+    h, w = first.shape[:2] if first is not None else (480, 640)
+    fig = _figure(1.07 * n * w / px_per_inch + 0.3, n_rows * (h / px_per_inch + 0.35) + 0.75)
+    for i, row in enumerate(rows):
+        for k, (img, name) in enumerate(row):
+            ax = fig.add_subplot(n_rows, n, i * n + k + 1)
+            im = np.asarray(img)
+            ax.imshow(im[:, :, ::-1] if im.ndim == 3 else im, cmap=None if im.ndim == 3 else "gray",
+                      interpolation="nearest")
+            ax.set_title(name, fontsize=10)
+            ax.set_xticks([])
+            ax.set_yticks([])
     handles = []
     for label, color, kind in legend:
         if kind == "pixels":
-            handles.append(Patch(facecolor=color, edgecolor=color, label=label))
+            handles.append(Patch(facecolor=color, edgecolor="0.3", label=label))  # (white pixels need an edge)
         elif kind == "box":
             handles.append(Patch(facecolor="none", edgecolor=color, lw=2, label=label))
         elif kind == "cross":
@@ -399,5 +408,8 @@ def camera_figure(panels: Sequence[tuple[np.ndarray, str]], legend: Sequence[tup
         fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 3), fontsize=9, frameon=False)
     if title:
         fig.suptitle(title, fontsize=11)
-    fig.subplots_adjust(left=0.01, right=0.99, top=0.88 if title else 0.94, bottom=0.1, wspace=0.03)
+    top_margin, bottom_margin = (0.85 if title else 0.35), (0.45 if handles else 0.1)
+    height = fig.get_figheight()
+    fig.subplots_adjust(left=0.01, right=0.99, top=1.0 - top_margin / height, bottom=bottom_margin / height,
+                        wspace=0.03, hspace=0.2)
     return fig

@@ -86,3 +86,14 @@ def test_camera_panels_have_titles_and_a_legend_of_the_overlays():
     titles = [ax.get_title() for ax in fig.axes]
     assert titles[0] == "colour: stop sign 0.35 m" and titles[2].startswith("depth: black 0 m to white 3 m")
     assert _labels(fig.axes[0]) == ["the detected sign's box", "its centre (the distance is read there)"]
+
+
+def test_the_hsv_tuners_figure_says_what_its_pixels_are():
+    from qcarlab.experiments.lane_follow import hsv_tune_figure
+
+    img = np.zeros((48, 64, 3), np.uint8)
+    fig = hsv_tune_figure([[(img, "colour"), (img[:, :, 0], "HSV mask"), (img, "lane mask")]] * 2, "HSV range")
+    texts = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
+    assert any(t.startswith("white: the pixels the HSV range keeps") for t in texts)
+    assert any(t.startswith("red: the kept pixels in the lane's region") for t in texts)
+    assert [ax.get_title() for ax in fig.axes][:3] == ["colour", "HSV mask", "lane mask"] and len(fig.axes) == 6

@@ -148,7 +148,7 @@ def test_cli_hsv_tune(cli_json, tmp_path):
     assert m["mode"] == "hsv-tune" and len(m["spots"]) == 4
     assert m["spots_with_line"] >= 3
     img = cv2.imread(str(tmp_path / "hsv_tune.png"))
-    assert img is not None and img.shape[1] > 3 * 640
+    assert img is not None and img.shape[1] > 3 * 640 and img.shape[0] > 4 * 480  # a row per spot, at about 1:1
     # a range that keeps nothing yellow: the student sees it
     bad = cli_json("lane-follow", "--hsv-tune", "--hsv-min", "100,80,80", "--hsv-max", "130,255,255")
     assert bad["spots_with_line"] == 0

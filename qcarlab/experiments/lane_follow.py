@@ -638,23 +638,31 @@ def hsv_tune(frames: list, cfg: LaneFollowConfig, params: QCarParams | None = No
         "spots": spots,
         "spots_with_line": sum(s["line_found"] for s in spots),
     }
-    image = np.vstack(rows) if rows else None
     result = Result("lane-follow", metrics, figures={})
-    if image is not None:
-        result.data["hsv_tune"] = image
-        result.figures["hsv_tune.png"] = lambda f: _imwrite(f, image)
+    if rows:
+        title = f"HSV range {list(cfg.hsv_min)} .. {list(cfg.hsv_max)}: the line found at {metrics['spots_with_line']} " \
+                f"of {len(spots)} spots"
+        result.data["hsv_tune"] = rows
+        result.figures["hsv_tune.png"] = lambda f: _save(f, hsv_tune_figure(rows, title))
     return result
 
 
-def _tune_row(color: np.ndarray, full: np.ndarray, roi: np.ndarray, spot: dict) -> np.ndarray:
-    h, w = color.shape[:2]
-    panels = [color.copy(), cv2.cvtColor(full, cv2.COLOR_GRAY2BGR), lane_mask(color, roi)]
-    labels = [f"colour at {spot['pose'][0]:.2f}, {spot['pose'][1]:.2f}",
-              f"HSV mask: {spot['pixels_whole_image']} px",
-              f"lane mask: {spot['pixels_in_region']} px in region"]
-    out = []
-    for panel, label in zip(panels, labels):
-        bar = np.full((28, w, 3), 255, np.uint8)
-        cv2.putText(bar, label, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
-        out += [np.vstack([bar, panel]), np.full((h + 28, 6, 3), 255, np.uint8)]
-    return np.vstack([np.hstack(out[:-1]), np.full((6, 3 * w + 12, 3), 255, np.uint8)])
+#: What hsv_tune.png's panels show (the sheet: "the line must be coloured with red pixels").
+TUNE_OVERLAYS = (("white: the pixels the HSV range keeps (whole image)", "white", "pixels"),
+                 ("red: the kept pixels in the lane's region, the ones the lab fits its line to", "red", "pixels"))
+
+
+def hsv_tune_figure(rows: list, title: str) -> Any:
+    """``hsv_tune.png``: one row per spot, colour | HSV mask | lane mask, each titled, with a legend
+    of what the white and red pixels are. Returns the Figure."""
+    from qcarlab import plots
+
+    return plots.camera_grid(rows, TUNE_OVERLAYS, title)
+
+
+def _tune_row(color: np.ndarray, full: np.ndarray, roi: np.ndarray, spot: dict) -> list:
+    found = "line found" if spot["line_found"] else "no line"
+    x, y = (round(v, 2) + 0.0 for v in spot["pose"][:2])  # (+ 0.0: no "-0.00")
+    return [(color, f"colour at x {x:.2f} m, y {y:.2f} m"),
+            (full, f"HSV mask: {spot['pixels_whole_image']} px"),
+            (lane_mask(color, roi), f"lane mask: {spot['pixels_in_region']} px in region ({found})")]
