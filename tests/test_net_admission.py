@@ -52,7 +52,7 @@ class DelayRelay:
 
     def _pump(self, src: socket.socket, dst: socket.socket) -> None:
         queue: list[tuple[float, int, bytes]] = []
-        lock, cond, n = threading.Lock(), threading.Condition(), [0]
+        cond, n = threading.Condition(), [0]
 
         def deliver() -> None:
             while True:

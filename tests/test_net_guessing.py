@@ -11,8 +11,7 @@ import time
 import pytest
 
 from qcarlab.net import guard
-from qcarlab.net.server import CarServer
-from qcarlab.net.testing import RawClient, SyntheticCar, error_of
+from qcarlab.net.testing import RawClient, error_of
 from qcarlab.onboard import car_server as cs
 from qcarlab.wire.protocol import MsgType as M
 

@@ -4,7 +4,6 @@ fails on the code before its fix."""
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import pytest

@@ -83,7 +83,6 @@ from qcarlab.perception.lane import (
     LaneDetection,
     obstacle_distance,
     color_thresholding_hsv,
-    detect_lane,
     draw_box,
     image_selector,
     LANE_OVERLAYS,

@@ -60,7 +60,6 @@ it up). Noise comes from precomputed tiles at random offsets.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import cv2
 import numpy as np
