@@ -63,9 +63,13 @@ def template_cmd(
     """
     info = find_lab(lab)
     written = write_template(info, out, force)
-    stdout.print(f"wrote the sheet {info.section} workspace to {out}: " + ", ".join(p.relative_to(out).as_posix() for p in written))
-    if info.to_fill:
-        stdout.print("fill in: " + ", ".join(f"{b.name}.py" for b in info.to_fill))
+    top = [p.relative_to(out).as_posix() for p in written if len(p.relative_to(out).parts) == 1]
+    others = len(written) - len(top)
+    stdout.print(f"wrote the sheet {info.section} workspace to {out}: " + ", ".join(top)
+                 + (f", and other-blocks/ (the lab's {others} other blocks, to replace them too)" if others else ""))
+    fill = [f"{b.name}.py" for b in info.to_fill] + [f"{c.name} in params.yaml" for c in info.choose]
+    if fill:
+        stdout.print("fill in: " + ", ".join(fill))
     stdout.print(f"then, from {out}: {info.run}")
 
 

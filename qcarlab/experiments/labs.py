@@ -229,7 +229,7 @@ def readme_file(lab: Lab) -> str:
     others = [b for b in lab.blocks if not b.fill]
     if others:
         files += (f"- `{OTHER_BLOCKS}/`: the lab's other blocks ({', '.join(b.name for b in others)}) as templates: "
-                  "to replace one with yours, move its file up into this folder and fill it in.\n")
+                  "to replace one with yours, move its file up into this folder, fill it in and run with `--use .`.\n")
     return (f"# Sheet {lab.section}: {lab.title}\n\n"
             f"Fill in the blocks, tune `params.yaml`, answer `answers.md`.\n\n{files}"
             "- `params.yaml`: the lab's tunables.\n- `answers.md`: the sheet's questions.\n\n"
