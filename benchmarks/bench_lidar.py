@@ -253,6 +253,7 @@ def main() -> int:
     if peer is None:
         print(f"f1tenth_gym columns skipped: {why}")
     ok = True
+    measured_peer = False  # the 2x-f1tenth target is "not measured" without the peer's columns
     print(f"{'map':<16}{'beams':>12}{'qcarlab us':>12}{'f1tenth us':>12}{'ratio':>8}   {'tight q/f us':>14}"
           f"{'ratio':>7}   {'err q mm':>9}{'err f mm':>9}")
     for name in ("berlin", "stata_basement"):
@@ -283,6 +284,7 @@ def main() -> int:
                 ratio = loop["f1tenth"] / loop["qcarlab"]
                 tr = tt["f1tenth"] / tt["qcarlab"]
                 ok &= ratio >= 2.0
+                measured_peer = True
                 print(f"{name:<16}{label:>12}{q:>12.0f}{f:>12.0f}{ratio:>7.2f}x   "
                       f"{tt['qcarlab'] * 1e6:>6.0f}/{tt['f1tenth'] * 1e6:<7.0f}{tr:>6.2f}x   "
                       f"{err_q * 1000:>9.3f}{err_f * 1000:>9.2f}")
@@ -296,7 +298,13 @@ def main() -> int:
           f"{med * 1e6:.0f} us, max {worst * 1e6:.0f} us = {worst / med:.2f}x the median (target <= 3x); "
           f"cells looked at: median {smed:,}, max {smax:,}")
     ok &= worst <= 3.0 * med
-    print("all targets met" if ok else "SOME TARGETS MISSED")
+    if not ok:
+        print("SOME TARGETS MISSED")
+    elif not measured_peer:
+        print("targets met: accuracy and worst case; in the loop >= 2x f1tenth: not measured (no f1tenth_gym "
+              "columns: pip install 'qcarlab[bench]' and ../shared/peers beside the checkout)")
+    else:
+        print("all targets met")
     return 0 if ok else 1
 
 
