@@ -69,7 +69,7 @@ from qcarlab.control.lamps import indicator_and_lamps
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
 from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, INDICATOR_AND_LAMPS, SPEED_CONTROLLER, TURN_SPEED_HANDLING, LabModel, finish
 from qcarlab.experiments.safety import WorldWatch
-from qcarlab.experiments.result import Result
+from qcarlab.experiments.result import Result, save_figure
 from qcarlab.perception.lane import (
     LANES,
     WHITE_S_MAX,
@@ -504,10 +504,10 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     if shown is not None:
         frame, det, box = shown
         result.data["frame"] = shown
-        result.figures["frame.png"] = lambda f: _save(f, frame_figure(frame.color, det, box))
+        result.figures["frame.png"] = lambda f: save_figure(f, frame_figure(frame.color, det, box))
     if world is not None and "true_x" in cols and n:
         poses = np.stack([cols["true_x"], cols["true_y"], cols["true_yaw"]], axis=1)
-        result.figures["lane.png"] = lambda f: _save(f, lane_figure(world, poses, centre, metrics))
+        result.figures["lane.png"] = lambda f: save_figure(f, lane_figure(world, poses, centre, metrics))
     return result
 
 
@@ -529,14 +529,6 @@ def frame_figure(color: np.ndarray, det, box) -> Any:
     return plots.camera_figure([(lane_overlay(color, det, box), lane_caption(det))], LANE_OVERLAYS,
                                "lane following: what the camera saw")
 
-
-def _save(file, fig) -> None:
-    from qcarlab import plots
-
-    try:
-        plots.save_figure(fig, file)
-    except OSError as exc:
-        raise InputError(f"cannot write {file} ({exc.strerror or exc})") from None
 
 
 def _imwrite(file, image: np.ndarray) -> None:
@@ -642,7 +634,7 @@ def hsv_tune(frames: list, cfg: LaneFollowConfig, params: QCarParams | None = No
         title = f"HSV range {list(cfg.hsv_min)} .. {list(cfg.hsv_max)}: the line found at {metrics['spots_with_line']} " \
                 f"of {len(spots)} spots"
         result.data["hsv_tune"] = rows
-        result.figures["hsv_tune.png"] = lambda f: _save(f, hsv_tune_figure(rows, title))
+        result.figures["hsv_tune.png"] = lambda f: save_figure(f, hsv_tune_figure(rows, title))
     return result
 
 

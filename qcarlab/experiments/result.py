@@ -40,3 +40,15 @@ class Result:
         written.append(write_json(folder / "results.json", self.metrics))
         (folder / IN_PROGRESS).unlink(missing_ok=True)  # saved: the folder is this run's
         return written
+
+
+def save_figure(file: Any, fig: Any) -> None:
+    """Write a matplotlib Figure of :mod:`qcarlab.plots` to ``file`` (a figure's draw function for
+    ``Result.figures``); a file that cannot be written is one line (InputError)."""
+    from qcarlab import plots
+    from qcarlab.errors import InputError
+
+    try:
+        plots.save_figure(fig, file)
+    except OSError as exc:
+        raise InputError(f"cannot write {file} ({exc.strerror or exc})") from None

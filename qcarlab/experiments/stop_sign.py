@@ -55,7 +55,7 @@ from qcarlab.control.stop_sign import (
 from qcarlab.errors import InputError
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
 from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, SPEED_CONTROLLER, LabModel, finish
-from qcarlab.experiments.result import Result
+from qcarlab.experiments.result import Result, save_figure
 from qcarlab.experiments.safety import WorldWatch
 from qcarlab.perception.stop_sign import (
     MIN_AREA,
@@ -399,7 +399,7 @@ def run_stop_sign(car: Car, cfg: StopSignConfig, sign=None, *, blocks: Mapping[s
     if shown is not None and shown[0] is not None:
         frame, det = shown
         result.data["detection"] = (frame, det)
-        result.figures["detection.png"] = lambda f: _save(f, detection_figure(frame.color, det, frame.depth))
+        result.figures["detection.png"] = lambda f: save_figure(f, detection_figure(frame.color, det, frame.depth))
     if lab.kept:
         kept = lab.kept
         result.figures["frames"] = lambda folder: _write_frames(folder, kept)
@@ -414,14 +414,6 @@ def detection_figure(color: np.ndarray, det: StopSignDetection, depth: np.ndarra
     return plots.camera_figure(detection_panels(color, det, depth), DETECTION_OVERLAYS,
                                "stop sign: what the camera saw (sheet 5.2, Figure 49)")
 
-
-def _save(file, fig) -> None:
-    from qcarlab import plots
-
-    try:
-        plots.save_figure(fig, file)
-    except OSError as exc:
-        raise InputError(f"cannot write {file} ({exc.strerror or exc})") from None
 
 
 def _write_frames(folder, kept: list[tuple[float, np.ndarray]]) -> None:

@@ -49,7 +49,7 @@ from qcarlab.car.base import Car
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import InputError
 from qcarlab.experiments.loop import STOP
-from qcarlab.experiments.result import Result
+from qcarlab.experiments.result import Result, save_figure
 from qcarlab.experiments.safety import Clearance
 
 __all__ = ["AVOID", "LANE_FOLLOW", "STOP_SIGN", "Randomise", "TrialWorld", "randomise_world", "run_trials",
@@ -457,21 +457,13 @@ def run_trials(lab: str, world: Any, run: RunFn, n: int, seed: int = 0, spec: Ra
     }
     out = Result(lab, metrics, logs={"trials.csv": table})
     out.data["world"] = world
-    out.figures["trials.png"] = lambda f: _save(f, trials_figure(world, out))
+    out.figures["trials.png"] = lambda f: save_figure(f, trials_figure(world, out))
     return out
 
 
 def _or_nan(v: float | None) -> float:
     return math.nan if v is None else float(v)
 
-
-def _save(file: Any, fig: Any) -> None:
-    from qcarlab import plots
-
-    try:
-        plots.save_figure(fig, file)
-    except OSError as exc:
-        raise InputError(f"cannot write {file} ({exc.strerror or exc})") from None
 
 
 def trials_figure(world: Any, result: Result) -> Any:
