@@ -1,23 +1,40 @@
 """The ``qcarlab`` command line: parse, call an experiment, print. Nothing else lives here.
 
-Each module below registers its subcommands on ``app``; a new lab adds a module and one line here.
+Each module of :data:`qcarlab.cli._index.MODULES` registers its subcommands on ``app`` when it is
+imported; :func:`load_commands` imports them all (``main`` does, before any command runs). The bare
+``qcarlab --help`` lists the commands from the index instead, without importing them. A new lab
+adds a module, its name in the index's ``MODULES``, and its commands' lines in ``COMMANDS``
+(``tests/test_cli_index.py`` prints them).
 """
 
 from __future__ import annotations
 
-from qcarlab.cli.app import app, main
-from qcarlab.cli import io_test  # noqa: F401  (io-test)
-from qcarlab.cli import net  # noqa: F401  (serve, ping)
-from qcarlab.cli import drive  # noqa: F401  (keyboard-drive)
-from qcarlab.cli import paths  # noqa: F401  (path-gen, path-follow)
-from qcarlab.cli import sensors  # noqa: F401  (lidar-scan, camera)
-from qcarlab.cli import stop_sign  # noqa: F401  (stop-sign)
-from qcarlab.cli import lane_follow  # noqa: F401  (lane-follow)
-from qcarlab.cli import avoid  # noqa: F401  (avoid)
-from qcarlab.cli import grade  # noqa: F401  (grade, labs)
-from qcarlab.cli import lab  # noqa: F401  (blocks, template)
-from qcarlab.cli import replay  # noqa: F401  (replay info)
-from qcarlab.cli import onboard  # noqa: F401  (onboard, deploy)
-from qcarlab.cli import detect  # noqa: F401  (detect lanes, detect stop-sign)
+import importlib
 
-__all__ = ["app", "main"]
+from qcarlab.cli.app import app, main
+
+_loaded = False
+
+
+def load_commands() -> None:
+    """Import every command module (each registers its commands on ``app``); once a process."""
+    global _loaded
+    if _loaded:
+        return
+    from qcarlab.cli._index import MODULES
+
+    for name in MODULES:
+        importlib.import_module(f"qcarlab.cli.{name}")
+    # the index's order, whichever module was imported first (a test may import one directly)
+    rank = {m: i for i, m in enumerate(MODULES)}
+
+    def where(callback) -> int:
+        return rank.get(getattr(callback, "__module__", "").rsplit(".", 1)[-1], len(rank))
+
+    app.registered_commands.sort(key=lambda c: where(c.callback))
+    app.registered_groups.sort(key=lambda g: min((where(c.callback) for c in g.typer_instance.registered_commands),
+                                                 default=len(rank)))
+    _loaded = True
+
+
+__all__ = ["app", "load_commands", "main"]

@@ -86,6 +86,34 @@ def _term_as_interrupt() -> object:
     return signal.signal(signal.SIGINT, interrupts.handler), signal.signal(signal.SIGTERM, interrupts.handler)
 
 
+def _listing_only(argv: list[str]) -> bool:
+    """True for the bare ``qcarlab --help`` (or ``-h``), which lists the commands from the index
+    (:mod:`qcarlab.cli._index`) without importing their modules; never under shell completion."""
+    if any(k.endswith("_COMPLETE") for k in os.environ) or len(argv) != 1 or argv[0] not in ("--help", "-h"):
+        return False
+    from qcarlab import cli
+
+    return not getattr(cli, "_loaded", False)
+
+
+def _list_commands(argv: list[str]) -> int:
+    """The bare help with a stand-in for each command (its name and help from the index), taken
+    out of ``app`` again afterwards, so the commands' own modules are never imported for it."""
+    from qcarlab.cli._index import COMMANDS
+
+    before = list(app.registered_commands)
+
+    def stand_in() -> None:  # pragma: no cover - listed, never run
+        raise SystemExit(2)
+
+    try:
+        for name, _module, text in COMMANDS:
+            app.command(name, help=text)(stand_in)
+        return app(args=argv, prog_name="qcarlab", standalone_mode=False)
+    finally:
+        app.registered_commands[:] = before
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point: run the app with the house error style."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -97,8 +125,16 @@ def main(argv: list[str] | None = None) -> None:
     global interrupt_reported
     interrupt_reported = False
     previous = _term_as_interrupt()
+    listing = _listing_only(argv)
+    if not listing:
+        from qcarlab.cli import load_commands
+
+        load_commands()
     try:
-        code = app(args=argv, prog_name="qcarlab", standalone_mode=False)
+        if listing:
+            code = _list_commands(argv)
+        else:
+            code = app(args=argv, prog_name="qcarlab", standalone_mode=False)
     except (KeyboardInterrupt, typer.Abort):
         stderr.print(f"{name}: interrupted; the car was stopped", markup=False)
         sys.exit(130)

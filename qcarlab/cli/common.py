@@ -372,7 +372,9 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
     if m.get("interrupted"):
         stderr.print(f"qcarlab {name}: interrupted; the car was stopped"
                      + (f"; the run so far was saved to {out}" if written else ""), markup=False)
-        from qcarlab.cli import app as _app
+        import importlib
+
+        _app = importlib.import_module("qcarlab.cli.app")  # the module (qcarlab.cli.app is also the Typer)
 
         _app.interrupt_reported = True
         raise typer.Exit(130)

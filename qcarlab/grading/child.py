@@ -145,7 +145,9 @@ def student_process(spec: dict[str, Any], limits: Any) -> Any:
                                        encoding="utf-8")
         return None
     Path("sandbox.txt").write_text("sandboxed" if why is None else f"not sandboxed: {why}", encoding="utf-8")
-    import qcarlab.cli  # noqa: F401 - loaded before the fork (the student's process has it: a warm start)
+    import qcarlab.cli  # loaded before the fork (the student's process has it: a warm start)
+
+    qcarlab.cli.load_commands()
 
     _hold_to_one_core(spec.get("cpu"))
     work = Path.cwd()
