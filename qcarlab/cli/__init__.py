@@ -1,8 +1,10 @@
 """The ``qcarlab`` command line: parse, call an experiment, print. Nothing else lives here.
 
 Each module of :data:`qcarlab.cli._index.MODULES` registers its subcommands on ``app`` when it is
-imported; :func:`load_commands` imports them all (``main`` does, before any command runs). The bare
-``qcarlab --help`` lists the commands from the index instead, without importing them. A new lab
+imported. ``main`` imports only the module of the command typed (:func:`load_command`), or all of
+them (:func:`load_commands`) when the first word is no command of the index (an option, a typo,
+shell completion); the bare ``qcarlab --help`` lists the commands from the index without importing
+them. A new lab
 adds a module, its name in the index's ``MODULES``, and its commands' lines in ``COMMANDS``
 (``tests/test_cli_index.py`` prints them).
 """
@@ -14,6 +16,18 @@ import importlib
 from qcarlab.cli.app import app, main
 
 _loaded = False
+
+
+def load_command(name: str) -> bool:
+    """Import only the module of the command ``name`` (the index says which); False when the index
+    does not know it (then :func:`load_commands` is the way)."""
+    from qcarlab.cli._index import COMMANDS
+
+    module = next((m for n, m, _ in COMMANDS if n == name), None)
+    if module is None:
+        return False
+    importlib.import_module(f"qcarlab.cli.{module}")
+    return True
 
 
 def load_commands() -> None:

@@ -127,9 +127,11 @@ def main(argv: list[str] | None = None) -> None:
     previous = _term_as_interrupt()
     listing = _listing_only(argv)
     if not listing:
-        from qcarlab.cli import load_commands
+        from qcarlab.cli import load_command, load_commands
 
-        load_commands()
+        completing = any(k.endswith("_COMPLETE") for k in os.environ)
+        if completing or not load_command(argv[0]):  # the command typed: its module alone
+            load_commands()
     try:
         if listing:
             code = _list_commands(argv)
