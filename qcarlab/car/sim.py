@@ -99,8 +99,8 @@ class SimCar(Car):
         self._history: deque[list[float]] = deque(maxlen=256)  # the state's values after each step
         self._contact: Any = None  # qcarlab.sim.contact.Contact, built on the first contact()
         self._remember_pose()
-        if self._realtime:  # a real-time car must not stall on the compiled physics' first step later
-            self.warm_physics()
+        if self._realtime:  # a real-time car must not stall on loading the compiled physics later
+            self.vehicle.auto_switch = False
 
     # --- time -----------------------------------------------------------------------------------
     @property
@@ -287,9 +287,9 @@ class SimCar(Car):
         _warm_physics(self.params)
 
     def warm_physics(self) -> None:
-        """Load numba and the compiled physics now. A sensor's first frame loads numba, which
-        switches the physics to its compiled kernel, whose first call takes 0.1-0.5 s: a server
-        calls this at start, so that call is not a step it makes under its drive lock later."""
+        """Load numba and switch this process to the compiled physics now, whose first call takes
+        0.1-0.5 s: a server (a gym env, the grader's warm process) calls this at start, so that
+        call is not a step it makes under its drive lock later, and all its steps are the fast ones."""
         try:
             import numba  # noqa: F401
         except ImportError:
@@ -404,17 +404,17 @@ class _FrameJob:
 
     def __call__(self) -> Any:
         if self.frame is None:
-            first = self.kind not in self.car._sensors
             sensor = self.car._sensor(self.kind)
-            if first:  # building it may have loaded numba: load the compiled physics here too, off any lock
-                _warm_physics(self.car.params)
             self.frame = self.car._draw(self.kind, sensor, self.render, self.pose, self.t, self.yaw_rate)
             self.car._frames[self.kind] = (self.k, self.frame)
         return self.frame
 
 
 def _warm_physics(params: QCarParams) -> None:
-    """Once numba is loaded the physics runs its compiled kernel, whose first call loads it (some
-    0.1-0.5 s): make that call on a scratch body now, not in the car's next step (which a server
-    makes under the lock its watchdog needs)."""
-    Vehicle(params, on_stand=True).step(params.physics_dt)
+    """Switch this process to the compiled physics (:func:`qcarlab.sim.vehicle.load_compiled`),
+    whose first call loads it (some 0.1-0.5 s): make that call on a scratch body now, not in the
+    car's next step (which a server makes under the lock its watchdog needs)."""
+    from qcarlab.sim import vehicle
+
+    if vehicle.load_compiled() is not None:
+        Vehicle(params, on_stand=True).step(params.physics_dt)

@@ -92,9 +92,9 @@ def color_thresholding_hsv(
     img = np.asarray(image_bgr)
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
         raise InputError(f"expected a BGR uint8 image (H, W, 3), got {img.dtype} {img.shape}")
-    if lo[2] > 0 and img.shape[0] > 8:
+    if lo[2] > 0 and img.shape[0] > 8 and not (img[0].any() and img[-1].any()):
         # black (V = 0) is never kept: rows that are all black above and below (image_selector's
-        # zeros) need no conversion
+        # zeros) need no conversion (a camera's frame, lit top and bottom, is not looked through)
         rows = np.flatnonzero(img.reshape(img.shape[0], -1).max(axis=1))
         if len(rows) == 0:
             return np.zeros(img.shape[:2], np.uint8)

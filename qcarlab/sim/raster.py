@@ -21,6 +21,7 @@ import hashlib
 import math
 import os
 import pickle
+import shutil
 import sys
 import tempfile
 from dataclasses import dataclass, fields
@@ -244,7 +245,7 @@ def _floor_runs(world: World, px_per_m: float, levels: int) -> FloorRuns:
 # the rasters on disk: a world's are drawn once per machine, not once per run
 # --------------------------------------------------------------------------------------------
 CACHE_ENV = "QCARLAB_CACHE"  #: a folder for the cache ("off": none); default ~/.cache/qcarlab
-KEEP = 48  #: files kept on disk (a floor is about 17 MB, a raster 2-9 MB), the most recently made
+KEEP = 48  #: entries kept on disk (a floor is about 17 MB, a raster 2-9 MB), the most recently made
 
 
 def cache_folder() -> Path | None:
@@ -261,34 +262,51 @@ def on_disk(cls: type, key: tuple, inputs: tuple, build: Any) -> Any:
     """``build()`` (a dataclass of arrays and numbers, ``cls``), kept in :func:`cache_folder` under
     a hash of ``key``, ``inputs`` (what it is made from: the world's parts it reads) and the
     source of the code that makes it (this module and the world's) and qcarlab's version, so a
-    change of any of them makes it anew. Read back exactly (``.npz``, no pickle); a file that
-    cannot be read is made again; without a writable folder, made each time as before."""
+    change of any of them makes it anew.
+
+    An entry is a folder of one ``.npy`` file a field (no pickle), made in a scratch folder and
+    renamed into place whole. It is read back memory-mapped copy-on-write: a run reads only the
+    pages it touches (a floor is some 35 MB, of which a camera sees a part), and its arrays are
+    ordinary writable ndarrays to numba and numpy (an ``.npz`` was read whole through zipfile's
+    checksum: 0.1-0.25 s a run). An entry that cannot be read is made again; without a writable
+    folder, made each time as before."""
     folder = cache_folder()
     if folder is None:
         return build()
     try:
-        path = folder / f"{key[0]}-{_fingerprint(key, inputs)}.npz"
+        path = folder / f"{key[0]}-{_fingerprint(key, inputs)}"
     except (TypeError, pickle.PicklingError):
         return build()
+    names = [f.name for f in fields(cls)]
     try:
-        with np.load(path, allow_pickle=False) as z:
-            return cls(**{f.name: z[f.name] if z[f.name].ndim else z[f.name].item() for f in fields(cls)})
-    except (OSError, KeyError, ValueError, TypeError):
-        pass  # not there yet, or unreadable: made (and written) again
+        got = {}
+        for name in names:
+            a = np.asarray(np.load(path / f"{name}.npy", mmap_mode="c", allow_pickle=False))
+            got[name] = a if a.ndim else a.item()
+        return cls(**got)
+    except (OSError, ValueError, TypeError, EOFError):  # not made yet, or damaged: made (and written) again
+        shutil.rmtree(path, ignore_errors=True)
     out = build()
     tmp = None
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{key[0]}-", suffix=".npz", dir=folder)
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **{fl.name: getattr(out, fl.name) for fl in fields(cls)})
-        os.replace(tmp, path)  # whole or not at all, also with runs writing it at once
-        kept = sorted(folder.glob("*.npz"), key=lambda p: p.stat().st_mtime, reverse=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{key[0]}-", dir=folder))
+        for name in names:
+            np.save(tmp / f"{name}.npy", np.asarray(getattr(out, name)), allow_pickle=False)
+        try:
+            os.rename(tmp, path)  # whole or not at all; another run may have put it there first
+            tmp = None
+        except OSError:
+            pass
+        kept = sorted((p for p in folder.iterdir() if not p.name.startswith(".")),
+                      key=lambda p: p.stat().st_mtime, reverse=True)
         for old in kept[KEEP:]:  # those of worlds (or of code) not used for a while
-            old.unlink(missing_ok=True)
+            shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
     except OSError:
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)  # a read-only or full home: made each run, as before
+        pass  # a read-only or full home: made each run, as before
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
     return out
 
 

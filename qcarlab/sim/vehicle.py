@@ -1,10 +1,10 @@
 """The simulated QCar's body: kinematic bicycle, steering servo, DC motor + ESC + gear train, battery.
 
 The sub-steps are scalar float arithmetic on one float64 state buffer, read into locals once a
-control step: plain Python (some 5 us for a 10 ms step of five sub-steps) or, once numba is
-loaded in the process anyway (the sensors load it) or when asked (:data:`COMPILED`), the same
-code compiled (about 1 us with the call); the simulator runs hundreds of times faster than real
-time.
+control step: plain Python (some 5 us for a 10 ms step of five sub-steps) or the same code
+compiled (about 1 us with the call) once a process has loaded it (:func:`load_compiled`: a server,
+a gym env, the grader's warm process), has made enough steps to repay loading it, or is asked to
+(:data:`COMPILED`); the simulator runs hundreds of times faster than real time.
 
 **Kinematic bicycle (lab sheet 4.1.1, exact form).** The reference point is the car's centre,
 midway between the axles (l_r = l_f = L/2). With wheel angle delta, the slip angle at the centre
@@ -136,12 +136,19 @@ for _i, (_name, _doc) in enumerate(zip(_FIELDS, (
 # (the LiPo table is read by the step as the module's tuples: compiled, numba bakes them in as
 # constants, so a call passes two arrays and three floats, not four arrays)
 
-#: Which implementation of the sub-steps runs: None (default) = the numba-compiled one when numba
-#: is already loaded in the process (the sensors load it), else plain Python; True = always
+#: Which implementation of the sub-steps runs: None (default) = the numba-compiled one once it is
+#: loaded (:func:`load_compiled`), or once numba is loaded in the process (the sensors load it) and
+#: the process has made :data:`SWITCH_AFTER` plain-Python steps, else plain Python; True = always
 #: compiled (loads numba: some 0.5 s at the first step of a process, worth it for long sweeps);
 #: False = always plain Python. Both are the same code on the same numbers: the same results.
 COMPILED: bool | None = None
+#: Plain-Python steps after which a process with numba loaded switches to the compiled step:
+#: loading it costs 30-150 ms (more when it is numba's first function in the process) and it saves
+#: some 4 us a step, so a lab's lone run (a stop-sign run: 800 steps; 60 s of avoid: 6,000) keeps
+#: plain Python, a long one (a sweep in one process, a gym env's training) switches.
+SWITCH_AFTER = 20_000
 _compiled_advance = None
+_python_steps = 0
 _MODULES = sys.modules
 
 
@@ -272,12 +279,18 @@ def _advance(s, p, duty, delta_cmd, dt):
 
 def _compiled():
     """The numba-compiled :func:`_advance` when :data:`COMPILED` asks for it, else None."""
-    global _compiled_advance
     use = COMPILED
     if use is None:
-        use = "numba" in sys.modules
+        use = _compiled_advance is not None or ("numba" in sys.modules and _python_steps >= SWITCH_AFTER)
     if not use:
         return None
+    return load_compiled()
+
+
+def load_compiled():
+    """The numba-compiled :func:`_advance`, used from now on in this process (unless
+    :data:`COMPILED` is False); None without numba. Its first call loads it from numba's cache."""
+    global _compiled_advance
     if _compiled_advance is None:
         from qcarlab.sim._kernels import HAVE_NUMBA, njit
 
@@ -288,7 +301,15 @@ def _compiled():
 
 
 class Vehicle:
-    """One simulated QCar body. ``command(d, delta)`` sets the inputs, ``step(dt)`` advances time."""
+    """One simulated QCar body. ``command(d, delta)`` sets the inputs, ``step(dt)`` advances time.
+
+    ``auto_switch`` (default True): this body may switch the process to the compiled step after
+    :data:`SWITCH_AFTER` plain-Python steps; a real-time car turns it off, so that loading the
+    compiled step (tens of ms) never lands in one of its steps (it runs compiled only once
+    something has loaded it: :func:`load_compiled`).
+    """
+
+    auto_switch = True
 
     def __init__(
         self,
@@ -394,6 +415,7 @@ class Vehicle:
         self._advance(dt)
 
     def _advance(self, dt: float) -> None:
+        global _python_steps
         # simulated time moves by dt rounded to the nanosecond, so that 100 steps of 10 ms make
         # exactly 1 s (the sub-steps' own sum drifts in the last bits); the count in ns is kept
         # beside the state's t (recounted when t was set from outside) and dt's for the last dt
@@ -407,11 +429,13 @@ class Vehicle:
         t_ns = self._t_ns + self._dt_ns
         use = COMPILED  # (_compiled(), written out: this runs every step)
         if use is None:
-            use = "numba" in _MODULES
+            use = _compiled_advance is not None or (_python_steps >= SWITCH_AFTER and self.auto_switch
+                                                    and "numba" in _MODULES)
         kernel = (_compiled_advance or _compiled()) if use else None
         if kernel is not None:
             kernel(state.buffer, self._k, float(self.duty), float(self.delta_cmd), float(dt))
         else:
+            _python_steps += 1
             _advance(a, self._kl, self.duty, self.delta_cmd, dt)
         self._t_ns = t_ns
         a[_T] = self._t_s = t_ns / 1e9
