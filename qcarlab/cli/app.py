@@ -126,17 +126,18 @@ def main(argv: list[str] | None = None) -> None:
     interrupt_reported = False
     previous = _term_as_interrupt()
     listing = _listing_only(argv)
-    if not listing:
-        from qcarlab.cli import load_command, load_commands
-
-        completing = any(k.endswith("_COMPLETE") for k in os.environ)
-        if completing or not load_command(argv[0]):  # the command typed: its module alone
-            load_commands()
     try:
         if listing:
             code = _list_commands(argv)
         else:
+            from qcarlab.cli import load_command, load_commands
+
+            completing = any(k.endswith("_COMPLETE") for k in os.environ)
+            if completing or not load_command(argv[0]):  # the command typed: its module alone
+                load_commands()
             code = app(args=argv, prog_name="qcarlab", standalone_mode=False)
+        if code == 130 and not interrupt_reported:  # typer turns a Ctrl-C into a silent return of 130
+            raise KeyboardInterrupt
     except (KeyboardInterrupt, typer.Abort):
         stderr.print(f"{name}: interrupted; the car was stopped", markup=False)
         sys.exit(130)
