@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -61,3 +63,56 @@ def netlog():
     yield lines
     logger.removeHandler(handler)
     logger.setLevel(old)
+
+
+def _children(pid: int) -> set[int]:
+    """The processes ``pid`` started, and theirs (Linux: /proc/PID/task/TID/children), alive or
+    zombie; empty where /proc does not say."""
+    found: set[int] = set()
+    todo = [pid]
+    while todo:
+        parent = todo.pop()
+        try:
+            tasks = os.listdir(f"/proc/{parent}/task")
+        except OSError:
+            continue
+        for tid in tasks:
+            try:
+                kids = Path(f"/proc/{parent}/task/{tid}/children").read_text().split()
+            except OSError:
+                continue
+            for kid in map(int, kids):
+                if kid not in found:
+                    found.add(kid)
+                    todo.append(kid)
+    return found
+
+
+def _helper(pid: int) -> bool:
+    """multiprocessing's process-wide helpers (resource tracker, fork server): they outlive a test
+    by design and are restarted when gone, so they are left alone."""
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return True
+    return b"multiprocessing.resource_tracker" in cmdline or b"multiprocessing.forkserver" in cmdline
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item):
+    """Every process a test body started and left running (a failed assert before its own stop, a
+    forgotten server) is killed when the test ends, pass or fail, so no ``serve`` outlives it.
+    Fixtures' processes (started before the body) are their teardown's business."""
+    before = _children(os.getpid())
+    yield
+    left = [pid for pid in _children(os.getpid()) - before if not _helper(pid)]
+    for pid in left:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+    for pid in left:  # reap the direct children now (a Popen object reaps its own on its next poll)
+        try:
+            os.waitpid(pid, os.WNOHANG)
+        except ChildProcessError:
+            pass
