@@ -90,21 +90,30 @@ def token_head():
     token_file = home / ".ray" / "auth_token"
     token_file.write_text(token)
     token_file.chmod(0o600)
-    port = _free_port()
-    log = open(root / "head.log", "w")
-    proc = subprocess.Popen(
-        [_ray_cli(), "start", "--head", "--block", "--node-ip-address", "127.0.0.1", "--port", str(port),
-         "--num-cpus", "1", "--include-dashboard", "false", "--disable-usage-stats", "--temp-dir", str(root / "t"),
-         "--dashboard-port", str(_free_port()),
-         "--dashboard-agent-listen-port", str(_free_port()), "--dashboard-agent-grpc-port", str(_free_port()),
-         "--metrics-export-port", str(_free_port()), "--runtime-env-agent-port", str(_free_port())],
-        stdout=log, stderr=subprocess.STDOUT, env=_clean_env(home), start_new_session=True)
-    try:
+    for attempt in range(3):  # a port picked free may be taken before Ray binds it (tests run in parallel)
+        port = _free_port()
+        log = open(root / "head.log", "w")
+        proc = subprocess.Popen(
+            [_ray_cli(), "start", "--head", "--block", "--node-ip-address", "127.0.0.1", "--port", str(port),
+             "--num-cpus", "1", "--include-dashboard", "false", "--disable-usage-stats", "--temp-dir", str(root / "t"),
+             "--dashboard-port", str(_free_port()),
+             "--dashboard-agent-listen-port", str(_free_port()), "--dashboard-agent-grpc-port", str(_free_port()),
+             "--metrics-export-port", str(_free_port()), "--runtime-env-agent-port", str(_free_port())],
+            stdout=log, stderr=subprocess.STDOUT, env=_clean_env(home), start_new_session=True)
         end = time.monotonic() + 120.0
         while "Ray runtime started" not in (root / "head.log").read_text(errors="replace"):
             if proc.poll() is not None or time.monotonic() > end:
-                pytest.fail(f"ray start --head did not start: {(root / 'head.log').read_text()[-1500:]}")
+                break
             time.sleep(0.5)
+        else:
+            break
+        _stop_group(proc)
+        log.close()
+        text = (root / "head.log").read_text(errors="replace")
+        if attempt == 2 or "Failed to start the grpc server" not in text:
+            shutil.rmtree(root, ignore_errors=True)
+            pytest.fail(f"ray start --head did not start: {text[-1500:]}")
+    try:
         text = (root / "head.log").read_text(errors="replace")
         assert "Token authentication is enabled" in text, text[-800:]
         yield {"address": f"127.0.0.1:{port}", "token": token, "root": root}
