@@ -16,9 +16,10 @@ import threading
 import typer
 from rich.console import Console
 
+from qcarlab.cli.helpfmt import Typer
 from qcarlab.errors import QcarlabError
 
-app = typer.Typer(
+app = Typer(
     name="qcarlab",
     help=(
         "The QCar self-driving lab, section by section, on a built-in simulator (--car sim, the "

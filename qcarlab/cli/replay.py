@@ -14,9 +14,10 @@ from rich.table import Table
 
 from qcarlab.cli.app import app
 from qcarlab.cli.common import DebugOpt, JsonOpt, stdout
+from qcarlab.cli.helpfmt import Typer
 from qcarlab.record import dumps
 
-replay_app = typer.Typer(help="Recordings: what they hold (replay one with --car replay:FILE on a lab command).",
+replay_app = Typer(help="Recordings: what they hold (replay one with --car replay:FILE on a lab command).",
                          no_args_is_help=True)
 app.add_typer(replay_app, name="replay")
 
