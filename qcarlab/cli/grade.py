@@ -137,9 +137,11 @@ def grade_cmd(
     own process with a time, memory and output limit. Exit 0 when every task passes, 1 when one
     fails, 2 for bad input.
 
-    Examples: qcarlab grade stop-sign --submission mylab | qcarlab grade stop-sign --submission . --junit
-    report.xml | qcarlab grade path-following --class submissions/ --jobs 4 --out grades/ | qcarlab grade
-    private/stop-sign-extra.yaml --class submissions/ --ray auto
+    Examples:
+      qcarlab grade stop-sign --submission mylab
+      qcarlab grade stop-sign --submission . --junit report.xml
+      qcarlab grade path-following --class submissions/ --jobs 4 --out grades/
+      qcarlab grade private/stop-sign-extra.yaml --class submissions/ --ray auto
     """
     limits = Limits(timeout, memory, max_output).check()
     if sandbox not in ("required", "auto", "off"):
@@ -333,8 +335,12 @@ def labs_cmd(
     qcarlab's reference blocks every point, so every point depends on the student. Exit 1 when a
     sheet fails its check.
 
-    Examples: qcarlab labs | qcarlab labs stop-sign | qcarlab labs 6.1 --json | qcarlab labs check
-    stop-sign | qcarlab labs check my-sheet.yaml --jobs 2
+    Examples:
+      qcarlab labs
+      qcarlab labs stop-sign
+      qcarlab labs 6.1 --json
+      qcarlab labs check stop-sign
+      qcarlab labs check my-sheet.yaml --jobs 2
     """
     if sheet and sheet[0] == "check":
         _labs_check(sheet[1:], jobs, json_out)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import inspect
 import os
+import re
 from collections import defaultdict
 from typing import Any
 
@@ -112,13 +113,37 @@ def _console():
                    force_terminal=False if os.environ.get("_TYPER_FORCE_DISABLE_TERMINAL") else None)
 
 
+def escape_non_styles(markup: str) -> str:
+    """Rich markup with every bracket that is no style tag escaped, so that ``[[x0, y0], [x1, y1]]``
+    or ``[default: 0.3]`` in a help text are printed, not taken for tags and dropped."""
+    from rich.errors import StyleSyntaxError
+    from rich.style import Style
+
+    def keep(match: re.Match) -> str:
+        if match.group(1):  # already escaped
+            return match.group(0)
+        tag = match.group(2).lstrip("/").strip()
+        if not tag or tag.startswith("@") or tag == "link":
+            return match.group(0)
+        try:
+            Style.parse(tag.replace("=", " ", 1))  # [link=URL] is the style "link URL"
+        except StyleSyntaxError:
+            return "\\" + match.group(0)
+        return match.group(0)
+
+    return _TAG.sub(keep, markup)
+
+
+_TAG = re.compile(r"(\\?)\[([^\[\]]*)\]")
+
+
 def _text(console, markup: str, style: str = ""):
     """A help text line: rich markup (the house mode), highlighted; plain when the markup is bad."""
     from rich.errors import MarkupError
     from rich.text import Text
 
     try:
-        text = Text.from_markup(markup, style=style)
+        text = Text.from_markup(escape_non_styles(markup), style=style)
     except MarkupError:
         text = Text(markup, style=style)
     return console.highlighter(text)

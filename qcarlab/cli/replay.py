@@ -32,8 +32,10 @@ def info_cmd(
 ) -> None:
     """Topics, schemas, message counts, duration and rates of a recording.
 
-    Example: qcarlab replay info run.mcap | qcarlab replay info run.mcap --topics | qcarlab replay info
-    rosbag2_2024_05_01/ --json
+    Examples:
+      qcarlab replay info run.mcap
+      qcarlab replay info run.mcap --topics
+      qcarlab replay info rosbag2_2024_05_01/ --json
     """
     from qcarlab.recording.reader import open_recording
 
