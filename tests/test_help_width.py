@@ -105,3 +105,57 @@ def test_the_bare_help_fits_80_columns_too():
     assert max(len(line) for line in done.stdout.splitlines()) <= 80
     assert "…" not in done.stdout and "keyboard-drive" in done.stdout
     assert "  qcarlab io-test --on-floor --throttle 0.1 --duration 2" in done.stdout
+
+
+# -- qcarlab grade's table: wrapped at 80 columns, never cut -----------------------------------------
+
+def _criterion(text, value, passed=True, reason=""):
+    return {"criterion": text, "value": value, "passed": passed, "reason": reason, "earned": 1 if passed else 0,
+            "points": 1}
+
+
+def _student(name="mylab"):
+    tasks = [
+        {"id": "5.2-task1-block", "sheet": "stop-sign", "status": "skipped", "problem":
+         "a block task grades a student's block: give --submission DIR", "points": 1, "criteria": []},
+        {"id": "5.2-task1-stopsign", "sheet": "stop-sign", "status": "passed", "problem": None, "points": 2,
+         "criteria": [_criterion("stopped >= 1", 1), _criterion("0.05 <= measured_distance_m <= 0.4", 0.3299)]},
+        {"id": "4.2.3-speed-controller-block", "sheet": "path-following", "status": "failed", "problem": None,
+         "points": 2, "criteria": [
+             _criterion("2 s 0.1 m/s too slow: still pushing, within the limit >= 0.01 and <= 0.3", 0.5, False,
+                        "0.5 > 0.3 (the controller overshoots: check the integral term's sign)"),
+             _criterion("about to touch: stop or back up >= [any, -0.5] and <= [0, 0.5]", None, False, "no value")]},
+    ]
+    return {"student": name, "passed": 1, "total": 3, "points": 3, "max_points": 5, "skipped": 1, "tasks": tasks}
+
+
+def _columns(out: str) -> list[str]:
+    """Each table column's cells run together, without spaces (a wrapped cell's lines joined)."""
+    rows = [line.split("│")[1:-1] for line in out.splitlines() if line.startswith("│")]
+    return ["".join(r[i].replace(" ", "") for r in rows) for i in range(len(rows[0]))]
+
+
+@pytest.mark.parametrize("width", [80, 60])
+def test_the_grade_table_wraps_its_cells_at_the_width(monkeypatch, width):
+    import io
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    from qcarlab.cli import grade
+
+    student = _student()
+    for single, students in ((True, [student]), (False, [student, _student("a-long-student-folder-name-2026")])):
+        monkeypatch.setattr(grade, "stdout", Console(width=width, file=io.StringIO(), highlight=False))
+        grade._print([SimpleNamespace(title="Stop sign detection and stopping (RGBD camera)")], students, single)
+        out = grade.stdout.file.getvalue()
+        assert max(len(line) for line in out.splitlines()) <= width, out
+        assert "…" not in out, out
+        columns = _columns(out)
+        if single:
+            for t in student["tasks"]:
+                assert t["id"] in columns[0], out
+                for c in t["criteria"]:
+                    assert c["criterion"].replace(" ", "") in columns[1], out  # brackets too: no markup
+        else:
+            assert "a-long-student-folder-name-2026" in columns[0], out
