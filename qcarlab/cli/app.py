@@ -16,14 +16,15 @@ import threading
 import typer
 from rich.console import Console
 
+from qcarlab.cli.helpfmt import Typer
 from qcarlab.errors import QcarlabError
 
-app = typer.Typer(
+app = Typer(
     name="qcarlab",
     help=(
         "The QCar self-driving lab, section by section, on a built-in simulator (--car sim, the "
         "default) or a real car (--car tcp://HOST:PORT).\n\n"
-        "Start with: qcarlab io-test --on-floor --throttle 0.1 --duration 2"
+        "Start with:\n  qcarlab io-test --on-floor --throttle 0.1 --duration 2"
     ),
     no_args_is_help=True,
     add_completion=True,  # --install-completion / --show-completion (bash, zsh, fish, PowerShell)

@@ -87,11 +87,14 @@ def avoid_cmd(
 ) -> None:
     """LIDAR obstacle detection and avoidance (sheet 6.1): stop, steer or both, with collisions checked.
 
-    Examples: qcarlab avoid --strategy stop | qcarlab avoid --world hallway --duration 30 --out runs/hall |
-    qcarlab avoid --strategy steer --start 0.5,0,-1.57 --json | qcarlab avoid --strategy student --use mylab/lidar.py
+    Examples:
+      qcarlab avoid --strategy stop
+      qcarlab avoid --world hallway --duration 30 --out runs/hall
+      qcarlab avoid --strategy steer --start 0.5,0,-1.57 --json
+      qcarlab avoid --strategy student --use mylab/lidar.py
 
-    Trials: qcarlab avoid --world hallway --trials 20 --speed 0.5 --out runs/ball (the success rate over
-    N randomised runs, as the race-car report measured it).
+    Trials: the success rate over N randomised runs, as the race-car report measured it:
+      qcarlab avoid --world hallway --trials 20 --speed 0.5 --out runs/ball
 
     Exit 0 when the car drove the whole duration without touching anything (trials: every trial did), 1
     after a collision, 2 for bad input.

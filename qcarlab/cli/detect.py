@@ -26,6 +26,7 @@ from rich.table import Table
 
 from qcarlab.cli.app import app
 from qcarlab.cli.common import DebugOpt, check_out, parse_hsv, stdout
+from qcarlab.cli.helpfmt import Typer
 from qcarlab.errors import InputError
 from qcarlab.hsv_profile import load_hsv_profile
 from qcarlab.media import Source, VideoOut, expand_paths, frames_of, read_depth, video_fps
@@ -33,7 +34,7 @@ from qcarlab.perception.hsv_range import HsvProfile
 from qcarlab.perception.lane_lines import ROI_TOP, detect_lane_lines, lane_lines_image
 from qcarlab.perception.stop_signs import METHODS, detect_stop_signs, signs_image
 
-detect_app = typer.Typer(
+detect_app = Typer(
     help="Run the lab's perception on your own photos and videos: lane lines, stop signs.",
     no_args_is_help=True,
     add_completion=False,

@@ -279,7 +279,8 @@ def keyboard_drive_cmd(
     The simulator runs in real time in the 'studio' world unless --world says otherwise; a served
     car (--car tcp://HOST:PORT) gets a command every tick. Needs an interactive terminal.
 
-    Example: qcarlab keyboard-drive --world track --max-throttle 0.1
+    Example:
+      qcarlab keyboard-drive --world track --max-throttle 0.1
     """
     config = DriveConfig(
         max_throttle=max_throttle,

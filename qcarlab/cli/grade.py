@@ -8,6 +8,7 @@ from typing import Annotated, Any
 
 import typer
 from rich.table import Table
+from rich.text import Text
 
 from qcarlab.cli.app import app
 from qcarlab.cli.common import DebugOpt, JsonOpt, stderr, stdout
@@ -137,9 +138,11 @@ def grade_cmd(
     own process with a time, memory and output limit. Exit 0 when every task passes, 1 when one
     fails, 2 for bad input.
 
-    Examples: qcarlab grade stop-sign --submission mylab | qcarlab grade stop-sign --submission . --junit
-    report.xml | qcarlab grade path-following --class submissions/ --jobs 4 --out grades/ | qcarlab grade
-    private/stop-sign-extra.yaml --class submissions/ --ray auto
+    Examples:
+      qcarlab grade stop-sign --submission mylab
+      qcarlab grade stop-sign --submission . --junit report.xml
+      qcarlab grade path-following --class submissions/ --jobs 4 --out grades/
+      qcarlab grade private/stop-sign-extra.yaml --class submissions/ --ray auto
     """
     limits = Limits(timeout, memory, max_output).check()
     if sandbox not in ("required", "auto", "off"):
@@ -279,28 +282,42 @@ def _sandbox_state(mode: str, on_ray: bool, student_code: bool, quiet: bool) -> 
     return {"mode": mode, "sandboxed": why is None, "why": why}
 
 
+def _table(title: str, columns: tuple[str, ...], rows: list[tuple[str, ...]], keep: int = 0) -> Table:
+    """A table that wraps its cells at the terminal's width instead of cutting them ("…"): words
+    break at spaces, a word wider than its column folds onto the next line. The first ``keep``
+    columns are as wide as their widest cell when that fits a quarter of the width (task ids, names).
+    Cells are plain text: a criterion's ``[any, -0.5]`` is no markup."""
+    table = Table(title=Text(title), title_justify="left")
+    quarter = max(8, stdout.width // 4)
+    for i, col in enumerate(columns):
+        widest = max((len(line) for r in rows for line in str(r[i]).splitlines()), default=0)
+        fit = max(len(col), widest)
+        table.add_column(col, overflow="fold", width=min(fit, quarter) if i < keep else None)
+    for r in rows:
+        table.add_row(*(Text(str(cell)) for cell in r))
+    return table
+
+
 def _print(sheets: list[Sheet], students: list[dict[str, Any]], single: bool) -> None:
     title = ", ".join(s.title for s in sheets)
     if single:
         st = students[0]
-        table = Table(title=f"{title}: {st['passed']} of {st['total']} tasks passed, {st['points']:g} of "
-                      f"{st['max_points']:g} points" + (f" ({st['skipped']} skipped)" if st["skipped"] else ""),
-                      title_justify="left")
-        for col in ("task", "criterion", "value", "result", "points"):
-            table.add_column(col)
+        rows = []
         for r in st["tasks"]:
             label = r["id"] if len(sheets) == 1 else f"{r['sheet']}/{r['id']}"
             if r["status"] == "skipped":
-                table.add_row(label, "-", "-", f"skipped: {r['problem']}", "-")
+                rows.append((label, "-", "-", f"skipped: {r['problem']}", "-"))
                 continue
             if r["problem"]:
-                table.add_row(label, "-", "-", f"FAIL: {r['problem']}", f"0/{r['points']:g}")
+                rows.append((label, "-", "-", f"FAIL: {r['problem']}", f"0/{r['points']:g}"))
                 if all(c["reason"] == r["problem"] for c in r["criteria"]):
                     continue
             for c in r["criteria"]:
                 verdict = "pass" if c["passed"] else f"FAIL: {c['reason']}"
-                table.add_row(label, c["criterion"], _shown(c), verdict, f"{c['earned']:g}/{c['points']:g}")
-        stdout.print(table)
+                rows.append((label, c["criterion"], _shown(c), verdict, f"{c['earned']:g}/{c['points']:g}"))
+        stdout.print(_table(f"{title}: {st['passed']} of {st['total']} tasks passed, {st['points']:g} of "
+                            f"{st['max_points']:g} points" + (f" ({st['skipped']} skipped)" if st["skipped"] else ""),
+                            ("task", "criterion", "value", "result", "points"), rows, keep=1))
         for r in st["tasks"]:
             if r.get("run_failure"):
                 stdout.print(f"{r['id']}: the run failed: {r['run_failure']}", markup=False, highlight=False)
@@ -308,15 +325,14 @@ def _print(sheets: list[Sheet], students: list[dict[str, Any]], single: bool) ->
             if r.get("detail") and r["status"] == "failed":
                 stdout.print(f"[b]{r['id']}[/b]:", r["detail"].strip()[-800:], markup=True, highlight=False)
         return
-    table = Table(title=f"{title}: {len(students)} students", title_justify="left")
-    for col in ("student", "tasks passed", "points", "first failure"):
-        table.add_column(col)
+    rows = []
     for st in students:
         first = next((f"{r['id']}: {r['problem'] or next((c['reason'] for c in r['criteria'] if not c['passed']), '')}"
                       for r in st["tasks"] if r["status"] == "failed"), "")
-        table.add_row(st["student"], f"{st['passed']}/{st['total']}", f"{st['points']:g}/{st['max_points']:g}",
-                      first if len(first) <= 80 else first[:77] + "...")
-    stdout.print(table)
+        rows.append((st["student"], f"{st['passed']}/{st['total']}", f"{st['points']:g}/{st['max_points']:g}",
+                     first if len(first) <= 80 else first[:77] + "..."))
+    stdout.print(_table(f"{title}: {len(students)} students", ("student", "tasks passed", "points", "first failure"),
+                        rows, keep=1))
 
 
 @app.command("labs")
@@ -333,8 +349,12 @@ def labs_cmd(
     qcarlab's reference blocks every point, so every point depends on the student. Exit 1 when a
     sheet fails its check.
 
-    Examples: qcarlab labs | qcarlab labs stop-sign | qcarlab labs 6.1 --json | qcarlab labs check
-    stop-sign | qcarlab labs check my-sheet.yaml --jobs 2
+    Examples:
+      qcarlab labs
+      qcarlab labs stop-sign
+      qcarlab labs 6.1 --json
+      qcarlab labs check stop-sign
+      qcarlab labs check my-sheet.yaml --jobs 2
     """
     if sheet and sheet[0] == "check":
         _labs_check(sheet[1:], jobs, json_out)
@@ -351,13 +371,10 @@ def labs_cmd(
         if json_out:
             sys.stdout.write(dumps({"sheets": rows}) + "\n")
             return
-        table = Table(title="Lab sheets (qcarlab grade NAME; qcarlab labs NAME for the tasks)", title_justify="left")
-        table.add_column("name", no_wrap=True, min_width=max((len(r["name"]) for r in rows), default=4))
-        for col in ("section", "title", "blocks of", "tasks", "points"):
-            table.add_column(col)
-        for r in rows:
-            table.add_row(r["name"], r["section"], r["title"], r["lab"] or "-", str(r["tasks"]), f"{r['points']:g}")
-        stdout.print(table)
+        stdout.print(_table("Lab sheets (qcarlab grade NAME; qcarlab labs NAME for the tasks)",
+                            ("name", "section", "title", "blocks of", "tasks", "points"),
+                            [(r["name"], r["section"], r["title"], r["lab"] or "-", str(r["tasks"]), f"{r['points']:g}")
+                             for r in rows], keep=1))
         if rows:
             stdout.print(f"from {Path(rows[0]['path']).parent}", markup=False)
         return
@@ -369,16 +386,14 @@ def labs_cmd(
         sys.stdout.write(dumps({"name": s.name, "section": s.section, "title": s.title, "lab": s.lab,
                                 "path": str(s.path), "points": s.points, "tasks": tasks}) + "\n")
         return
-    table = Table(title=f"{s.section} {s.title} ({s.path}): {len(tasks)} tasks, {s.points:g} points",
-                  title_justify="left")
-    for col in ("task", "runs", "criteria", "points"):
-        table.add_column(col)
+    rows = []
     for t in tasks:
         runs = t["command"] if t["kind"] == "scenario" else f"your {t['block']} on {len(t['criteria'])} inputs"
         if t["uses"]:
             runs += f"  (with your {', '.join(t['uses'])})"
-        table.add_row(t["id"], runs, "\n".join(c["criterion"] for c in t["criteria"]), f"{t['points']:g}")
-    stdout.print(table)
+        rows.append((t["id"], runs, "\n".join(c["criterion"] for c in t["criteria"]), f"{t['points']:g}"))
+    stdout.print(_table(f"{s.section} {s.title} ({s.path}): {len(tasks)} tasks, {s.points:g} points",
+                        ("task", "runs", "criteria", "points"), rows, keep=1))
 
 
 def _labs_check(names: list[str], jobs: int, json_out: bool) -> None:
@@ -401,15 +416,13 @@ def _labs_check(names: list[str], jobs: int, json_out: bool) -> None:
                                             "reference": o.reference, "reference_missed": o.reference_missed}
                                            for o in outcomes]}) + "\n")
     else:
-        table = Table(title="Lab sheets' self-check: the untouched template earns 0, the reference every point",
-                      title_justify="left")
-        for col in ("sheet", "template", "reference", "check"):
-            table.add_column(col)
-        for o in outcomes:
-            def pts(d: dict[str, Any]) -> str:
-                return f"{d['points']:g} of {d['max_points']:g}" if d else "-"
-            table.add_row(o.sheet, pts(o.template), pts(o.reference), "ok" if o.ok else "FAIL")
-        stdout.print(table)
+        def pts(d: dict[str, Any]) -> str:
+            return f"{d['points']:g} of {d['max_points']:g}" if d else "-"
+
+        stdout.print(_table("Lab sheets' self-check: the untouched template earns 0, the reference every point",
+                            ("sheet", "template", "reference", "check"),
+                            [(o.sheet, pts(o.template), pts(o.reference), "ok" if o.ok else "FAIL") for o in outcomes],
+                            keep=1))
         for o in outcomes:
             for line in o.problems:
                 stdout.print(f"{o.sheet}: {line}", markup=False)

@@ -87,7 +87,8 @@ def io_test_cmd(
 ) -> None:
     """Basic I/O test (sheet 3.3): hold throttle, steering and lamps; read encoder, current, battery, IMU.
 
-    Example: qcarlab io-test --on-floor --throttle 0.1 --duration 2 --json
+    Example:
+      qcarlab io-test --on-floor --throttle 0.1 --duration 2 --json
     """
     if not 0.0 < duration <= 3600.0:  # (NaN fails the comparison too)
         raise InputError(f"--duration must be in (0, 3600] s, got {duration}")

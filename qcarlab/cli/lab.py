@@ -27,7 +27,9 @@ def blocks_cmd(
     Any of them can be replaced by your own function: qcarlab LAB --use FILE.py (every function or
     class in the file named like a block) or --block NAME=FILE.py:FUNCTION.
 
-    Examples: qcarlab blocks stop-sign | qcarlab blocks avoid --json
+    Examples:
+      qcarlab blocks stop-sign
+      qcarlab blocks avoid --json
     """
     info = find_lab(lab)
     rows = block_rows(info)
@@ -59,7 +61,9 @@ def template_cmd(
     Each block file has the sheet's signature, the task text, units and section, and a body that
     raises NotImplementedError until you write it (a run with it unfilled says so and exits 2).
 
-    Examples: qcarlab template stop-sign --out mylab | qcarlab template avoid --out lidar-lab
+    Examples:
+      qcarlab template stop-sign --out mylab
+      qcarlab template avoid --out lidar-lab
     """
     info = find_lab(lab)
     written = write_template(info, out, force)

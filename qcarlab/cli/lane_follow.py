@@ -124,11 +124,15 @@ def lane_follow_cmd(
 ) -> None:
     """Follow the lane with the RGBD camera (HSV yellow line, linear fit, pure pursuit; sheet 5.3).
 
-    Examples: qcarlab lane-follow | qcarlab lane-follow --laps 1 --out runs/lane |
-    qcarlab lane-follow --hsv-tune --hsv-min 20,100,100 --out runs/tune | qcarlab lane-follow --hsv runs/tune/hsv.yaml |
-    qcarlab lane-follow --use mylab/lane.py
+    Examples:
+      qcarlab lane-follow
+      qcarlab lane-follow --laps 1 --out runs/lane
+      qcarlab lane-follow --hsv-tune --hsv-min 20,100,100 --out runs/tune
+      qcarlab lane-follow --hsv runs/tune/hsv.yaml
+      qcarlab lane-follow --use mylab/lane.py
 
-    Trials: qcarlab lane-follow --trials 5 --duration 20 (each from a random spot round the lane).
+    Trials: each from a random spot round the lane:
+      qcarlab lane-follow --trials 5 --duration 20
 
     Exit 0 when the car stayed in its lane (and drove --laps; trials: in every trial), 1 when it did not,
     2 for bad input.

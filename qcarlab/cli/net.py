@@ -89,7 +89,9 @@ def serve_cmd(
 ) -> None:
     """Serve a car over TCP: the simulator (real time, or --lockstep) or the physical QCar.
 
-    Example: qcarlab serve --backend sim --port 18960   then   qcarlab io-test --car tcp://127.0.0.1:18960
+    Example: serve the simulator, then drive it from another terminal:
+      qcarlab serve --backend sim --port 18960
+      qcarlab io-test --car tcp://127.0.0.1:18960
     """
     from qcarlab.net.guard import new_token as make_token
     from qcarlab.net.guard import token_problem
@@ -245,7 +247,9 @@ def ping_cmd(
 ) -> None:
     """Round-trip latency, loss and identity of a car (sheet 3.1); exit 0 when it answers, 1 otherwise.
 
-    Example: qcarlab ping tcp://192.168.2.15:18960 --count 20 --interval 0.1 --out runs/3.1-ping
+    Examples:
+      qcarlab ping tcp://192.168.2.15:18960 --count 20 --interval 0.1
+      qcarlab ping tcp://192.168.2.15:18960 --out runs/3.1-ping
     """
     from qcarlab.car.tcp import TcpCar, TcpConnectError
 

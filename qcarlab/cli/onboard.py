@@ -29,7 +29,8 @@ def onboard_cmd(
 ) -> None:
     """The car-side server: one Python file that runs on a QCar 1 (Python 3.6) or QCar 2 (3.8) as shipped.
 
-    Example: qcarlab onboard --write qcarlab_car_server.py   then copy it to the car (or: qcarlab deploy nvidia@CAR)
+    Example: write the server, then copy it to the car (or: qcarlab deploy nvidia@CAR):
+      qcarlab onboard --write qcarlab_car_server.py
     """
     if write is None:
         print(f"the car-side server is {SERVER_FILE} ({len(server_source().splitlines())} lines, standard library only)")
@@ -60,7 +61,8 @@ def deploy_cmd(
 ) -> None:
     """Copy the car-side server to a QCar over ssh/scp, store a token there, print the command that starts it.
 
-    Example: qcarlab deploy nvidia@192.168.2.15
+    Example:
+      qcarlab deploy nvidia@192.168.2.15
     """
     where = D.Target.parse(target)
     if car_type not in ("auto", "1", "2"):

@@ -101,8 +101,10 @@ def path_gen_cmd(
 ) -> None:
     """Generate a reference path (sheet 4.2.1): the line p1, the circle p2, the butterflies p3/p4.
 
-    Examples: qcarlab path-gen line --length 3 --points 4 | qcarlab path-gen circle |
-    qcarlab path-gen butterfly --size 2 --out paths/
+    Examples:
+      qcarlab path-gen line --length 3 --points 4
+      qcarlab path-gen circle
+      qcarlab path-gen butterfly --size 2 --out paths/
     """
     if fmt not in paths.FORMATS:
         raise InputError(f"--format must be one of {', '.join(paths.FORMATS)}, got {fmt!r}")
@@ -273,9 +275,15 @@ def path_follow_cmd(
 ) -> None:
     """Follow a path with pure pursuit (or carrot, stanley) and the feed-forward PI speed controller.
 
-    Examples: qcarlab path-follow circle | qcarlab path-follow butterfly --size 2 --lookahead 0.2,0.3,0.5,0.8
-    | qcarlab path-follow my_path.csv --out runs/1 | qcarlab path-follow line --step-response --kp 0.5 --ki 2
-    | qcarlab path-follow butterfly --size 2 --use mylab/pure_pursuit.py --params mylab/params.yaml
+    Examples:
+      qcarlab path-follow circle
+      qcarlab path-follow butterfly --size 2 --lookahead 0.2,0.3,0.5,0.8
+      qcarlab path-follow my_path.csv --out runs/1
+      qcarlab path-follow line --step-response --kp 0.5 --ki 2
+
+    With your own blocks and tunables (qcarlab template path-follow --out mylab):
+      qcarlab path-follow butterfly --use mylab/pure_pursuit.py
+      qcarlab path-follow butterfly --params mylab/params.yaml
 
     Exit 0 when the car reached the end of the path, 1 when it did not (time limit, a wall, out of the
     world), 2 for bad input.

@@ -14,9 +14,10 @@ from rich.table import Table
 
 from qcarlab.cli.app import app
 from qcarlab.cli.common import DebugOpt, JsonOpt, stdout
+from qcarlab.cli.helpfmt import Typer
 from qcarlab.record import dumps
 
-replay_app = typer.Typer(help="Recordings: what they hold (replay one with --car replay:FILE on a lab command).",
+replay_app = Typer(help="Recordings: what they hold (replay one with --car replay:FILE on a lab command).",
                          no_args_is_help=True)
 app.add_typer(replay_app, name="replay")
 
@@ -31,8 +32,10 @@ def info_cmd(
 ) -> None:
     """Topics, schemas, message counts, duration and rates of a recording.
 
-    Example: qcarlab replay info run.mcap | qcarlab replay info run.mcap --topics | qcarlab replay info
-    rosbag2_2024_05_01/ --json
+    Examples:
+      qcarlab replay info run.mcap
+      qcarlab replay info run.mcap --topics
+      qcarlab replay info rosbag2_2024_05_01/ --json
     """
     from qcarlab.recording.reader import open_recording
 

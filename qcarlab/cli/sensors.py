@@ -94,8 +94,10 @@ def lidar_scan_cmd(
 ) -> None:
     """Capture LIDAR scans (sheet 3.5): nearest obstacle, range, polar plot and point cloud.
 
-    Examples: qcarlab lidar-scan --world obstacles --out scans/ | qcarlab lidar-scan --target 1.5 |
-    qcarlab lidar-scan --world ../maps/berlin.yaml --scans 20 --drive --out berlin/
+    Examples:
+      qcarlab lidar-scan --world obstacles --out scans/
+      qcarlab lidar-scan --target 1.5
+      qcarlab lidar-scan --world berlin.yaml --scans 20 --drive --out berlin/
     """
     if worlds:
         _list_worlds()
@@ -175,7 +177,9 @@ def camera_cmd(
 ) -> None:
     """Grab camera frames (sheets 3.6, 3.7): RGBD colour + depth with a metre scale, or the CSI 360 views.
 
-    Examples: qcarlab camera --rgbd --world track --out cam/ | qcarlab camera --csi --world hallway --out cam/
+    Examples:
+      qcarlab camera --rgbd --world track --out cam/
+      qcarlab camera --csi --world hallway --out cam/
     """
     if not (rgbd or csi):
         rgbd = True

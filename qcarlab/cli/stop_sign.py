@@ -109,11 +109,17 @@ def stop_sign_cmd(
 ) -> None:
     """Drive straight, detect the stop sign (HSV red + depth, sheet 5.1) and stop in front of it (5.2).
 
-    Examples: qcarlab stop-sign | qcarlab stop-sign --speed 0.5 --out runs/stop |
-    qcarlab stop-sign --behaviour hold --hold 3 --json | qcarlab stop-sign --use mylab/stop_sign.py |
-    qcarlab stop-sign --detector hough --behaviour hold --speed 0.5 (the race-car report's stop sign)
+    Examples:
+      qcarlab stop-sign
+      qcarlab stop-sign --speed 0.5 --out runs/stop
+      qcarlab stop-sign --behaviour hold --hold 3 --json
+      qcarlab stop-sign --use mylab/stop_sign.py
 
-    Trials: qcarlab stop-sign --trials 10 (start 2.1-2.9 m before the sign, the sign moved +-0.2 m).
+    The race-car report's stop sign:
+      qcarlab stop-sign --detector hough --behaviour hold --speed 0.5
+
+    Trials: start 2.1-2.9 m before the sign, the sign moved +-0.2 m:
+      qcarlab stop-sign --trials 10
 
     Exit 0 when the car stopped before the sign (hold: and drove on; trials: in every trial), 1 when it
     did not, 2 for bad input.
