@@ -59,7 +59,7 @@ from qcarlab.control.lamps import indicator_and_lamps
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
 from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, INDICATOR_AND_LAMPS, SPEED_CONTROLLER, LabModel, finish
 from qcarlab.experiments.result import Result
-from qcarlab.sim.contact import PathClearance
+from qcarlab.sim.contact import Clearance, PathClearance  # noqa: F401  (Clearance: as before, importable here)
 from qcarlab.perception.depth_windows import depth_windows
 
 STRATEGIES = ("stop", "steer", "combined", "student", "depth")
