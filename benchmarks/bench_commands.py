@@ -48,8 +48,8 @@ def env_for(against: str | None) -> dict[str, str]:
     env = dict(os.environ)
     env.pop("PYTHONPATH", None)
     env.pop("PYTHONDONTWRITEBYTECODE", None)  # a student's Python keeps its bytecode (0.3 s a run otherwise)
-    if against:
-        env["PYTHONPATH"] = against
+    # this checkout or the one in DIR (an editable install may point at another checkout)
+    env["PYTHONPATH"] = against or str(ROOT)
     return env
 
 

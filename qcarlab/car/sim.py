@@ -243,16 +243,20 @@ class SimCar(Car):
     def _sensor(self, kind: str) -> Any:
         sensor = self._sensors.get(kind)
         if sensor is None:
-            from qcarlab.sim import camera, lidar
-
             rng = np.random.default_rng(self._sensor_seqs[kind])
             world = self._world()
-            if kind == "lidar":
-                sensor = lidar.Lidar(world, self.params, beams=self.lidar_beams, rng=rng)
+            if kind == "lidar":  # (the cameras' module, and numba with it, only when a camera is read)
+                from qcarlab.sim.lidar import Lidar
+
+                sensor = Lidar(world, self.params, beams=self.lidar_beams, rng=rng)
             elif kind == "rgbd":
-                sensor = camera.RGBDCamera(world, self.params, rng)
+                from qcarlab.sim.camera import RGBDCamera
+
+                sensor = RGBDCamera(world, self.params, rng)
             else:
-                sensor = camera.CSICameras(world, self.params, rng)
+                from qcarlab.sim.camera import CSICameras
+
+                sensor = CSICameras(world, self.params, rng)
             self._sensors[kind] = sensor
         return sensor
 

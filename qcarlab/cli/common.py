@@ -202,7 +202,8 @@ def open_from_options(
         extra.setdefault("topics", recording.replay_topics())
     if parse_car_uri(car)[0] == "sim":
         extra.setdefault("realism", sim_realism())
-        opencv_single_threaded()
+        if sensors is None or set(sensors) & {"rgbd", "csi"} or "cv2" in sys.modules:
+            opencv_single_threaded()  # (a LIDAR lab draws nothing with OpenCV: not imported for it, 0.02-0.05 s)
     elif _realism_choice.get() is not None:
         extra["realism"] = _realism_choice.get()  # refused by open_car with the reason
     qcar = open_car(car, world=world, seed=seed, realtime=realtime, params=params, **extra)

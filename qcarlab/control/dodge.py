@@ -115,12 +115,15 @@ def _footprint_distance(px, py, cx, cy, cyaw, half_len, half_wid):
 def rollout(manoeuvres: list[Manoeuvre], obstacles: list[Obstacle], frame: LineFrame, static: np.ndarray,
             v0: float, delta0: float, params: QCarParams = DEFAULT_PARAMS, horizon: float = 4.0,
             dt: float = 0.05, accel: float = 2.0, delay: float = 0.04,
-            period: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+            period: float = 0.1, wall_cap: float = math.inf) -> tuple[np.ndarray, np.ndarray]:
     """Drive every manoeuvre on the model from the car's state now (centre at the origin, heading 0,
     speed ``v0``, wheels at ``delta0``) for ``horizon`` s, the steering law evaluated once a
     ``period`` (a LIDAR scan) and held; return each one's smallest clearance (m) to the obstacles
     and to the ``static`` points ((m, 2), body frame) over that time, and, for the obstacles, as
-    they roll on 4 m past the horizon with the car standing where it got to."""
+    they roll on 4 m past the horizon with the car standing where it got to. ``wall_cap`` (m): a
+    wall clearance of ``wall_cap`` or more may come back as ``inf`` (only the points that may be
+    nearer are measured: those within ``wall_cap`` plus the footprint's half diagonal of the
+    box round a manoeuvre's positions); below it, the same number."""
     k = len(manoeuvres)
     x, y, yaw = np.zeros(k), np.zeros(k), np.zeros(k)
     v = np.full(k, float(v0))
@@ -166,8 +169,19 @@ def rollout(manoeuvres: list[Manoeuvre], obstacles: list[Obstacle], frame: LineF
     if len(pts):  # every 0.1 s of the way is enough for the walls (the car moves < 10 cm)
         every = max(1, int(round(0.1 / dt)))
         xw, yw, aw = xs[every - 1::every, :, None], ys[every - 1::every, :, None], yaws[every - 1::every, :, None]
-        dist = _footprint_distance(pts[None, None, :, 0], pts[None, None, :, 1], xw, yw, aw, hl, hw)
-        wall = dist.min(axis=(0, 2))
+        if math.isinf(wall_cap):
+            dist = _footprint_distance(pts[None, None, :, 0], pts[None, None, :, 1], xw, yw, aw, hl, hw)
+            wall = dist.min(axis=(0, 2))
+        else:  # a point farther than reach from every position of the car is farther than wall_cap from it
+            reach = math.hypot(hl, hw) + wall_cap + 1e-6
+            lo_x, hi_x = xw.min(axis=0)[:, 0] - reach, xw.max(axis=0)[:, 0] + reach
+            lo_y, hi_y = yw.min(axis=0)[:, 0] - reach, yw.max(axis=0)[:, 0] + reach
+            px, py = pts[:, 0], pts[:, 1]
+            for j in range(k):
+                sel = (px >= lo_x[j]) & (px <= hi_x[j]) & (py >= lo_y[j]) & (py <= hi_y[j])
+                if sel.any():
+                    wall[j] = _footprint_distance(px[sel][None, :], py[sel][None, :], xw[:, j], yw[:, j], aw[:, j],
+                                                  hl, hw).min()
     return np.maximum(ball, 0.0), np.maximum(wall, 0.0)
 
 

@@ -398,7 +398,9 @@ class LidarAvoid:
         # long enough for the obstacle to pass the car standing still (when it comes at it)
         t_pass = max(0.0, -(first.x * first.vx + first.y * first.vy) / max(first.vx ** 2 + first.vy ** 2, 1e-6))
         horizon = min(7.0, max(2.0, t_pass + 1.0))
-        ball, wall = rollout(ms, threats, frame, near, self.v_est, self._delta, self.params, horizon=horizon)
+        # (choose() reads a wall clearance up to its want_wall, 0.15 m: farther ones need not be measured)
+        ball, wall = rollout(ms, threats, frame, near, self.v_est, self._delta, self.params, horizon=horizon,
+                             wall_cap=0.15)
         if self.manoeuvre is None and ball[0] >= 0.15:
             return None  # going on as the windows say clears it
         i = choose(ms, ball, wall, self.manoeuvre, y_car, self._side)

@@ -113,17 +113,20 @@ def scan_motion(prev, scan, guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
     if len(P) < 20 or len(Q) < 20:
         return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
     n = len(P)
+    # the columns as arrays of their own (the same numbers, gathered without a 2-D index)
+    Px, Py, Nx, Ny = P[:, 0].copy(), P[:, 1].copy(), N[:, 0].copy(), N[:, 1].copy()
+    Qx, Qy = Q[:, 0].copy(), Q[:, 1].copy()
     x = g.copy()
     lam = np.diag(np.asarray(prior, dtype=float))
     matched = 0
     for it in range(iterations):
         c, s = math.cos(x[2]), math.sin(x[2])
-        px = c * Q[:, 0] - s * Q[:, 1] + x[0]
-        py = s * Q[:, 0] + c * Q[:, 1] + x[1]
+        px = c * Qx - s * Qy + x[0]
+        py = s * Qx + c * Qy + x[1]
         k = np.searchsorted(pa, np.arctan2(py, px)) % n
         k0 = k - 1  # -1 wraps to the last return
-        d1 = np.hypot(px - P[k, 0], py - P[k, 1])
-        d0 = np.hypot(px - P[k0, 0], py - P[k0, 1])
+        d1 = np.hypot(px - Px[k], py - Py[k])
+        d0 = np.hypot(px - Px[k0], py - Py[k0])
         nearer = d0 < d1
         idx = np.where(nearer, k0, k)
         dist = np.where(nearer, d0, d1)
@@ -133,9 +136,9 @@ def scan_motion(prev, scan, guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
         if matched < 20:
             return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
         iu = idx[use]
-        nx, ny = N[iu, 0], N[iu, 1]
+        nx, ny = Nx[iu], Ny[iu]
         ux, uy = px[use], py[use]
-        e = nx * (ux - P[iu, 0]) + ny * (uy - P[iu, 1])
+        e = nx * (ux - Px[iu]) + ny * (uy - Py[iu])
         w = np.minimum(1.0, 0.02 / np.maximum(np.abs(e), 1e-9))
         J = np.column_stack((nx, ny, ny * (ux - x[0]) - nx * (uy - x[1])))
         H = J.T @ (J * w[:, None]) + lam

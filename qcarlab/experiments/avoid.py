@@ -59,7 +59,7 @@ from qcarlab.control.lamps import indicator_and_lamps
 from qcarlab.experiments.loop import STOP, Step, check_rate, run_loop
 from qcarlab.experiments.model import BASIC_SPEED_ESTIMATION, INDICATOR_AND_LAMPS, SPEED_CONTROLLER, LabModel, finish
 from qcarlab.experiments.result import Result
-from qcarlab.experiments.safety import Clearance
+from qcarlab.sim.contact import Clearance, PathClearance  # noqa: F401  (Clearance: as before, importable here)
 from qcarlab.perception.depth_windows import depth_windows
 
 STRATEGIES = ("stop", "steer", "combined", "student", "depth")
@@ -254,7 +254,7 @@ class _Collisions:
 
     def __init__(self, model: AvoidLab, world: Any, car: Car):
         self.model, self.car = model, car
-        self.checker = Clearance(world, car.params)
+        self.checker = PathClearance(world, car.params)  # (Clearance's numbers, the poses a tick apart)
         self.truth0 = car.truth()
         self.min_clear, self.collision, self.max_from_start = math.inf, None, 0.0
 

@@ -14,12 +14,26 @@ import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import InputError
-from qcarlab.sim.render import render_topdown, world_to_pixel
 from qcarlab.sim.world import World, list_worlds, shipped_names
 from qcarlab.sim.world import load_world as _load_world
 
 __all__ = ["check_start", "label_views", "list_worlds", "load_world", "looks_like_path", "render_topdown", "stitch_panorama",
            "topdown_map"]
+
+
+def render_topdown(*args: Any, **kwargs: Any) -> Any:
+    """:func:`qcarlab.sim.render.render_topdown` (imported when used: it loads OpenCV, which a
+    LIDAR lab's run never needs)."""
+    from qcarlab.sim.render import render_topdown as render
+
+    return render(*args, **kwargs)
+
+
+def world_to_pixel(*args: Any, **kwargs: Any) -> Any:
+    """:func:`qcarlab.sim.render.world_to_pixel` (imported when used, as :func:`render_topdown`)."""
+    from qcarlab.sim.render import world_to_pixel as to_pixel
+
+    return to_pixel(*args, **kwargs)
 
 
 def stitch_panorama(*args: Any, **kwargs: Any) -> Any:

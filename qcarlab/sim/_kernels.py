@@ -19,6 +19,8 @@ import sys
 
 import numpy as np
 
+from qcarlab.sim.edge_scan import edge_table  # noqa: F401  (the camera's and the LIDAR's edge rows)
+
 try:  # pragma: no cover - which branch runs depends on the install
     from numba import njit
 
@@ -1075,21 +1077,6 @@ def _word(b, g, r):
 CMAX = 32  # edge crossings a column may hold in the vector path (more: the frame is marched instead)
 NEAR = 1e-3  # m: crossings nearer than this to the camera are not seen
 TIE = 1e-9  # m: hits this close are at the same distance (coinciding faces)
-
-
-def edge_table(kinds: np.ndarray, pstart: np.ndarray, pcount: np.ndarray, verts: np.ndarray) -> np.ndarray:
-    """Every polygon edge of a raster's shape tables as one row (ax, ay, bx, by, label) for
-    :func:`vector_crossings` (float64 (E, 5))."""
-    rows = []
-    for lab in range(len(kinds)):
-        if kinds[lab] != 1:
-            continue
-        p0, n = int(pstart[lab]), int(pcount[lab])
-        for j in range(n):
-            a = verts[p0 + j]
-            b = verts[p0 + (j + 1) % n]
-            rows.append((a[0], a[1], b[0], b[1], float(lab)))
-    return np.array(rows, np.float64).reshape(-1, 5)
 
 
 @njit(**_JIT)

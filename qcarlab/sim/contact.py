@@ -10,6 +10,8 @@ disjoint convex pieces), circles by the distance from their centre to the rectan
 of 0 is a collision.
 
 - :class:`Clearance`: the distance itself, at any pose;
+- :class:`PathClearance`: the same numbers for poses that follow a path (a run's every tick),
+  for a few edges' arithmetic a tick;
 - :class:`Contact`: the collision or the exit at a pose, cheap to ask every tick: after a check
   that found the nearest solid ``c`` m away, the next full check waits until the footprint may
   have moved ``c`` (displacement plus half-diagonal x heading change), so a car in open space
@@ -33,7 +35,7 @@ import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 
-__all__ = ["Clearance", "Contact", "ContactEvent"]
+__all__ = ["Clearance", "Contact", "ContactEvent", "PathClearance"]
 
 
 class Clearance:
@@ -141,6 +143,199 @@ class Clearance:
             k = int(np.argmin(d))
             if d[k] < best:
                 best, where = float(d[k]), (float(circles[k, 0]), float(circles[k, 1]))
+        return best, where
+
+
+_hypot = np.hypot  # (on two floats: the ufunc's number, which Clearance's arrays and the kernel give)
+
+
+class PathClearance(Clearance):
+    """:class:`Clearance` for poses that follow a path (the avoid referee's every tick): the same
+    distance and nearest piece, bit for bit, at any pose, from a few edges a call.
+
+    The footprint-to-edge distance ``D_e`` moves by at most ``m = |c - c_ref| + h |yaw - yaw_ref|``
+    (``h`` the footprint's half diagonal) when the pose moves from a reference pose to the car's
+    centre ``c`` and heading ``yaw``: no footprint point moves farther. So ``D_e(ref) - m`` bounds
+    every edge from below. At the reference (redone once ``m`` passes :attr:`REFRESH`) every edge's
+    ``D_e`` is computed with :class:`Clearance`'s arrays and sorted; at a pose after it the edges
+    are taken in that order and computed one by one, as the kernel's arithmetic on floats (the
+    distances' hypot picked by their squares and taken with ``np.hypot``), until the next one's
+    bound exceeds the nearest found: an edge not computed is farther than it (never equal, by a
+    1e-9 m margin). A polygon holding the car's centre (even-odd rule, checked for the polygons
+    whose box may hold it) is at 0. The polygon first in the world's order among the nearest is
+    the one reported, as :class:`Clearance` (``argmin``) does; circles and balls follow as there."""
+
+    REFRESH = 0.05  #: m: the bound's slack after which the reference pose is redone
+
+    def __init__(self, world: Any, params: QCarParams):
+        super().__init__(world, params)
+        self.half_diag = math.hypot(self.a, self.b)
+        self._edge_rows = [(*a, *b, int(k)) for a, b, k in zip(self.p0.tolist(), self.p1.tolist(), self.owner.tolist())]
+        first = self._first_edge.tolist() + [len(self.p0)]
+        self._poly_edges = [self._edge_rows[first[k]:first[k + 1]] for k in range(self.n_poly)]
+        self._boxes = [(float(p[:, 0].min()), float(p[:, 1].min()), float(p[:, 0].max()), float(p[:, 1].max()))
+                       for p in (self.p0[first[k]:first[k + 1]] for k in range(self.n_poly))]
+        self._circle_rows = [tuple(row) for row in self.circles.tolist()]
+        # each edge's frame: unit direction e, the ends' positions along it, and its line's offset
+        # along the normal n = e turned left (a zero-length edge: no frame, never passed over)
+        self._frames = []
+        for p0x, p0y, p1x, p1y, _ in self._edge_rows:
+            ln = math.hypot(p1x - p0x, p1y - p0y)
+            if ln > 0.0:
+                ex, ey = (p1x - p0x) / ln, (p1y - p0y) / ln
+                t0, t1 = ex * p0x + ey * p0y, ex * p1x + ey * p1y
+                self._frames.append((ex, ey, min(t0, t1), max(t0, t1), ex * p0y - ey * p0x))
+            else:
+                self._frames.append((0.0, 0.0, -math.inf, math.inf, math.inf))
+        self._ref: tuple[float, float, float] | None = None
+        self._order: list[tuple[float, int]] = []  # (D_e at the reference, e), nearest first
+        self._boxed: list[int] = []  # polygons whose box the centre may enter before the next refresh
+
+    def __call__(self, x: float, y: float, yaw: float, t: float = 0.0,
+                 balls: bool = True) -> tuple[float, tuple[float, float] | None]:
+        c, s = math.cos(yaw), math.sin(yaw)
+        best, where = math.inf, None
+        if self.n_poly:
+            ref = self._ref
+            move = math.inf if ref is None else math.hypot(x - ref[0], y - ref[1]) + self.half_diag * abs(yaw - ref[2])
+            if move > self.REFRESH:
+                best, k = self._reference(x, y, yaw, c, s)
+            else:
+                best, k = self._walk(x, y, c, s, move + 1e-9)
+            where = self.pieces[k]
+        rows = self._circle_rows
+        if balls:
+            moving = self.world.obstacles_at(t)
+            if moving:
+                rows = rows + [(float(b.x), float(b.y), float(b.radius)) for b in moving]
+        return self._nearest_circle(rows, x, y, c, s, best, where)
+
+    def _reference(self, x: float, y: float, yaw: float, c: float, s: float) -> tuple[float, int]:
+        """Every edge's distance at this pose (Clearance's arrays), kept sorted as the new
+        reference; returns (the clearance to the polygons, the first nearest polygon)."""
+        A = self._to_body(self.p0, x, y, c, s)
+        B = self._to_body(self.p1, x, y, c, s)
+        d = self._edge_distances(A, B)
+        crosses = ((A[:, 1] > 0.0) != (B[:, 1] > 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xint = A[:, 0] + (0.0 - A[:, 1]) * (B[:, 0] - A[:, 0]) / (B[:, 1] - A[:, 1])
+        hits = np.bincount(self.owner[crosses & (xint > 0.0)], minlength=self.n_poly)
+        per_poly = np.minimum.reduceat(d, self._first_edge)
+        per_poly[hits % 2 == 1] = 0.0
+        k = int(np.argmin(per_poly))
+        order = np.argsort(d, kind="stable")
+        self._order = list(zip(d[order].tolist(), order.tolist()))
+        self._ref = (x, y, yaw)
+        reach = self.REFRESH + 1e-6
+        self._boxed = [j for j, (x0, y0, x1, y1) in enumerate(self._boxes)
+                       if x0 - reach <= x <= x1 + reach and y0 - reach <= y <= y1 + reach]
+        return float(per_poly[k]), k
+
+    def _walk(self, x: float, y: float, c: float, s: float, slack: float) -> tuple[float, int]:
+        """The edges in the reference's order until the next one's bound passes the nearest; an
+        edge whose extent is farther than the nearest by its extent's gaps is passed over without its distance."""
+        best, k_best = math.inf, -1
+        for k in self._boxed:
+            x0, y0, x1, y1 = self._boxes[k]
+            if x0 - 1e-6 <= x <= x1 + 1e-6 and y0 - 1e-6 <= y <= y1 + 1e-6 and self._holds(k, x, y, c, s):
+                if 0.0 < best or (0.0 == best and k < k_best):
+                    best, k_best = 0.0, k
+        rows, frames, a, b = self._edge_rows, self._frames, self.a, self.b
+        bound2 = (best + 1e-9) * (best + 1e-9) if best < math.inf else math.inf
+        for d_ref, e in self._order:
+            if d_ref - slack > best:
+                break
+            # the gaps between the footprint's and the edge's extents along e and along n bound
+            # their distance from below: sqrt(gap_e^2 + gap_n^2)
+            ex, ey, t0, t1, off = frames[e]
+            ce, se = ex * c + ey * s, ey * c - ex * s
+            ext = a * abs(ce) + b * abs(se)
+            tc = ex * x + ey * y
+            ge = max(t0 - tc - ext, tc - ext - t1, 0.0)
+            gn = max(abs(ex * y - ey * x - off) - (a * abs(se) + b * abs(ce)), 0.0)
+            if ge * ge + gn * gn > bound2:
+                continue
+            d, k = self._edge(rows[e], x, y, c, s)
+            if d < best or (d == best and k < k_best):
+                best, k_best = d, k
+                bound2 = (best + 1e-9) * (best + 1e-9)
+        return best, k_best
+
+    def _holds(self, k: int, x: float, y: float, c: float, s: float) -> bool:
+        """The car's centre inside polygon ``k``: an odd number of its edges cross the body +x axis."""
+        hits = 0
+        for p0x, p0y, p1x, p1y, _ in self._poly_edges[k]:
+            dx, dy = p0x - x, p0y - y
+            ax, ay = c * dx + s * dy, -s * dx + c * dy
+            dx, dy = p1x - x, p1y - y
+            bx, by = c * dx + s * dy, -s * dx + c * dy
+            if (ay > 0.0) != (by > 0.0) and ax + (0.0 - ay) * (bx - ax) / (by - ay) > 0.0:
+                hits += 1
+        return hits % 2 == 1
+
+    def _edge(self, row: tuple, x: float, y: float, c: float, s: float) -> tuple[float, int]:
+        """(the footprint's distance to one edge, its polygon): the kernel's arithmetic; of the
+        six hypots (two ends to the rectangle, four corners to the edge) only those whose squares
+        tie the smallest (to 1e-12) are taken, with the ufunc's hypot."""
+        p0x, p0y, p1x, p1y, k = row
+        a, b = self.a, self.b
+        dx, dy = p0x - x, p0y - y
+        ax, ay = c * dx + s * dy, -s * dx + c * dy
+        dx, dy = p1x - x, p1y - y
+        bx, by = c * dx + s * dy, -s * dx + c * dy
+        mx, my = (ax + bx) / 2.0, (ay + by) / 2.0
+        hx, hy = (bx - ax) / 2.0, (by - ay) / 2.0
+        if not ((abs(mx) > a + abs(hx)) or (abs(my) > b + abs(hy)) or (abs(hx * my - hy * mx) > a * abs(hy) + b * abs(hx))):
+            return 0.0, k  # the edge crosses the footprint
+        p, q = abs(ax) - a, abs(ay) - b
+        p, q = (p if p > 0.0 else 0.0), (q if q > 0.0 else 0.0)
+        pairs = [(p * p + q * q, p, q)]
+        p, q = abs(bx) - a, abs(by) - b
+        p, q = (p if p > 0.0 else 0.0), (q if q > 0.0 else 0.0)
+        pairs.append((p * p + q * q, p, q))
+        abx, aby = bx - ax, by - ay
+        l2 = max(abx * abx + aby * aby, 1e-18)
+        for cx, cy in ((a, b), (-a, b), (-a, -b), (a, -b)):
+            u = ((cx - ax) * abx + (cy - ay) * aby) / l2
+            u = min(max(u, 0.0), 1.0)
+            p, q = ax + u * abx - cx, ay + u * aby - cy
+            pairs.append((p * p + q * q, p, q))
+        pairs.sort()
+        lim = pairs[0][0] * (1.0 + 1e-12)
+        d = float(_hypot(pairs[0][1], pairs[0][2]))
+        for v, p, q in pairs[1:]:
+            if v > lim:
+                break
+            d = min(d, float(_hypot(p, q)))
+        return d, k
+
+    def _edge_distances(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """Every edge's footprint distance from its body-frame ends (Clearance's arrays)."""
+        m, h = (A + B) / 2.0, (B - A) / 2.0
+        sep = (np.abs(m[:, 0]) > self.a + np.abs(h[:, 0])) | (np.abs(m[:, 1]) > self.b + np.abs(h[:, 1])) \
+            | (np.abs(h[:, 0] * m[:, 1] - h[:, 1] * m[:, 0]) > self.a * np.abs(h[:, 1]) + self.b * np.abs(h[:, 0]))
+        d = np.minimum(self._point_rect(A), self._point_rect(B))
+        ab = B - A
+        L2 = np.maximum((ab * ab).sum(axis=1), 1e-18)
+        rel = (self._corners[:, None, :] - A) * ab
+        u = np.clip(rel.sum(axis=2) / L2, 0.0, 1.0)
+        d = np.minimum(d, np.hypot(A[:, 0] + u * ab[:, 0] - self._corners[:, 0:1],
+                                   A[:, 1] + u * ab[:, 1] - self._corners[:, 1:2]).min(axis=0))
+        return np.where(sep, d, 0.0)
+
+    def _nearest_circle(self, rows: list, x: float, y: float, c: float, s: float, best: float,
+                        where: tuple[float, float] | None) -> tuple[float, tuple[float, float] | None]:
+        """(best, where) or the nearest circle (x, y, radius), when strictly nearer: :meth:`_nearer` on floats."""
+        a, b = self.a, self.b
+        d_min, at = math.inf, None
+        for cx, cy, r in rows:
+            dx, dy = cx - x, cy - y
+            qx, qy = c * dx + s * dy, -s * dx + c * dy
+            d = max(float(_hypot(max(abs(qx) - a, 0.0), max(abs(qy) - b, 0.0))) - r, 0.0)
+            if d < d_min:
+                d_min, at = d, (cx, cy)
+        if d_min < best:
+            return d_min, at
         return best, where
 
 

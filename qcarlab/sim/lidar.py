@@ -43,14 +43,42 @@ import numpy as np
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
 from qcarlab.errors import InputError
 from qcarlab.sensors import LidarScan
-from qcarlab.sim import _kernels
-from qcarlab.sim.raster import KIND_GRID, build_raster
+from qcarlab.sim.edge_scan import KIND_GRID, edge_table, readings, scan_edges, shape_tables
 from qcarlab.sim.world import World, load_world
 
-__all__ = ["CLOSE_READS_MIN", "Lidar"]
+__all__ = ["CLOSE_READS_MIN", "COMPILED", "SWITCH_AFTER", "Lidar"]
 
 CLOSE_READS_MIN = False  # True: an object nearer than the minimum range reads the minimum, not 0
 NOISE_SCANS = 16  # scans whose range noise is drawn from the rng in one go
+#: Which implementation scans a vector world: None (default) = numpy (:mod:`qcarlab.sim.edge_scan`)
+#: until the process has made :data:`SWITCH_AFTER` such scans, then the numba-compiled kernel;
+#: True = always compiled; False = always numpy. Both are the same operations on the same numbers:
+#: the same ranges.
+COMPILED: bool | None = None
+#: Numpy scans after which a process switches to the compiled kernel: importing numba and loading
+#: the kernel from its cache costs 0.3-0.8 s and it saves some 0.1-0.2 ms a scan, so a lab's lone
+#: run (60 s of avoid: 600 scans) never loads it, a long one (a gym env's training, a sweep) does.
+SWITCH_AFTER = 2_000
+_numpy_scans = 0
+_compiled_scan = None
+
+
+def _compiled():
+    """The compiled edge scan when :data:`COMPILED` (or the scans made so far) ask for it and
+    numba is installed, else None (numpy)."""
+    global _compiled_scan
+    use = COMPILED
+    if use is None:
+        use = _compiled_scan is not None or _numpy_scans >= SWITCH_AFTER
+    if not use:
+        return None
+    if _compiled_scan is None:
+        from qcarlab.sim import _kernels
+
+        if not _kernels.HAVE_NUMBA:  # (plain Python: far slower than numpy)
+            return None
+        _compiled_scan = _kernels.lidar_scan_edges
+    return _compiled_scan
 
 
 class Lidar:
@@ -81,18 +109,30 @@ class Lidar:
         self.angles.setflags(write=False)
         self._cos = np.cos(self.angles)
         self._sin = np.sin(self.angles)
-        self._raster = r = build_raster(self.world, z=params.lidar_z)
+        # the shapes cut by the scan plane; the raster (cells to march) is drawn when a scan needs it
+        self._shapes = r = shape_tables(self.world, params.lidar_z)
+        self._raster_built = None
         self._no_balls = np.zeros((0, 3), np.float64)
         self._no_noise = np.zeros(0, np.float64)
         #: scan per polygon edge (True: a world of polygons and circles alone) or march the raster
         self.vector_walls = not bool(len(r.kinds) and r.kinds[0] == KIND_GRID)
-        self._edges = _kernels.edge_table(r.kinds, r.poly_start, r.poly_count, r.verts)
+        self._edges = edge_table(r.kinds, r.poly_start, r.poly_count, r.verts)
         self._full = fov is None or fov >= 2.0 * math.pi
         self._a0 = float(self.angles[0])
         self._da = (2.0 * math.pi / self.beams) if self._full else float(self.angles[1] - self.angles[0])
         self.last_cell_steps = 0  # cells the last marched scan looked at (all beams): the work it took
         self._noise_rows = np.zeros((0, self.beams))
         self._noise_i = 0
+
+    @property
+    def _raster(self):
+        """The world's raster at the scan plane (:func:`qcarlab.sim.raster.build_raster`), drawn (or
+        read from the disk cache) on first use: only a marched scan reads its cells."""
+        if self._raster_built is None:
+            from qcarlab.sim.raster import build_raster
+
+            self._raster_built = build_raster(self.world, z=self.params.lidar_z)
+        return self._raster_built
 
     @property
     def rate(self) -> float:
@@ -117,16 +157,26 @@ class Lidar:
         return np.array(rows, np.float64).reshape(-1, 3) if rows else self._no_balls
 
     def _cast(self, pose, t: float, noise: np.ndarray, near_mode: int) -> np.ndarray:
+        global _numpy_scans
         sx, sy, syaw = self.sensor_pose(pose)
-        r, p = self._raster, self.params
+        p = self.params
         out = np.empty(self.beams, np.float64)
         if self.vector_walls:
-            _kernels.lidar_scan_edges(
-                sx, sy, syaw, self._cos, self._sin, self._a0, self._da, self._full, float(p.lidar_max_range),
-                self._edges, r.kinds, r.circles, self._balls(t), noise, float(p.lidar_min_range), near_mode, out,
-            )
+            s, rmax, rmin = self._shapes, float(p.lidar_max_range), float(p.lidar_min_range)
+            kernel = _compiled()
+            if kernel is not None:
+                kernel(sx, sy, syaw, self._cos, self._sin, self._a0, self._da, self._full, rmax, self._edges, s.kinds,
+                       s.circles, self._balls(t), noise, rmin, near_mode, out)
+            else:
+                _numpy_scans += 1
+                dist, dx, dy, _ = scan_edges(sx, sy, syaw, self._cos, self._sin, self._a0, self._da, self._full,
+                                             self._edges, s.kinds, s.circles)
+                readings(dist, sx, sy, dx, dy, self._balls(t), noise, rmax, rmin, near_mode, out)
             self.last_cell_steps = 0
             return out
+        from qcarlab.sim import _kernels
+
+        r = self._raster
         self.last_cell_steps = _kernels.lidar_scan(
             sx, sy, syaw, self._cos, self._sin, float(p.lidar_max_range),
             r.x0, r.y0, r.res, r.cells, r.tiles, r.tiles_x, r.kinds, r.poly_start, r.poly_count, r.verts, r.circles,

@@ -48,6 +48,7 @@ for number (the unit tests' default; the CLI's is ``lab``).
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -258,15 +259,23 @@ class LidarEffects:
 
     def __call__(self, ranges: np.ndarray) -> np.ndarray:
         """ranges (float64, in place): each return times 1 + frac z, z ~ N(0, 1), clipped to the
-        device's range; then each beam 0 with probability ``dropout``."""
-        from qcarlab.sim import _kernels
-
+        device's range; then each beam 0 with probability ``dropout``. Compiled
+        (:func:`~qcarlab.sim._kernels.lidar_effects`) once the kernels are loaded, else the same
+        numbers in numpy (a lone run's scans do not load numba)."""
         n = len(ranges)
         if len(self._z) != n:  # scratch reused scan after scan (the draws go straight into it)
             self._z, self._u = np.empty(n), np.empty(n)
         z = self.rng.standard_normal(out=self._z)
         u = self.rng.random(out=self._u)
-        _kernels.lidar_effects(ranges, z, u, self.frac, self.dropout, self.r_min, self.r_max)
+        kernels = sys.modules.get("qcarlab.sim._kernels")
+        if kernels is not None:
+            kernels.lidar_effects(ranges, z, u, self.frac, self.dropout, self.r_min, self.r_max)
+            return ranges
+        if self.frac > 0.0:
+            ret = ranges > 0.0
+            ranges[ret] = np.minimum(np.maximum(ranges[ret] * (1.0 + self.frac * z[ret]), self.r_min), self.r_max)
+        if self.dropout > 0.0:
+            ranges[u < self.dropout] = 0.0
         return ranges
 
 
