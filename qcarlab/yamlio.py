@@ -15,12 +15,20 @@ MAX_BYTES = 64 * 2**20  #: a world, a sheet or a parameter file is kilobytes; a 
 
 
 def parse_yaml(text: str, source: str) -> Any:
-    """``yaml.safe_load`` whose syntax errors become one line naming ``source`` and the line."""
+    """``yaml.safe_load`` whose syntax errors become one line naming ``source`` and the line.
+
+    Parsed by libyaml's safe loader when PyYAML has it (``yaml.CSafeLoader``: the same objects,
+    about 8x faster: a world file in ~1 ms instead of ~8), else by the pure-Python one; text
+    libyaml rejects is parsed again by the pure-Python loader, whose messages are the errors'."""
     import yaml
 
     if len(text) > MAX_BYTES:
         raise InputError(f"{source}: {len(text):,} characters; a YAML file qcarlab reads is at most "
                          f"{MAX_BYTES // 2**20} MB")
+    try:
+        return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+    except (yaml.YAMLError, RecursionError):
+        pass
     try:
         return yaml.safe_load(text)
     except RecursionError:

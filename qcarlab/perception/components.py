@@ -143,6 +143,8 @@ def _blobs(mask: np.ndarray, min_area: int, row0: int, col0: int) -> tuple[list[
     H, W = m.shape
     out = []
     for i, c in enumerate(contours):
+        if len(c) < 3:  # a speck or a one-pixel-wide segment: an outline of no area (m00 = 0 < 2)
+            continue
         mo = cv2.moments(c)
         a = mo["m00"]
         if a < 2.0:
