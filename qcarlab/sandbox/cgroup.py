@@ -106,6 +106,24 @@ class Cgroup:
             pass
         return False
 
+    def at_limit(self) -> bool:
+        """Whether the cgroup's memory use has reached its limit (the kernel then reclaims, and a
+        process with nothing left to give back is killed: on a loaded machine that can take
+        seconds, during which the process is starved, not looping) or it was killed for memory."""
+        if self.oom_killed():
+            return True
+        d = self.dirs[0]
+        try:
+            if self.v2:
+                for line in (d / "memory.events").read_text().splitlines():
+                    key, _, value = line.partition(" ")
+                    if key == "max" and int(value) > 0:
+                        return True
+                return False
+            return int((d / "memory.failcnt").read_text()) > 0
+        except (OSError, ValueError):
+            return False
+
     def pids(self) -> list[int]:
         out: set[int] = set()
         for d in self.dirs:

@@ -104,6 +104,12 @@ class BlockHost:
             reply = self.channel.recv()
         except BlockTimeout:  # the block has not returned (qcarlab.blocks' watchdog): its process is ended
             signal.setitimer(signal.ITIMER_REAL, 0.0)  # no second alarm while it is
+            if self.cgroup is not None and self.cgroup.at_limit():
+                # at its memory limit, the kernel's reclaim before the kill can outlast the watchdog on
+                # a loaded machine: the block ran out of memory, whichever of the two came first
+                self.kill()
+                self.dead = self.out_of_memory()
+                raise RaisedInBlock("died", "", self.dead) from None
             self.dead = "the process running your blocks was stopped: a block of yours had not returned"
             self.kill()
             raise
@@ -168,8 +174,7 @@ class BlockHost:
         """Why the student's process ended, in words, for the block that was running."""
         code = self.wait()
         if self.cgroup is not None and self.cgroup.oom_killed():
-            return (f"ran out of memory: the process running your blocks was killed (the limit is "
-                    f"{self.plan.memory_mb:g} MB for all its processes together)")
+            return self.out_of_memory()
         if code is None:
             self.kill()
             return "closed its connection (the process running your blocks stopped answering)"
@@ -187,6 +192,10 @@ class BlockHost:
                 name = f"signal {-code}"
             return f"the process running your blocks was killed ({name})"
         return f"the process running your blocks exited with code {code} (os._exit in your code?)"
+
+    def out_of_memory(self) -> str:
+        return (f"ran out of memory: the process running your blocks was killed (the limit is "
+                f"{self.plan.memory_mb:g} MB for all its processes together)")
 
     def kill(self) -> None:
         try:
