@@ -28,8 +28,6 @@ HEADER = "_ref = __import__('importlib').import_module('qcarlab.control.speed').
 BAD = {
     "raises": "def basic_speed_estimation(counts_per_s):\n    return 1 / (counts_per_s * 0)\n",
     "hangs": "def basic_speed_estimation(counts_per_s):\n    while True:\n        pass\n",
-    "hogs_memory": "import numpy as np\n\ndef basic_speed_estimation(counts_per_s):\n    keep = []\n"
-                   "    while True:\n        keep.append(np.ones(10**8))\n",
     "calls_os_exit": "import os\n\ndef basic_speed_estimation(counts_per_s):\n    os._exit(3)\n",
     "prints_megabytes": "def basic_speed_estimation(counts_per_s):\n    while True:\n        print('x' * 10000)\n",
     "kills_itself": "import os, signal\n\ndef basic_speed_estimation(counts_per_s):\n"
@@ -41,16 +39,22 @@ BAD = {
 }
 
 
-def klass(root: Path) -> Path:
+# filling 1 GB takes seconds when the machine is loaded: it is graded apart, with the block
+# watchdog and the task's limit far off, so that it meets the memory limit first at any load
+HOG = {"hogs_memory": "import numpy as np\n\ndef basic_speed_estimation(counts_per_s):\n    keep = []\n"
+                      "    while True:\n        keep.append(np.ones(10**8))\n"}
+
+
+def klass(root: Path, bad: dict[str, str] = BAD) -> Path:
     correct_submission(root / "good", ("basic-io",))
-    for name, body in BAD.items():
+    for name, body in bad.items():
         correct_submission(root / name, ("basic-io",))
         write_block(root / name / "basic-io", "basic_speed_estimation.py", HEADER + body)
     return root
 
 
-def graded(cli, sheet: Path, root: Path, out: Path) -> dict:
-    code, stdout, err = cli("grade", sheet, "--class", root, "--jobs", "2", "--timeout", "8", "--memory", "1024",
+def graded(cli, sheet: Path, root: Path, out: Path, timeout: str = "8") -> dict:
+    code, stdout, err = cli("grade", sheet, "--class", root, "--jobs", "2", "--timeout", timeout, "--memory", "1024",
                             "--max-output", "1", "--out", out, "--json")
     assert code == 1, err
     by = {}
@@ -77,14 +81,26 @@ def test_warm_tasks_fail_like_cold_ones(cli, tmp_path, monkeypatch):
     assert warm["hangs"][1] == ("block basic_speed_estimation (basic_speed_estimation.py:basic_speed_estimation) "
                                 "has not returned after 5 s: an endless loop?")  # the block watchdog, before the 8 s limit
     block = "block basic_speed_estimation (basic_speed_estimation.py:basic_speed_estimation): "
-    assert "ran out of memory" in warm["hogs_memory"][1] and "the limit is 1024 MB" in warm["hogs_memory"][1], \
-        warm["hogs_memory"]  # (the cgroup killed it, or, without one, MemoryError under its address-space limit)
     assert warm["calls_os_exit"][1] == block + "the process running your blocks exited with code 3 (os._exit in " \
         "your code?)"
     assert warm["prints_megabytes"][1] == block + "printed more than 1 MB (output is capped)"
     assert warm["kills_itself"][1] == block + "the process running your blocks was killed (SIGSEGV)"
     assert warm_s < 60  # the hanging task was killed at its limit, the others went on
     assert (tmp_path / "warm" / "gradebook.csv").read_text() == (tmp_path / "cold" / "gradebook.csv").read_text()
+
+
+def test_a_memory_hog_fails_alike_warm_and_cold(cli, tmp_path, monkeypatch):
+    sheet = tmp_path / "warm.yaml"
+    sheet.write_text(SHEET)
+    root = klass(tmp_path / "class", HOG)
+    monkeypatch.setenv("QCARLAB_BLOCK_TIMEOUT_S", "60")
+    warm = graded(cli, sheet, root, tmp_path / "warm", timeout="90")
+    monkeypatch.setenv("QCARLAB_GRADE_COLD", "1")
+    cold = graded(cli, sheet, root, tmp_path / "cold", timeout="90")
+    assert warm == cold
+    assert warm["good"][0] and not warm["hogs_memory"][0]
+    assert "ran out of memory" in warm["hogs_memory"][1] and "the limit is 1024 MB" in warm["hogs_memory"][1], \
+        warm["hogs_memory"]  # (the cgroup killed it, or, without one, MemoryError under its address-space limit)
 
 
 def test_one_task_cannot_change_the_next_ones_start(tmp_path):
