@@ -93,19 +93,7 @@ class Clearance:
         elif len(self.p0):
             A = self._to_body(self.p0, x, y, c, s)
             B = self._to_body(self.p1, x, y, c, s)
-            m, h = (A + B) / 2.0, (B - A) / 2.0
-            # separating axes of a segment against the rectangle: x, y and the segment's normal
-            sep = (np.abs(m[:, 0]) > self.a + np.abs(h[:, 0])) | (np.abs(m[:, 1]) > self.b + np.abs(h[:, 1])) \
-                | (np.abs(h[:, 0] * m[:, 1] - h[:, 1] * m[:, 0]) > self.a * np.abs(h[:, 1]) + self.b * np.abs(h[:, 0]))
-            d = np.minimum(self._point_rect(A), self._point_rect(B))
-            ab = B - A
-            L2 = np.maximum((ab * ab).sum(axis=1), 1e-18)
-            # each corner of the footprint against each edge, the four corners at once
-            rel = (self._corners[:, None, :] - A) * ab
-            u = np.clip(rel.sum(axis=2) / L2, 0.0, 1.0)
-            d = np.minimum(d, np.hypot(A[:, 0] + u * ab[:, 0] - self._corners[:, 0:1],
-                                       A[:, 1] + u * ab[:, 1] - self._corners[:, 1:2]).min(axis=0))
-            d = np.where(sep, d, 0.0)
+            d = self._edge_distances(A, B)
             # the car's centre inside a polygon (no edge crossing it): even-odd rule per polygon
             crosses = ((A[:, 1] > 0.0) != (B[:, 1] > 0.0))
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -144,6 +132,22 @@ class Clearance:
             if d[k] < best:
                 best, where = float(d[k]), (float(circles[k, 0]), float(circles[k, 1]))
         return best, where
+
+    def _edge_distances(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """Every edge's distance from the footprint (0 where they overlap), from its body-frame ends
+        ``A``, ``B``: separating axes of a segment against the rectangle (x, y and the segment's
+        normal), then the nearest of its ends against the rectangle and of each corner against it."""
+        m, h = (A + B) / 2.0, (B - A) / 2.0
+        sep = (np.abs(m[:, 0]) > self.a + np.abs(h[:, 0])) | (np.abs(m[:, 1]) > self.b + np.abs(h[:, 1])) \
+            | (np.abs(h[:, 0] * m[:, 1] - h[:, 1] * m[:, 0]) > self.a * np.abs(h[:, 1]) + self.b * np.abs(h[:, 0]))
+        d = np.minimum(self._point_rect(A), self._point_rect(B))
+        ab = B - A
+        L2 = np.maximum((ab * ab).sum(axis=1), 1e-18)
+        rel = (self._corners[:, None, :] - A) * ab
+        u = np.clip(rel.sum(axis=2) / L2, 0.0, 1.0)
+        d = np.minimum(d, np.hypot(A[:, 0] + u * ab[:, 0] - self._corners[:, 0:1],
+                                   A[:, 1] + u * ab[:, 1] - self._corners[:, 1:2]).min(axis=0))
+        return np.where(sep, d, 0.0)
 
 
 _hypot = np.hypot  # (on two floats: the ufunc's number, which Clearance's arrays and the kernel give)
@@ -308,20 +312,6 @@ class PathClearance(Clearance):
                 break
             d = min(d, float(_hypot(p, q)))
         return d, k
-
-    def _edge_distances(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
-        """Every edge's footprint distance from its body-frame ends (Clearance's arrays)."""
-        m, h = (A + B) / 2.0, (B - A) / 2.0
-        sep = (np.abs(m[:, 0]) > self.a + np.abs(h[:, 0])) | (np.abs(m[:, 1]) > self.b + np.abs(h[:, 1])) \
-            | (np.abs(h[:, 0] * m[:, 1] - h[:, 1] * m[:, 0]) > self.a * np.abs(h[:, 1]) + self.b * np.abs(h[:, 0]))
-        d = np.minimum(self._point_rect(A), self._point_rect(B))
-        ab = B - A
-        L2 = np.maximum((ab * ab).sum(axis=1), 1e-18)
-        rel = (self._corners[:, None, :] - A) * ab
-        u = np.clip(rel.sum(axis=2) / L2, 0.0, 1.0)
-        d = np.minimum(d, np.hypot(A[:, 0] + u * ab[:, 0] - self._corners[:, 0:1],
-                                   A[:, 1] + u * ab[:, 1] - self._corners[:, 1:2]).min(axis=0))
-        return np.where(sep, d, 0.0)
 
     def _nearest_circle(self, rows: list, x: float, y: float, c: float, s: float, best: float,
                         where: tuple[float, float] | None) -> tuple[float, tuple[float, float] | None]:
