@@ -93,7 +93,7 @@ class Clearance:
         elif len(self.p0):
             A = self._to_body(self.p0, x, y, c, s)
             B = self._to_body(self.p1, x, y, c, s)
-            d = self._edge_distances(A, B)
+            d, ab = self._edge_distances(A, B), B - A
             # the car's centre inside a polygon (no edge crossing it): even-odd rule per polygon
             crosses = ((A[:, 1] > 0.0) != (B[:, 1] > 0.0))
             with np.errstate(divide="ignore", invalid="ignore"):
