@@ -81,6 +81,21 @@ def _compiled():
     return _compiled_scan
 
 
+def load_compiled():
+    """Switch this process's vector-world scans to the compiled kernel now (a server, a gym env, the
+    grader's warm process: they scan for long; :func:`qcarlab.car.sim.SimCar.warm_physics` calls
+    this), unless :data:`COMPILED` is False; None without numba."""
+    global _compiled_scan
+    if COMPILED is False:
+        return None
+    if _compiled_scan is None:
+        from qcarlab.sim import _kernels
+
+        if _kernels.HAVE_NUMBA:
+            _compiled_scan = _kernels.lidar_scan_edges
+    return _compiled_scan
+
+
 class Lidar:
     """A LIDAR in a world. ``scan(pose, t)`` returns a :class:`~qcarlab.sensors.LidarScan`."""
 
