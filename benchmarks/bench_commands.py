@@ -14,11 +14,16 @@ factor is the simulated seconds over those wall seconds. ``serve`` is the time f
 same runs of the checkout in DIR (``PYTHONPATH=DIR``, the same interpreter and packages)
 alternate with ours, so a change of the machine's load hits both. A figure a run did not
 measure says "not measured", never "met".
+
+Run it with the Python of a student's install (``pip install .``, no extras): with scipy present
+(the ``bench`` extra brings it) numba imports ``scipy.linalg`` when the camera's kernels load, some
+0.1-0.2 s a run that a student's install does not pay; the script says so when it sees scipy.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import statistics
@@ -111,6 +116,9 @@ def main() -> None:
     sides = [("ours", None)] + ([("before", a.against)] if a.against else [])
     print(machine())
     print(load_note(), flush=True)
+    if importlib.util.find_spec("scipy") is not None:
+        print("note: scipy is installed in this Python (a student's `pip install .` has none): numba imports "
+              "scipy.linalg with the camera's kernels, 0.1-0.2 s a run more than a student's install pays")
     # a folder that holds no qcarlab: ``python -m`` puts the working folder first on the path, so
     # run from a checkout it would import that checkout's qcarlab whatever PYTHONPATH says
     cwd = Path(tempfile.mkdtemp(prefix="bench-commands-"))

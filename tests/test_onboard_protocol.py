@@ -224,7 +224,9 @@ def test_bye_is_answered_after_the_car_is_stopped(server):
 
 
 def test_sensor_frames_have_the_documented_shapes(server):
-    raw, _ = hello(server, "monitor", timeout=20.0)  # the simulator builds its sensors on the first request
+    # the simulator builds its sensors on the first request: in a fresh install numba compiles the
+    # camera's kernels then (no cache yet), 20-40 s on a loaded 2-core machine
+    raw, _ = hello(server, "monitor", timeout=90.0)
     with raw:
         for request, reply, shapes in [
             (M.GET_RGBD, M.RGBD, [((480, 640, 3), np.uint8), ((480, 640), np.float32)]),

@@ -89,9 +89,24 @@ def attack(body: str, **paths: Path) -> str:
     return "import os, sys, json, glob, signal, time\n" + head + textwrap.dedent(body) + "\n" + NEVER_STOPS
 
 
-def no_student_processes_left() -> bool:
-    out = subprocess.run(["ps", "-eo", "uid="], capture_output=True, text=True).stdout.split()
-    return not any(int(u) >= BASE_UID for u in out if u.isdigit())
+def student_processes() -> set[int]:
+    """The pids of the processes running as a student's user (of this test or, under xdist, of
+    another worker's grading)."""
+    out = subprocess.run(["ps", "-eo", "uid=,pid="], capture_output=True, text=True).stdout.split()
+    return {int(p) for u, p in zip(out[::2], out[1::2]) if u.isdigit() and int(u) >= BASE_UID}
+
+
+def no_student_processes_left(wait: float = 20.0) -> bool:
+    """No process that ran as a student's user when the grader finished is still running ``wait``
+    s later (another xdist worker's tasks end within their limits, a few seconds; an escaped
+    daemon of this test's would live a minute); True as soon as they have all gone."""
+    import time
+
+    left, deadline = student_processes(), time.monotonic() + wait
+    while left and time.monotonic() < deadline:
+        time.sleep(0.2)
+        left &= student_processes()
+    return not left
 
 
 def deserved(grades: dict) -> None:
@@ -176,7 +191,7 @@ def test_hurting_classmates_fails_killing_daemons_memory_and_disk(cli, tmp_path)
                     pass
         if os.fork() == 0:  # a daemon that outlives the task and rewrites the outputs
             os.setsid()
-            for _ in range(100):
+            for _ in range(600):  # a minute: longer than no_student_processes_left waits
                 time.sleep(0.1)
                 for name in ("grade.json", "gradebook.csv", "report.html"):
                     try:
