@@ -2,7 +2,7 @@
 
 On a car as Quanser ships it (Python 3.6 on a QCar 1, 3.8 on a QCar 2) qcarlab itself does not
 install; run the car-side server instead (``qcarlab onboard --write FILE`` or ``qcarlab deploy``,
-README "On the real car"). This backend is for a car that has a Python >= 3.11 with qcarlab.
+docs/how-to/real-car.md). This backend is for a car that has a Python >= 3.11 with qcarlab.
 
 Both share one driver: :class:`qcarlab.onboard.car_server.QuanserCar` (the board names, channel
 tables, signs, LIDAR angles and start-up of each car, with Quanser's sources). This class only
@@ -137,7 +137,7 @@ class QuanserCar(Car):
         return make_frame(MsgType.LIDAR, t, [angles.copy(), ranges.copy()])
 
     def read_rgbd(self) -> Any:
-        """Colour and depth; depth is NOT aligned to colour on the car (see the README)."""
+        """Colour and depth; depth is NOT aligned to colour on the car (see docs/how-to/real-car.md)."""
         from qcarlab.wire.frames import make_frame
         from qcarlab.wire.protocol import MsgType
 

@@ -4,8 +4,8 @@ self-check (``qcarlab labs check``) and the grading tests.
 For each lab sheet a folder as ``qcarlab template`` makes it, with every choice filled with
 qcarlab's value (``params.yaml``) and block files that call qcarlab's reference blocks. A graded
 block that imports qcarlab's own block of its name is refused (the grader reads the imports);
-these stand-ins load it with ``importlib`` instead, which that check does not see (the README's
-threat model says so): the self-check needs a right answer, not an honest student.
+these stand-ins load it with ``importlib`` instead, which that check does not see (the threat model in
+docs/explanation/grading-sandbox.md says so): the self-check needs a right answer, not an honest student.
 """
 
 from __future__ import annotations

@@ -86,7 +86,7 @@ class Submission:
         imports qcarlab's reference ``name`` (``from qcarlab.control.stop_sign import stop_sign``,
         ``import qcarlab.control.stop_sign``, or ``q.stop_sign`` of a module ``q`` imported from
         qcarlab). A graded block must be the student's code; a lab run of their own may use
-        qcarlab's. (What this cannot see, a dynamic import, the README's threat model says.)"""
+        qcarlab's. (What this cannot see, a dynamic import, docs/explanation/grading-sandbox.md's threat model says.)"""
         for fname in sorted(self.files):
             tree = self._tree(fname) if fname.endswith(".py") else None
             if tree is None:

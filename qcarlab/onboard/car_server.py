@@ -830,7 +830,7 @@ class QuanserCar(object):
 
     def rgbd_arrays(self):
         """(t, color, depth): the latest colour and depth (depth is NOT aligned to colour: the D435 streams them from
-        two cameras; Quanser's examples crop it; see the README)."""
+        two cameras; Quanser's examples crop it; see docs/how-to/real-car.md)."""
         s = self.sensors["rgbd"]
         try:
             for key, stream, getter in (("color", s["color_stream"], "get_data"), ("depth", s["depth_stream"], "get_meters")):
