@@ -298,20 +298,25 @@ class Channel:
         n = _U32_AT(buf, 0)[0]
         if n > MAX_MESSAGE:
             raise CodecError(f"a message of {n} bytes is over the {MAX_MESSAGE // 2**20} MB limit")
+        if 4 + n > len(buf) + len(self.chunk):  # a large value (an image): read straight into its own buffer
+            data = bytearray(n)
+            have = len(buf) - 4
+            data[:have] = memoryview(buf)[4:]
+            buf.clear()
+            view = memoryview(data)
+            while have < n:
+                k = self.sock.recv_into(view[have:])
+                if k == 0:
+                    raise EOFError("the other side closed the connection")
+                have += k
+            return pickle.loads(data) if self.trusted_peer else decode(bytes(data))
         while len(buf) < 4 + n:
-            self._more(4 + n - len(buf))
+            self._more()
         data = bytes(buf[4:4 + n])
         del buf[:4 + n]
         return pickle.loads(data) if self.trusted_peer else decode(data)
 
-    def _more(self, want: int = 0) -> None:
-        if want > len(self.chunk):  # a large value: straight into a buffer of its size
-            big = bytearray(want)
-            k = self.sock.recv_into(big)
-            if k == 0:
-                raise EOFError("the other side closed the connection")
-            self.buf += memoryview(big)[:k]
-            return
+    def _more(self) -> None:
         k = self.sock.recv_into(self.chunk)
         if k == 0:
             raise EOFError("the other side closed the connection")
