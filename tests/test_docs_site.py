@@ -4,7 +4,8 @@
 - every README link into docs/ resolves, and the README is short;
 - every command a page marks to run (``<!-- run: qcarlab ... -->``) is a real qcarlab command
   with real options (checked against the Typer app), and every ``<!-- generate: ... -->`` names a
-  generator that exists.
+  generator that exists;
+- every `qcarlab ...` a tutorial or how-to shows is a real command with the options it shows.
 """
 
 from __future__ import annotations
@@ -110,3 +111,39 @@ def test_generated_reference_names_every_command_and_sheet():
     sheets = reference_gen.sheets()
     for path in (ROOT / "qcarlab" / "labs").glob("*.yaml"):
         assert f"## `{path.stem}`" in sheets
+
+
+def _shown_commands() -> list[tuple[str, list[str]]]:
+    """Every ``qcarlab ...`` a tutorial or how-to shows in code (inline or in a block), as words."""
+    out = []
+    for page in _pages():
+        rel = page.relative_to(DOCS).as_posix()
+        if not rel.startswith(("tutorials/", "how-to/")):
+            continue
+        text = page.read_text()
+        spans = re.findall(r"`(qcarlab [^`\n]+)`", text)
+        for block in re.findall(r"```[a-z]*\n(.*?)```", text, flags=re.S):
+            spans += [ln.strip() for ln in block.splitlines() if ln.strip().startswith("qcarlab ")]
+        for span in spans:
+            words = span.split(" #")[0].split("|")[0].split("&&")[0].split()
+            if len(words) > 1 and not words[1].startswith(("-", "<", "[")):
+                out.append((rel, words[1:]))
+    return out
+
+
+def test_the_pages_show_many_commands():
+    assert len(_shown_commands()) >= 30
+
+
+@pytest.mark.parametrize("where,argv", _shown_commands(), ids=lambda v: v if isinstance(v, str) else " ".join(v))
+def test_each_command_a_page_shows_is_real_with_real_options(where, argv):
+    """What a student copies from a page runs: the command exists and has every option shown (the
+    commands themselves run at the build, or, template and grade, in test_every_point)."""
+    commands = reference_gen.click_root().commands
+    assert argv[0] in commands, f"{where}: no command qcarlab {argv[0]}"
+    if hasattr(commands[argv[0]], "commands"):  # a group (detect, replay, ...): its subcommand's options
+        return
+    options = reference_gen.command_options(argv[0])
+    typed = [w.split("=")[0] for w in argv[1:] if w.startswith("--") or re.fullmatch(r"-[a-zA-Z]", w)]
+    unknown = [o for o in typed if o not in options]
+    assert not unknown, f"{where}: qcarlab {argv[0]} has no option {unknown}"
