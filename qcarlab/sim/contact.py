@@ -91,16 +91,7 @@ class Clearance:
                                         x, y, c, s)
             where = self.pieces[k] if k >= 0 else None
         elif len(self.p0):
-            A = self._to_body(self.p0, x, y, c, s)
-            B = self._to_body(self.p1, x, y, c, s)
-            d, ab = self._edge_distances(A, B), B - A
-            # the car's centre inside a polygon (no edge crossing it): even-odd rule per polygon
-            crosses = ((A[:, 1] > 0.0) != (B[:, 1] > 0.0))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                xint = A[:, 0] + (0.0 - A[:, 1]) * ab[:, 0] / ab[:, 1]
-            hits = np.bincount(self.owner[crosses & (xint > 0.0)], minlength=self.n_poly)
-            per_poly = np.minimum.reduceat(d, self._first_edge)  # each polygon's edges are consecutive
-            per_poly[hits % 2 == 1] = 0.0
+            _, per_poly = self._polygon_distances(x, y, c, s)
             k = int(np.argmin(per_poly))
             best, where = float(per_poly[k]), self.pieces[k]
         if balls:
@@ -132,6 +123,21 @@ class Clearance:
             if d[k] < best:
                 best, where = float(d[k]), (float(circles[k, 0]), float(circles[k, 1]))
         return best, where
+
+    def _polygon_distances(self, x: float, y: float, c: float, s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(every edge's distance from the footprint, every polygon's: its nearest edge's, or 0 when
+        it holds the car's centre) at the pose (x, y, cos, sin of the heading)."""
+        A = self._to_body(self.p0, x, y, c, s)
+        B = self._to_body(self.p1, x, y, c, s)
+        d, ab = self._edge_distances(A, B), B - A
+        # the car's centre inside a polygon (no edge crossing it): even-odd rule per polygon
+        crosses = ((A[:, 1] > 0.0) != (B[:, 1] > 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xint = A[:, 0] + (0.0 - A[:, 1]) * ab[:, 0] / ab[:, 1]
+        hits = np.bincount(self.owner[crosses & (xint > 0.0)], minlength=self.n_poly)
+        per_poly = np.minimum.reduceat(d, self._first_edge)  # each polygon's edges are consecutive
+        per_poly[hits % 2 == 1] = 0.0
+        return d, per_poly
 
     def _edge_distances(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
         """Every edge's distance from the footprint (0 where they overlap), from its body-frame ends
@@ -217,15 +223,7 @@ class PathClearance(Clearance):
     def _reference(self, x: float, y: float, yaw: float, c: float, s: float) -> tuple[float, int]:
         """Every edge's distance at this pose (Clearance's arrays), kept sorted as the new
         reference; returns (the clearance to the polygons, the first nearest polygon)."""
-        A = self._to_body(self.p0, x, y, c, s)
-        B = self._to_body(self.p1, x, y, c, s)
-        d = self._edge_distances(A, B)
-        crosses = ((A[:, 1] > 0.0) != (B[:, 1] > 0.0))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xint = A[:, 0] + (0.0 - A[:, 1]) * (B[:, 0] - A[:, 0]) / (B[:, 1] - A[:, 1])
-        hits = np.bincount(self.owner[crosses & (xint > 0.0)], minlength=self.n_poly)
-        per_poly = np.minimum.reduceat(d, self._first_edge)
-        per_poly[hits % 2 == 1] = 0.0
+        d, per_poly = self._polygon_distances(x, y, c, s)
         k = int(np.argmin(per_poly))
         order = np.argsort(d, kind="stable")
         self._order = list(zip(d[order].tolist(), order.tolist()))

@@ -66,19 +66,10 @@ _compiled_scan = None
 def _compiled():
     """The compiled edge scan when :data:`COMPILED` (or the scans made so far) ask for it and
     numba is installed, else None (numpy)."""
-    global _compiled_scan
     use = COMPILED
     if use is None:
         use = _compiled_scan is not None or _numpy_scans >= SWITCH_AFTER
-    if not use:
-        return None
-    if _compiled_scan is None:
-        from qcarlab.sim import _kernels
-
-        if not _kernels.HAVE_NUMBA:  # (plain Python: far slower than numpy)
-            return None
-        _compiled_scan = _kernels.lidar_scan_edges
-    return _compiled_scan
+    return load_compiled() if use else None
 
 
 def load_compiled():
@@ -91,7 +82,7 @@ def load_compiled():
     if _compiled_scan is None:
         from qcarlab.sim import _kernels
 
-        if _kernels.HAVE_NUMBA:
+        if _kernels.HAVE_NUMBA:  # (without numba the kernel is plain Python: far slower than numpy)
             _compiled_scan = _kernels.lidar_scan_edges
     return _compiled_scan
 
