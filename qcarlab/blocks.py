@@ -482,24 +482,29 @@ def _defined_names(path: Path) -> set[str]:
     return {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))}
 
 
-def _make(spec: BlockSpec, target: Any, path: Path, func: str) -> StudentBlock:
+def _make(spec: BlockSpec, target: Any, path: Path, func: str, stubs_when_called: bool = False) -> StudentBlock:
+    """The student's block; a template's body still unfilled is refused now, or, with
+    ``stubs_when_called`` (a workspace folder: the template writes every block of the lab, and a
+    run calls some), when the run first calls it, with the same message."""
     if not callable(target):
         raise InputError(f"{path}: {func} is not a function or class")
-    if _unfilled(path, func):
+    if not stubs_when_called and _unfilled(path, func):
         raise InputError(f"{path}: {spec.name} is not filled in yet (sheet {spec.section}); "
                          "write its body, then run again")
     return StudentBlock(spec, target, f"{path}:{func}", path)
 
 
-def load_block_file(path: str | Path, specs: Mapping[str, BlockSpec], lab: str) -> dict[str, StudentBlock]:
-    """Every top-level function or class of the file named like one of the lab's blocks."""
+def load_block_file(path: str | Path, specs: Mapping[str, BlockSpec], lab: str,
+                    stubs_when_called: bool = False) -> dict[str, StudentBlock]:
+    """Every top-level function or class of the file named like one of the lab's blocks (an
+    unfilled one refused now, or when called: see :func:`_make`)."""
     p = Path(path)
     members = _members(p)
     found = {}
     for name, spec in specs.items():
         target = members.get(name)
         if target is not None:
-            found[name] = _make(spec, target, p, name)
+            found[name] = _make(spec, target, p, name, stubs_when_called)
     if not found:
         raise InputError(f"{p}: defines none of the {lab} blocks ({', '.join(specs)}); "
                          f"see: qcarlab blocks {lab}")
@@ -535,8 +540,8 @@ def resolve_student_blocks(
             found: dict[str, StudentBlock] = {}
             for path in sorted(folder.glob("*.py")):
                 names = _defined_names(path) & set(specs)
-                if names:
-                    found.update(load_block_file(path, {n: specs[n] for n in names}, lab))
+                if names:  # (a block still as the template wrote it stops the run only if the run calls it)
+                    found.update(load_block_file(path, {n: specs[n] for n in names}, lab, stubs_when_called=True))
             if not found:
                 raise InputError(f"--use {folder}: no .py file there defines one of the {lab} blocks "
                                  f"({', '.join(specs)}); see: qcarlab blocks {lab}")

@@ -435,3 +435,22 @@ def test_a_block_slower_than_the_tick_on_a_real_time_car_is_reported(cli, tmp_pa
     # on the stepped simulator (as fast as it can) there is no tick budget to miss
     code, out, err = cli("io-test", "--use", path, "--duration", "0.1", "--json")
     assert code == 0 and json.loads(out)["student_blocks"]["basic_speed_estimation"]["over_budget"] == 0
+
+
+def test_a_workspace_runs_with_the_filled_block_while_a_block_the_run_does_not_call_is_unfilled(cli, tmp_path):
+    """Sheet 5.2 Task 1 with the template's folder: stop_sign filled, red_share (the report's
+    --detector hough) still a stub: the sheet's run drives with the student's stop_sign; the hough
+    run, which calls red_share, stops with the template's one line (exit 2)."""
+    assert cli("template", "stop-sign", "--out", tmp_path)[0] == 0
+    params = tmp_path / "params.yaml"
+    text = re.sub(r"  hsv_min: .*", "  hsv_min: [170, 100, 100]", params.read_text())
+    params.write_text(re.sub(r"  hsv_max: .*", "  hsv_max: [10, 255, 255]", text))
+    write(tmp_path, "stop_sign.py", """\
+        def stop_sign(distance_to_sign, desired_speed):
+            return 0.0 if 0.6 < distance_to_sign < 1.0 else desired_speed  # stops early, on purpose
+        """)
+    code, out, err = cli("stop-sign", "--use", tmp_path, "--params", params, "--json")
+    assert code == 0, err
+    assert 0.6 < json.loads(out)["stop_distance_m"] < 1.0  # the student's window, not the reference's
+    code, out, err = cli("stop-sign", "--use", tmp_path, "--params", params, "--detector", "hough")
+    assert code == 2 and "red_share.py: red_share is not filled in yet" in err.strip().splitlines()[-1]
