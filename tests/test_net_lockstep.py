@@ -136,4 +136,6 @@ def test_io_test_over_a_realtime_server_paces_the_wall_clock(cli):
         code, out, err = cli("io-test", "--duration", "0.3", "--throttle", "0.1", "--car", server.uri, "--json")
     assert code == 0, err
     res = json.loads(out)
-    assert 0.27 < res["duration_s"] < 0.6 and res["encoder_counts"] > 0
+    # paced by the wall clock (not the instant a lock-step server would take); the upper bound is
+    # loose: on a loaded 2-core machine the last tick's readout comes late (0.85 s seen at load 5)
+    assert 0.27 < res["duration_s"] < 2.0 and res["encoder_counts"] > 0
