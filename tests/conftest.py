@@ -14,6 +14,23 @@ from qcarlab.cli import main
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
+# A line a server thread logs after its test ended (a client's disconnect) goes nowhere instead of
+# into the progress dots: the root logger's handler keeps logging's last resort from printing it.
+logging.getLogger().addHandler(logging.NullHandler())
+
+
+@pytest.fixture(autouse=True)
+def _cli_logging_ends_with_the_test():
+    """``main`` gives the ``qcarlab`` logger a handler that prints to the terminal's stderr; after
+    the test it is taken off again, so a thread still running (a server saying a client left)
+    does not print between later tests' dots. Records propagate to pytest's capture again."""
+    yield
+    logger = logging.getLogger("qcarlab")
+    for handler in [h for h in logger.handlers if type(h).__name__ == "_OneLineHandler"]:
+        logger.removeHandler(handler)
+    logger.propagate = True
+    logger.setLevel(logging.NOTSET)
+
 
 @pytest.fixture
 def cli(capsys):

@@ -106,16 +106,11 @@ def test_help_lists_every_subcommand(cli):
 
 
 def test_commands_are_clamped_and_reported_once(caplog):
-    with caplog.at_level(logging.WARNING, logger="qcarlab"):
-        logger = logging.getLogger("qcarlab")
-        logger.addHandler(caplog.handler)
-        try:
-            with qcarlab.open_car("sim") as car:
-                assert car.write(0.9, -2.0).throttle == 0.3
-                assert car.write(0.9, -2.0).steering == pytest.approx(-0.5)  # the servo's +-0.5 rad
-                assert car.write(-0.5, 0.0).throttle == -0.3
-        finally:
-            logger.removeHandler(caplog.handler)
+    with caplog.at_level(logging.WARNING, logger="qcarlab"):  # conftest: the logger propagates in a test
+        with qcarlab.open_car("sim") as car:
+            assert car.write(0.9, -2.0).throttle == 0.3
+            assert car.write(0.9, -2.0).steering == pytest.approx(-0.5)  # the servo's +-0.5 rad
+            assert car.write(-0.5, 0.0).throttle == -0.3
     messages = [r.getMessage() for r in caplog.records]
     assert sum("throttle" in m for m in messages) == 1
     assert sum("steering" in m for m in messages) == 1
