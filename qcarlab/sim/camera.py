@@ -223,7 +223,12 @@ class _ColumnView:
         self.pinhole = pinhole
         self.raster = build_raster(world)
         self.gain = brightness_grid(world)
-        self.levels, (tx0, ty1, ppm) = floor_pyramid(world, FLOOR_PX_PER_M)  # BGRA
+        if pinhole is not None:  # the kernel's packed pyramid (on disk after a world's first run: not drawn again)
+            self.floor = floor_runs(world, FLOOR_PX_PER_M)
+            n_levels, (tx0, ty1, ppm) = len(self.floor.levels), (self.floor.x0, self.floor.y1, self.floor.ppm)
+        else:  # the BGRA pyramid the remap samples
+            self.levels, (tx0, ty1, ppm) = floor_pyramid(world, FLOOR_PX_PER_M)
+            n_levels = len(self.levels)
         self.tex_x0, self.tex_y1, self.ppm = tx0, ty1, ppm
         self.bg = tuple(int(c) for c in world.background) + (255,)
         self.bg_packed = np.uint32(_kernels.pack_bgr(*self.bg[:3]))
@@ -240,7 +245,7 @@ class _ColumnView:
         self.row_depth = dist.astype(np.float32)
         self._no_balls = np.zeros((0, 6), np.float64)
         if pinhole is not None:
-            self._plan_levels()
+            self._plan_levels(n_levels)
         else:
             self.floor_depth = np.ascontiguousarray(np.broadcast_to(self.row_depth, (self.W, self.H)))
             self.color4 = np.empty((self.W, self.H, 4), np.uint8)
@@ -249,15 +254,15 @@ class _ColumnView:
             self._plan_rays(tex_level)
 
     # --- floor: pinhole, a texture level per row ----------------------------------------------
-    def _plan_levels(self) -> None:
-        """``row_lev``: the floor texture's level for each image row (0 above the horizon)."""
+    def _plan_levels(self, n_levels: int) -> None:
+        """``row_lev``: the floor texture's level (of ``n_levels``) for each image row (0 above the horizon)."""
         assert self.pinhole is not None
         texel = 1.0 / self.ppm
         z = self.row_dist[self.r0 :]
         # footprint of a pixel on the floor: geometric mean of its across (z/fx) and along
         # (z^2/(h fy)) extents; choose the texture level whose texels match it
         foot = np.sqrt((z / self.pinhole.fx) * (z * z / (self.cam_z * self.fy)))
-        lev = np.clip(np.floor(np.log2(np.maximum(foot / texel, 1.0))), 0, len(self.levels) - 1).astype(np.int64)
+        lev = np.clip(np.floor(np.log2(np.maximum(foot / texel, 1.0))), 0, n_levels - 1).astype(np.int64)
         self.row_lev = np.zeros(self.H, np.int64)
         self.row_lev[self.r0 :] = lev
 
@@ -496,7 +501,7 @@ class RGBDCamera:
         lw, lh = level.width, level.height
         rows = np.arange(lh, dtype=np.float64)
         self._rowf = np.where(rows > level.cy, level.fy / np.maximum(rows - level.cy, 1e-9), 0.0)
-        self._floor = floor_runs(self.world, FLOOR_PX_PER_M)
+        self._floor = self._view.floor
         # the layers column_layers writes (see there), and the first floor row of each column
         n = _kernels.LMAX
         self._ltop, self._lbot, self._lball = (np.empty((n, lw), np.int32) for _ in range(3))
