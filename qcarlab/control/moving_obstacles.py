@@ -53,6 +53,21 @@ class PreparedScan:
     points: np.ndarray
     normals: np.ndarray
     normal_ok: np.ndarray
+    _table: tuple | None = field(default=None, init=False, repr=False, compare=False)
+
+    def table(self) -> tuple:
+        """The returns as :func:`scan_motion` reads the older scan of a match, made once: the
+        bearings after a leading ``-inf`` (so ``searchsorted`` gives ``k + 1`` for a bearing just
+        below return ``k``'s), then x, y, the normal's x, y and ``normal_ok``, each a contiguous
+        array from the last return round to the first (``[n-1, 0, 1, ..., n-1, 0]``): entry
+        ``k + 1`` is return ``k`` (mod n), entry ``k`` the one before it."""
+        if self._table is None:
+            P, N = self.points, self.normals
+            wrap = lambda v: np.concatenate((v[-1:], v, v[:1]))  # noqa: E731
+            object.__setattr__(self, "_table", (
+                np.concatenate(((-math.inf,), self.bearings)), wrap(P[:, 0]), wrap(P[:, 1]), wrap(N[:, 0]),
+                wrap(N[:, 1]), wrap(self.normal_ok)))
+        return self._table
 
 
 def prepare_scan(ranges, angles) -> PreparedScan:
@@ -105,33 +120,31 @@ def scan_motion(prev, scan, guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
     (``matched`` 0) when fewer than 20 returns pair up.
     """
     old, new = _prepared(prev), _prepared(scan)
-    pa, P, N, ok_n = old.bearings, old.points, old.normals, old.normal_ok
     Q = new.points
     if len(Q) > 400:  # a few hundred returns are plenty for three unknowns
         Q = Q[::2]
     g = np.asarray(guess, dtype=float)
-    if len(P) < 20 or len(Q) < 20:
+    if len(old.points) < 20 or len(Q) < 20:
         return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
-    n = len(P)
-    # the columns as arrays of their own (the same numbers, gathered without a 2-D index)
-    Px, Py, Nx, Ny = P[:, 0].copy(), P[:, 1].copy(), N[:, 0].copy(), N[:, 1].copy()
+    # the older scan's returns, wrapped round (PreparedScan.table): k + 1 is return k, k the one before
+    pa, Px, Py, Nx, Ny, ok_n = old.table()
     Qx, Qy = Q[:, 0].copy(), Q[:, 1].copy()
     x = g.copy()
+    x0, x1, x2 = x.tolist()
     lam = np.diag(np.asarray(prior, dtype=float))
     matched = 0
     for it in range(iterations):
-        c, s = math.cos(x[2]), math.sin(x[2])
-        px = c * Qx - s * Qy + x[0]
-        py = s * Qx + c * Qy + x[1]
-        k = np.searchsorted(pa, np.arctan2(py, px)) % n
-        k0 = k - 1  # -1 wraps to the last return
-        d1 = np.hypot(px - Px[k], py - Py[k])
-        d0 = np.hypot(px - Px[k0], py - Py[k0])
+        c, s = math.cos(x2), math.sin(x2)
+        px = c * Qx - s * Qy + x0
+        py = s * Qx + c * Qy + x1
+        k = np.searchsorted(pa, np.arctan2(py, px))  # the return at or after p's bearing, + 1
+        k0 = k - 1  # the one before it (0: the last return)
+        d1 = _hypot(px - Px[k], py - Py[k])
+        d0 = _hypot(px - Px[k0], py - Py[k0])
         nearer = d0 < d1
-        idx = np.where(nearer, k0, k)
-        dist = np.where(nearer, d0, d1)
+        idx = k - nearer
         gate = max(0.08, 0.3 * 0.7 ** it)
-        use = ok_n[idx] & (dist < gate)
+        use = ok_n[idx] & (np.where(nearer, d0, d1) < gate)
         matched = int(np.count_nonzero(use))
         if matched < 20:
             return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
@@ -140,14 +153,38 @@ def scan_motion(prev, scan, guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
         ux, uy = px[use], py[use]
         e = nx * (ux - Px[iu]) + ny * (uy - Py[iu])
         w = np.minimum(1.0, 0.02 / np.maximum(np.abs(e), 1e-9))
-        J = np.column_stack((nx, ny, ny * (ux - x[0]) - nx * (uy - x[1])))
+        J = np.empty((matched, 3))  # (the columns nx, ny, dyaw's: as np.column_stack makes it)
+        J[:, 0] = nx
+        J[:, 1] = ny
+        J[:, 2] = ny * (ux - x0) - nx * (uy - x1)
         H = J.T @ (J * w[:, None]) + lam
         grad = J.T @ (w * e) + lam @ (x - g)
-        step = np.linalg.solve(H, -grad)
+        step = _solve(H, -grad)
         x += step
-        if abs(step[0]) + abs(step[1]) < 2e-4 and abs(step[2]) < 2e-4 and gate <= 0.1:
+        x0, x1, x2 = x.tolist()
+        s0, s1, s2 = step.tolist()
+        if abs(s0) + abs(s1) < 2e-4 and abs(s2) < 2e-4 and gate <= 0.1:
             break
-    return Motion(float(x[0]), float(x[1]), float(x[2]), matched)
+    return Motion(x0, x1, x2, matched)
+
+
+_hypot = np.hypot
+
+
+def _solve(H: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.linalg.solve(H, b)`` for a 3 x 3 ``H`` and a vector ``b``: the same LAPACK call (its
+    gufunc, without the wrapper's checks, a third of an ICP iteration); a singular ``H`` (a NaN
+    result) goes through ``np.linalg.solve``, which raises as before."""
+    x = _SOLVE1(H, b, signature="dd->d") if _SOLVE1 is not None else np.linalg.solve(H, b)
+    if not np.isfinite(x).all():
+        return np.linalg.solve(H, b)
+    return x
+
+
+try:  # numpy's own solver, as np.linalg.solve calls it for a vector
+    from numpy.linalg._umath_linalg import solve1 as _SOLVE1
+except ImportError:  # pragma: no cover (another numpy's layout)
+    _SOLVE1 = None
 
 
 @dataclass(frozen=True)
