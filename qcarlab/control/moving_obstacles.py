@@ -73,23 +73,55 @@ class PreparedScan:
 def prepare_scan(ranges, angles) -> PreparedScan:
     """:class:`PreparedScan` of one scan (ranges m, 0 = none; angles rad): done once a scan, as
     the newer scan of one match and the older one of the next."""
-    r = np.asarray(ranges, dtype=float)
-    a = np.remainder(np.asarray(angles, dtype=float) + math.pi, 2.0 * math.pi) - math.pi
-    ok = np.isfinite(r) & (r > 0.0) & np.isfinite(a)
-    r, a = r[ok], a[ok]
-    order = np.argsort(a, kind="stable")
-    r, a = r[order], a[order]
-    P = np.column_stack((r * np.cos(a), r * np.sin(a)))
+    r, a, px, py, _ = _sorted_returns(ranges, angles)
+    P = np.column_stack((px, py))
     if len(P) < 3:
         return PreparedScan(a, r, P, np.zeros_like(P), np.zeros(len(P), dtype=bool))
-    nxt, prv = np.roll(P, -1, axis=0), np.roll(P, 1, axis=0)
+    # each return's neighbours (the last wraps to the first): the numbers np.roll gives
+    xn, yn = np.concatenate((px[1:], px[:1])), np.concatenate((py[1:], py[:1]))
+    xp, yp = np.concatenate((px[-1:], px[:-1])), np.concatenate((py[-1:], py[:-1]))
     near = 0.05 + 0.03 * r
-    ok_n = (np.hypot(*(nxt - P).T) < near) & (np.hypot(*(prv - P).T) < near)
-    tan = nxt - prv
-    tl = np.hypot(tan[:, 0], tan[:, 1])
+    ok_n = (np.hypot(xn - px, yn - py) < near) & (np.hypot(xp - px, yp - py) < near)
+    tx, ty = xn - xp, yn - yp
+    tl = np.hypot(tx, ty)
     ok_n &= tl > 1e-6
     tl = np.where(tl > 1e-6, tl, 1.0)
-    return PreparedScan(a, r, P, np.column_stack((-tan[:, 1] / tl, tan[:, 0] / tl)), ok_n)
+    return PreparedScan(a, r, P, np.column_stack((-ty / tl, tx / tl)), ok_n)
+
+
+def _sorted_returns(ranges, angles) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The valid returns (range finite and > 0, bearing finite) in order of bearing in [-pi, pi)
+    (a stable sort: the scan's order on a tie): their ranges, bearings, x, y and their indices in
+    the scan. The same numbers as sorting each scan's valid returns and taking their cos and sin
+    (:func:`_bearings`: those of every beam, once for a scan's fixed angles)."""
+    r = np.asarray(ranges, dtype=float)
+    a, cos_a, sin_a, finite, order = _bearings(angles)
+    ok = np.isfinite(r) & (r > 0.0) & finite
+    sel = order[ok[order]]
+    rs = r[sel]
+    return rs, a[sel], rs * cos_a[sel], rs * sin_a[sel], sel
+
+
+_BEARINGS: dict[int, tuple[np.ndarray, tuple]] = {}  # id(angles) -> (angles, _bearings(angles))
+
+
+def _bearings(angles) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A scan's beam angles (rad) wrapped to [-pi, pi), their cos and sin, which are finite, and
+    the beams in order of bearing (a stable sort). Kept for an array that owns its numbers and is
+    read-only (a LIDAR's angles: the same array every scan), else made anew."""
+    angles = np.asarray(angles, dtype=float)
+    fixed = angles.base is None and not angles.flags.writeable
+    if fixed:
+        hit = _BEARINGS.get(id(angles))
+        if hit is not None and hit[0] is angles:
+            return hit[1]
+    a = np.remainder(angles + math.pi, 2.0 * math.pi) - math.pi
+    out = (a, np.cos(a), np.sin(a), np.isfinite(a), np.argsort(a, kind="stable"))
+    if fixed:
+        if len(_BEARINGS) >= 8:
+            _BEARINGS.clear()
+        _BEARINGS[id(angles)] = (angles, out)
+    return out
 
 
 def _prepared(scan) -> PreparedScan:
@@ -220,26 +252,24 @@ def scan_clusters(ranges, angles, lidar_x: float = 0.0, jump: float = 0.10, jump
     the car's centre as :func:`~qcarlab.control.lidar_avoid.scan_points` does.
     """
     r = np.asarray(ranges, dtype=float)
-    a = np.asarray(angles, dtype=float)
     ok = np.isfinite(r) & (r > 0.0)
-    idx_valid = np.flatnonzero(ok)  # scan order: the order scan_points keeps
-    if not np.isfinite(a[ok]).all():
+    _, _, _, finite, _ = _bearings(angles)
+    if not finite[ok].all():
         return []  # angles that are not numbers: nothing to cluster (scan_points would misplace them)
-    if len(idx_valid) < min_points:
+    rv, av, px, py, sel = _sorted_returns(r, angles)
+    if len(rv) < min_points:
         return []
-    rv, av = r[ok], np.remainder(a[ok] + math.pi, 2.0 * math.pi) - math.pi
-    order = np.argsort(av, kind="stable")
-    rv, av = rv[order], av[order]
-    pos = np.arange(len(idx_valid))[order]  # index into scan_points' array
-    pts = np.column_stack((rv * np.cos(av), rv * np.sin(av)))
+    pos = (np.cumsum(ok) - 1)[sel]  # index into scan_points' array (the valid returns in scan order)
+    pts = np.column_stack((px, py))
     m = len(rv)
-    step = np.hypot(*(np.roll(pts, -1, axis=0) - pts).T)  # to the next return (the last wraps to the first)
-    brk = step > jump + jump_per_m * np.minimum(rv, np.roll(rv, -1))
+    # to the next return (the last wraps to the first)
+    step = np.hypot(np.concatenate((px[1:], px[:1])) - px, np.concatenate((py[1:], py[:1])) - py)
+    brk = step > jump + jump_per_m * np.minimum(rv, np.concatenate((rv[1:], rv[:1])))
     if not brk.any():
         return []
     # pieces: from after one break to the next; rotate so the first piece starts at index 0
     start = (int(np.flatnonzero(brk)[-1]) + 1) % m
-    roll = np.roll(np.arange(m), -start)
+    roll = np.concatenate((np.arange(start, m), np.arange(start)))
     brk_r = brk[roll]
     ends = np.flatnonzero(brk_r)
     beam = 2.0 * math.pi / max(len(r), 1)
