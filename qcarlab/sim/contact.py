@@ -159,6 +159,16 @@ class Clearance:
 _hypot = np.hypot  # (on two floats: the ufunc's number, which Clearance's arrays and the kernel give)
 
 
+def _hypot_of(p: float, q: float) -> float:
+    """``float(np.hypot(p, q))``, the ufunc's number, without calling it when one side is 0: then
+    it is the other's magnitude, exactly (C's hypot(x, +-0) = fabs(x), Annex F)."""
+    if q == 0.0:
+        return abs(p)
+    if p == 0.0:
+        return abs(q)
+    return float(_hypot(p, q))
+
+
 class PathClearance(Clearance):
     """:class:`Clearance` for poses that follow a path (the avoid referee's every tick): the same
     distance and nearest piece, bit for bit, at any pose, from a few edges a call.
@@ -302,13 +312,13 @@ class PathClearance(Clearance):
             u = min(max(u, 0.0), 1.0)
             p, q = ax + u * abx - cx, ay + u * aby - cy
             pairs.append((p * p + q * q, p, q))
-        pairs.sort()
-        lim = pairs[0][0] * (1.0 + 1e-12)
-        d = float(_hypot(pairs[0][1], pairs[0][2]))
-        for v, p, q in pairs[1:]:
-            if v > lim:
-                break
-            d = min(d, float(_hypot(p, q)))
+        lim = min(pairs)[0] * (1.0 + 1e-12)
+        d = math.inf
+        for v, p, q in pairs:  # (every pair whose square ties the smallest, in any order: the least hypot)
+            if v <= lim:
+                h = _hypot_of(p, q)
+                if h < d:
+                    d = h
         return d, k
 
     def _nearest_circle(self, rows: list, x: float, y: float, c: float, s: float, best: float,
@@ -319,7 +329,7 @@ class PathClearance(Clearance):
         for cx, cy, r in rows:
             dx, dy = cx - x, cy - y
             qx, qy = c * dx + s * dy, -s * dx + c * dy
-            d = max(float(_hypot(max(abs(qx) - a, 0.0), max(abs(qy) - b, 0.0))) - r, 0.0)
+            d = max(_hypot_of(max(abs(qx) - a, 0.0), max(abs(qy) - b, 0.0)) - r, 0.0)
             if d < d_min:
                 d_min, at = d, (cx, cy)
         if d_min < best:
