@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from qcarlab.beams import derived
+
 __all__ = ["Cluster", "Motion", "PreparedScan", "Track", "Tracker", "prepare_scan", "scan_clusters", "scan_motion"]
 
 
@@ -102,26 +104,16 @@ def _sorted_returns(ranges, angles) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     return rs, a[sel], rs * cos_a[sel], rs * sin_a[sel], sel
 
 
-_BEARINGS: dict[int, tuple[np.ndarray, tuple]] = {}  # id(angles) -> (angles, _bearings(angles))
-
-
 def _bearings(angles) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A scan's beam angles (rad) wrapped to [-pi, pi), their cos and sin, which are finite, and
-    the beams in order of bearing (a stable sort). Kept for an array that owns its numbers and is
-    read-only (a LIDAR's angles: the same array every scan), else made anew."""
-    angles = np.asarray(angles, dtype=float)
-    fixed = angles.base is None and not angles.flags.writeable
-    if fixed:
-        hit = _BEARINGS.get(id(angles))
-        if hit is not None and hit[0] is angles:
-            return hit[1]
+    the beams in order of bearing (a stable sort); once for a LIDAR's fixed angles
+    (:func:`qcarlab.beams.derived`)."""
+    return derived(np.asarray(angles, dtype=float), "bearings", _make_bearings)
+
+
+def _make_bearings(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     a = np.remainder(angles + math.pi, 2.0 * math.pi) - math.pi
-    out = (a, np.cos(a), np.sin(a), np.isfinite(a), np.argsort(a, kind="stable"))
-    if fixed:
-        if len(_BEARINGS) >= 8:
-            _BEARINGS.clear()
-        _BEARINGS[id(angles)] = (angles, out)
-    return out
+    return a, np.cos(a), np.sin(a), np.isfinite(a), np.argsort(a, kind="stable")
 
 
 def _prepared(scan) -> PreparedScan:
