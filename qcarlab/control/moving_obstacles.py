@@ -266,16 +266,19 @@ def scan_clusters(ranges, angles, lidar_x: float = 0.0, jump: float = 0.10, jump
     ends = np.flatnonzero(brk_r)
     beam = 2.0 * math.pi / max(len(r), 1)
     out: list[Cluster] = []
-    lo = 0
-    for hi in ends:
-        sel = roll[lo:hi + 1]
-        lo = hi + 1
-        if len(sel) < min_points:
+    # each piece's bounding box at once (the last piece ends at the last return: ends[-1] = m - 1)
+    starts = np.concatenate(((0,), ends[:-1] + 1))
+    xs, ys = px[roll], py[roll]
+    span_x = np.maximum.reduceat(xs, starts) - np.minimum.reduceat(xs, starts)  # np.ptp's numbers
+    span_y = np.maximum.reduceat(ys, starts) - np.minimum.reduceat(ys, starts)
+    for lo, hi, wx, wy in zip(starts.tolist(), ends.tolist(), span_x.tolist(), span_y.tolist()):
+        if hi + 1 - lo < min_points:
             continue
-        p = pts[sel]
-        extent = float(math.hypot(np.ptp(p[:, 0]), np.ptp(p[:, 1])))
+        extent = math.hypot(wx, wy)
         if extent > max_extent:
             continue
+        sel = roll[lo:hi + 1]
+        p = pts[sel]
         near = float(rv[sel].min())
         fg = True
         for j, k in ((sel[0], (sel[0] - 1) % m), (sel[-1], (sel[-1] + 1) % m)):
