@@ -202,7 +202,7 @@ class PathClearance(Clearance):
     whose box may hold it) is at 0. The polygon first in the world's order among the nearest is
     the one reported, as :class:`Clearance` (``argmin``) does; circles and balls follow as there."""
 
-    REFRESH = 0.05  #: m: the bound's slack after which the reference pose is redone
+    REFRESH = 0.1  #: m: the bound's slack after which the reference pose is redone (the avoid referee measures most ticks after the run: a refresh costs more than the few more edges a longer slack leaves)
 
     def __init__(self, world: Any, params: QCarParams):
         super().__init__(world, params)
