@@ -27,7 +27,7 @@ import numpy as np
 
 from qcarlab.beams import cos_sin
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
-from qcarlab.control.dodge import Manoeuvre, Obstacle, choose, line_frame, offset_steering, rollout
+from qcarlab.control.dodge import Manoeuvre, Obstacle, _clip, choose, line_frame, offset_steering, rollout
 from qcarlab.control.moving_obstacles import Motion, PreparedScan, Track, Tracker, prepare_scan, scan_clusters, scan_motion
 
 __all__ = ["LidarAvoid", "STATES", "forward_range", "free_distance", "lidar_steer", "lidar_stop",
@@ -162,15 +162,16 @@ def free_distance(
     a = L / 2.0 + half_len
     r_in = R - w
     r_out = math.hypot(R + w, a)
-    rho = np.hypot(xr, R - yr)
+    ry = R - yr
+    rho = np.hypot(xr, ry)
     sel = (rho >= r_in) & (rho <= r_out)
     if not sel.any():
         return float(horizon)
-    rho, xr, yr = rho[sel], xr[sel], yr[sel]
-    phi = np.arctan2(xr, R - yr)  # 0 at the rear axle, + ahead
+    rho, xr, ry = rho[sel], xr[sel], ry[sel]
+    phi = np.arctan2(xr, ry)  # 0 at the rear axle, + ahead
     lead = np.where(rho <= math.hypot(a, r_in),
-                    np.arccos(np.clip(r_in / rho, -1.0, 1.0)),
-                    np.arcsin(np.clip(a / rho, -1.0, 1.0)))
+                    np.arccos(_clip(r_in / rho, -1.0, 1.0)),
+                    np.arcsin(_clip(a / rho, -1.0, 1.0)))
     ahead = phi >= lead
     if not ahead.any():
         return float(horizon)
