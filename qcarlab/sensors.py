@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from qcarlab.beams import cos_sin
+
 
 @dataclass(frozen=True, slots=True)
 class LidarScan:
@@ -43,8 +45,9 @@ class LidarScan:
     def points(self) -> np.ndarray:
         """The returns as (m, 2) body-frame points (x forward, y left) of the LIDAR, no-returns dropped."""
         ok = self.valid
-        r, a = self.ranges[ok], self.angles[ok]
-        return np.column_stack((r * np.cos(a), r * np.sin(a)))
+        cos_a, sin_a = cos_sin(self.angles)
+        r = self.ranges[ok]
+        return np.column_stack((r * cos_a[ok], r * sin_a[ok]))
 
 
 @dataclass(frozen=True, slots=True)

@@ -204,6 +204,8 @@ def recorded_world(source: str, params: Path | None):
 def after_run(result: Any) -> dict[str, Any]:
     """After a run on ``--car replay:``: the comparison in ``result.metrics["replay"]`` and, per
     tick, ``replay.csv`` in the result's logs; after a recorded run, the file in ``metrics["recording"]``."""
+    if not _REQ.cars:  # neither replayed nor recorded (the replay's module, and OpenCV with it, not imported)
+        return {"replay": None, "recording": result.metrics.get("recording")}
     from qcarlab.car.replay import ReplayCar
 
     comparison = None

@@ -25,8 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from qcarlab.beams import cos_sin
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
-from qcarlab.control.dodge import Manoeuvre, Obstacle, choose, line_frame, offset_steering, rollout
+from qcarlab.control.dodge import Manoeuvre, Obstacle, _clip, choose, line_frame, offset_steering, rollout
 from qcarlab.control.moving_obstacles import Motion, PreparedScan, Track, Tracker, prepare_scan, scan_clusters, scan_motion
 
 __all__ = ["LidarAvoid", "STATES", "forward_range", "free_distance", "lidar_steer", "lidar_stop",
@@ -40,10 +41,10 @@ def scan_points(ranges, angles, lidar_x: float = 0.0) -> np.ndarray:
     beams without a return (range 0, or not finite) are dropped. ``lidar_x``: the LIDAR's offset
     ahead of the centre (0 on the QCar)."""
     r = np.asarray(ranges, dtype=float)
-    a = np.asarray(angles, dtype=float)
+    cos_a, sin_a = cos_sin(np.asarray(angles, dtype=float))
     ok = np.isfinite(r) & (r > 0.0)
-    r, a = r[ok], a[ok]
-    return np.column_stack((lidar_x + r * np.cos(a), r * np.sin(a)))
+    r = r[ok]
+    return np.column_stack((lidar_x + r * cos_a[ok], r * sin_a[ok]))
 
 
 def forward_range(ranges, angles, half_width: float = 0.15) -> float:
@@ -54,9 +55,9 @@ def forward_range(ranges, angles, half_width: float = 0.15) -> float:
     a cone of +-10 deg is only +-7 cm wide at 0.4 m, narrower than the car (0.192 m).
     """
     r = np.asarray(ranges, dtype=float)
-    a = np.asarray(angles, dtype=float)
+    cos_a, sin_a = cos_sin(np.asarray(angles, dtype=float))
     ok = np.isfinite(r) & (r > 0.0)
-    x, y = r * np.cos(a), r * np.sin(a)
+    x, y = r * cos_a, r * sin_a
     sel = ok & (x > 0.0) & (np.abs(y) <= half_width)
     return float(r[sel].min()) if sel.any() else math.inf
 
@@ -161,15 +162,16 @@ def free_distance(
     a = L / 2.0 + half_len
     r_in = R - w
     r_out = math.hypot(R + w, a)
-    rho = np.hypot(xr, R - yr)
+    ry = R - yr
+    rho = np.hypot(xr, ry)
     sel = (rho >= r_in) & (rho <= r_out)
     if not sel.any():
         return float(horizon)
-    rho, xr, yr = rho[sel], xr[sel], yr[sel]
-    phi = np.arctan2(xr, R - yr)  # 0 at the rear axle, + ahead
+    rho, xr, ry = rho[sel], xr[sel], ry[sel]
+    phi = np.arctan2(xr, ry)  # 0 at the rear axle, + ahead
     lead = np.where(rho <= math.hypot(a, r_in),
-                    np.arccos(np.clip(r_in / rho, -1.0, 1.0)),
-                    np.arcsin(np.clip(a / rho, -1.0, 1.0)))
+                    np.arccos(_clip(r_in / rho, -1.0, 1.0)),
+                    np.arcsin(_clip(a / rho, -1.0, 1.0)))
     ahead = phi >= lead
     if not ahead.any():
         return float(horizon)

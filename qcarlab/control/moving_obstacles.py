@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from qcarlab.beams import derived
+
 __all__ = ["Cluster", "Motion", "PreparedScan", "Track", "Tracker", "prepare_scan", "scan_clusters", "scan_motion"]
 
 
@@ -53,28 +55,65 @@ class PreparedScan:
     points: np.ndarray
     normals: np.ndarray
     normal_ok: np.ndarray
+    _table: tuple | None = field(default=None, init=False, repr=False, compare=False)
+
+    def table(self) -> tuple:
+        """The returns as :func:`scan_motion` reads the older scan of a match, made once: the
+        bearings after a leading ``-inf`` (so ``searchsorted`` gives ``k + 1`` for a bearing just
+        below return ``k``'s), then x, y, the normal's x, y and ``normal_ok``, each a contiguous
+        array from the last return round to the first (``[n-1, 0, 1, ..., n-1, 0]``): entry
+        ``k + 1`` is return ``k`` (mod n), entry ``k`` the one before it."""
+        if self._table is None:
+            P, N = self.points, self.normals
+            wrap = lambda v: np.concatenate((v[-1:], v, v[:1]))  # noqa: E731
+            object.__setattr__(self, "_table", (
+                np.concatenate(((-math.inf,), self.bearings)), wrap(P[:, 0]), wrap(P[:, 1]), wrap(N[:, 0]),
+                wrap(N[:, 1]), wrap(self.normal_ok)))
+        return self._table
 
 
 def prepare_scan(ranges, angles) -> PreparedScan:
     """:class:`PreparedScan` of one scan (ranges m, 0 = none; angles rad): done once a scan, as
     the newer scan of one match and the older one of the next."""
-    r = np.asarray(ranges, dtype=float)
-    a = np.remainder(np.asarray(angles, dtype=float) + math.pi, 2.0 * math.pi) - math.pi
-    ok = np.isfinite(r) & (r > 0.0) & np.isfinite(a)
-    r, a = r[ok], a[ok]
-    order = np.argsort(a, kind="stable")
-    r, a = r[order], a[order]
-    P = np.column_stack((r * np.cos(a), r * np.sin(a)))
+    r, a, px, py, _ = _sorted_returns(ranges, angles)
+    P = np.column_stack((px, py))
     if len(P) < 3:
         return PreparedScan(a, r, P, np.zeros_like(P), np.zeros(len(P), dtype=bool))
-    nxt, prv = np.roll(P, -1, axis=0), np.roll(P, 1, axis=0)
+    # each return's neighbours (the last wraps to the first): the numbers np.roll gives
+    xn, yn = np.concatenate((px[1:], px[:1])), np.concatenate((py[1:], py[:1]))
+    xp, yp = np.concatenate((px[-1:], px[:-1])), np.concatenate((py[-1:], py[:-1]))
     near = 0.05 + 0.03 * r
-    ok_n = (np.hypot(*(nxt - P).T) < near) & (np.hypot(*(prv - P).T) < near)
-    tan = nxt - prv
-    tl = np.hypot(tan[:, 0], tan[:, 1])
+    ok_n = (np.hypot(xn - px, yn - py) < near) & (np.hypot(xp - px, yp - py) < near)
+    tx, ty = xn - xp, yn - yp
+    tl = np.hypot(tx, ty)
     ok_n &= tl > 1e-6
     tl = np.where(tl > 1e-6, tl, 1.0)
-    return PreparedScan(a, r, P, np.column_stack((-tan[:, 1] / tl, tan[:, 0] / tl)), ok_n)
+    return PreparedScan(a, r, P, np.column_stack((-ty / tl, tx / tl)), ok_n)
+
+
+def _sorted_returns(ranges, angles) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The valid returns (range finite and > 0, bearing finite) in order of bearing in [-pi, pi)
+    (a stable sort: the scan's order on a tie): their ranges, bearings, x, y and their indices in
+    the scan. The same numbers as sorting each scan's valid returns and taking their cos and sin
+    (:func:`_bearings`: those of every beam, once for a scan's fixed angles)."""
+    r = np.asarray(ranges, dtype=float)
+    a, cos_a, sin_a, finite, order = _bearings(angles)
+    ok = np.isfinite(r) & (r > 0.0) & finite
+    sel = order[ok[order]]
+    rs = r[sel]
+    return rs, a[sel], rs * cos_a[sel], rs * sin_a[sel], sel
+
+
+def _bearings(angles) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A scan's beam angles (rad) wrapped to [-pi, pi), their cos and sin, which are finite, and
+    the beams in order of bearing (a stable sort); once for a LIDAR's fixed angles
+    (:func:`qcarlab.beams.derived`)."""
+    return derived(np.asarray(angles, dtype=float), "bearings", _make_bearings)
+
+
+def _make_bearings(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    a = np.remainder(angles + math.pi, 2.0 * math.pi) - math.pi
+    return a, np.cos(a), np.sin(a), np.isfinite(a), np.argsort(a, kind="stable")
 
 
 def _prepared(scan) -> PreparedScan:
@@ -105,33 +144,31 @@ def scan_motion(prev, scan, guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
     (``matched`` 0) when fewer than 20 returns pair up.
     """
     old, new = _prepared(prev), _prepared(scan)
-    pa, P, N, ok_n = old.bearings, old.points, old.normals, old.normal_ok
     Q = new.points
     if len(Q) > 400:  # a few hundred returns are plenty for three unknowns
         Q = Q[::2]
     g = np.asarray(guess, dtype=float)
-    if len(P) < 20 or len(Q) < 20:
+    if len(old.points) < 20 or len(Q) < 20:
         return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
-    n = len(P)
-    # the columns as arrays of their own (the same numbers, gathered without a 2-D index)
-    Px, Py, Nx, Ny = P[:, 0].copy(), P[:, 1].copy(), N[:, 0].copy(), N[:, 1].copy()
+    # the older scan's returns, wrapped round (PreparedScan.table): k + 1 is return k, k the one before
+    pa, Px, Py, Nx, Ny, ok_n = old.table()
     Qx, Qy = Q[:, 0].copy(), Q[:, 1].copy()
     x = g.copy()
+    x0, x1, x2 = x.tolist()
     lam = np.diag(np.asarray(prior, dtype=float))
     matched = 0
     for it in range(iterations):
-        c, s = math.cos(x[2]), math.sin(x[2])
-        px = c * Qx - s * Qy + x[0]
-        py = s * Qx + c * Qy + x[1]
-        k = np.searchsorted(pa, np.arctan2(py, px)) % n
-        k0 = k - 1  # -1 wraps to the last return
-        d1 = np.hypot(px - Px[k], py - Py[k])
-        d0 = np.hypot(px - Px[k0], py - Py[k0])
+        c, s = math.cos(x2), math.sin(x2)
+        px = c * Qx - s * Qy + x0
+        py = s * Qx + c * Qy + x1
+        k = np.searchsorted(pa, np.arctan2(py, px))  # the return at or after p's bearing, + 1
+        k0 = k - 1  # the one before it (0: the last return)
+        d1 = _hypot(px - Px[k], py - Py[k])
+        d0 = _hypot(px - Px[k0], py - Py[k0])
         nearer = d0 < d1
-        idx = np.where(nearer, k0, k)
-        dist = np.where(nearer, d0, d1)
+        idx = k - nearer
         gate = max(0.08, 0.3 * 0.7 ** it)
-        use = ok_n[idx] & (dist < gate)
+        use = ok_n[idx] & (np.where(nearer, d0, d1) < gate)
         matched = int(np.count_nonzero(use))
         if matched < 20:
             return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
@@ -140,14 +177,38 @@ def scan_motion(prev, scan, guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
         ux, uy = px[use], py[use]
         e = nx * (ux - Px[iu]) + ny * (uy - Py[iu])
         w = np.minimum(1.0, 0.02 / np.maximum(np.abs(e), 1e-9))
-        J = np.column_stack((nx, ny, ny * (ux - x[0]) - nx * (uy - x[1])))
+        J = np.empty((matched, 3))  # (the columns nx, ny, dyaw's: as np.column_stack makes it)
+        J[:, 0] = nx
+        J[:, 1] = ny
+        J[:, 2] = ny * (ux - x0) - nx * (uy - x1)
         H = J.T @ (J * w[:, None]) + lam
         grad = J.T @ (w * e) + lam @ (x - g)
-        step = np.linalg.solve(H, -grad)
+        step = _solve(H, -grad)
         x += step
-        if abs(step[0]) + abs(step[1]) < 2e-4 and abs(step[2]) < 2e-4 and gate <= 0.1:
+        x0, x1, x2 = x.tolist()
+        s0, s1, s2 = step.tolist()
+        if abs(s0) + abs(s1) < 2e-4 and abs(s2) < 2e-4 and gate <= 0.1:
             break
-    return Motion(float(x[0]), float(x[1]), float(x[2]), matched)
+    return Motion(x0, x1, x2, matched)
+
+
+_hypot = np.hypot
+
+
+def _solve(H: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.linalg.solve(H, b)`` for a 3 x 3 ``H`` and a vector ``b``: the same LAPACK call (its
+    gufunc, without the wrapper's checks, a third of an ICP iteration); a singular ``H`` (a NaN
+    result) goes through ``np.linalg.solve``, which raises as before."""
+    x = _SOLVE1(H, b, signature="dd->d") if _SOLVE1 is not None else np.linalg.solve(H, b)
+    if not np.isfinite(x).all():
+        return np.linalg.solve(H, b)
+    return x
+
+
+try:  # numpy's own solver, as np.linalg.solve calls it for a vector
+    from numpy.linalg._umath_linalg import solve1 as _SOLVE1
+except ImportError:  # pragma: no cover (another numpy's layout)
+    _SOLVE1 = None
 
 
 @dataclass(frozen=True)
@@ -183,40 +244,41 @@ def scan_clusters(ranges, angles, lidar_x: float = 0.0, jump: float = 0.10, jump
     the car's centre as :func:`~qcarlab.control.lidar_avoid.scan_points` does.
     """
     r = np.asarray(ranges, dtype=float)
-    a = np.asarray(angles, dtype=float)
     ok = np.isfinite(r) & (r > 0.0)
-    idx_valid = np.flatnonzero(ok)  # scan order: the order scan_points keeps
-    if not np.isfinite(a[ok]).all():
+    _, _, _, finite, _ = _bearings(angles)
+    if not finite[ok].all():
         return []  # angles that are not numbers: nothing to cluster (scan_points would misplace them)
-    if len(idx_valid) < min_points:
+    rv, av, px, py, sel = _sorted_returns(r, angles)
+    if len(rv) < min_points:
         return []
-    rv, av = r[ok], np.remainder(a[ok] + math.pi, 2.0 * math.pi) - math.pi
-    order = np.argsort(av, kind="stable")
-    rv, av = rv[order], av[order]
-    pos = np.arange(len(idx_valid))[order]  # index into scan_points' array
-    pts = np.column_stack((rv * np.cos(av), rv * np.sin(av)))
+    pos = (np.cumsum(ok) - 1)[sel]  # index into scan_points' array (the valid returns in scan order)
+    pts = np.column_stack((px, py))
     m = len(rv)
-    step = np.hypot(*(np.roll(pts, -1, axis=0) - pts).T)  # to the next return (the last wraps to the first)
-    brk = step > jump + jump_per_m * np.minimum(rv, np.roll(rv, -1))
+    # to the next return (the last wraps to the first)
+    step = np.hypot(np.concatenate((px[1:], px[:1])) - px, np.concatenate((py[1:], py[:1])) - py)
+    brk = step > jump + jump_per_m * np.minimum(rv, np.concatenate((rv[1:], rv[:1])))
     if not brk.any():
         return []
     # pieces: from after one break to the next; rotate so the first piece starts at index 0
     start = (int(np.flatnonzero(brk)[-1]) + 1) % m
-    roll = np.roll(np.arange(m), -start)
+    roll = np.concatenate((np.arange(start, m), np.arange(start)))
     brk_r = brk[roll]
     ends = np.flatnonzero(brk_r)
     beam = 2.0 * math.pi / max(len(r), 1)
     out: list[Cluster] = []
-    lo = 0
-    for hi in ends:
-        sel = roll[lo:hi + 1]
-        lo = hi + 1
-        if len(sel) < min_points:
+    # each piece's bounding box at once (the last piece ends at the last return: ends[-1] = m - 1)
+    starts = np.concatenate(((0,), ends[:-1] + 1))
+    xs, ys = px[roll], py[roll]
+    span_x = np.maximum.reduceat(xs, starts) - np.minimum.reduceat(xs, starts)  # np.ptp's numbers
+    span_y = np.maximum.reduceat(ys, starts) - np.minimum.reduceat(ys, starts)
+    for lo, hi, wx, wy in zip(starts.tolist(), ends.tolist(), span_x.tolist(), span_y.tolist()):
+        if hi + 1 - lo < min_points:
             continue
-        p = pts[sel]
-        extent = float(math.hypot(np.ptp(p[:, 0]), np.ptp(p[:, 1])))
+        extent = math.hypot(wx, wy)
         if extent > max_extent:
             continue
+        sel = roll[lo:hi + 1]
+        p = pts[sel]
         near = float(rv[sel].min())
         fg = True
         for j, k in ((sel[0], (sel[0] - 1) % m), (sel[-1], (sel[-1] + 1) % m)):

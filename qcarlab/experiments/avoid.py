@@ -250,31 +250,72 @@ class AvoidLab(LabModel):
 
 
 class _Collisions:
-    """The avoid run's collision check, every tick, balls included (ends the run at contact)."""
+    """The avoid run's collision check, every tick, balls included (ends the run at contact).
+
+    A tick whose pose the referee's bound shows clear of every wall (:meth:`PathClearance.edges_if_clear
+    <qcarlab.sim.contact.PathClearance.edges_if_clear>`: most ticks) has only its circles measured then;
+    its walls' exact clearance is measured with the other such ticks' at once after the run
+    (:meth:`finish`), which fills the log's column and ``min_clear``: the same numbers. A recorded
+    or live run (the recorder sends each tick's values as it goes) measures every tick then."""
 
     def __init__(self, model: AvoidLab, world: Any, car: Car):
         self.model, self.car = model, car
         self.checker = PathClearance(world, car.params)  # (Clearance's numbers, the poses a tick apart)
         self.truth0 = car.truth()
         self.min_clear, self.collision, self.max_from_start = math.inf, None, 0.0
+        self.defer = getattr(car, "recorder", None) is None
+        self._rows = 0  # the log's rows so far (one a step that does not stop the run)
+        self._later: list[tuple] = []  # (row, x, y, cos, sin, the circles' clearance, the edges that may be nearest)
 
     def start(self, car: Car, dt: float) -> None:
         self.model.start(car, dt)
 
     def step(self, t: float, r: Readout, dt: float):
         tr = self.car.truth()
-        clear, where = self.checker(tr.x, tr.y, tr.yaw, tr.t)
-        self.min_clear = min(self.min_clear, clear)
+        later = edges = None
+        if self.defer:
+            edges = self.checker.edges_if_clear(tr.x, tr.y, tr.yaw)
+            if edges is not None:
+                circles, _ = self.checker.circle_clearance(tr.x, tr.y, tr.yaw, tr.t)
+                if circles > 0.0:
+                    later = circles
+        if later is None:
+            clear, where = self.checker(tr.x, tr.y, tr.yaw, tr.t)
+            self.min_clear = min(self.min_clear, clear)
         self.max_from_start = max(self.max_from_start, math.hypot(tr.x - self.truth0.x, tr.y - self.truth0.y))
-        if clear <= 0.0:
+        if later is None and clear <= 0.0:
             self.collision = {"t": t, "x": tr.x, "y": tr.y, "yaw": tr.yaw, "obstacle": list(where) if where else None,
                               "speed_mps": float(self.model.basic_speed_estimation(r.tach))}
             return STOP
         out = self.model.step(t, r, dt)
-        out.log["clearance"] = clear
+        if later is not None and self.model.rest is not None and "gap_m" not in self.model.rest:
+            clear, _ = self.checker(tr.x, tr.y, tr.yaw, tr.t)  # the gap at rest: now (the same number)
+            self.min_clear = min(self.min_clear, clear)
+            later = None
+        if later is None:
+            out.log["clearance"] = clear
+        else:
+            out.log["clearance"] = math.nan  # (measured in finish)
+            self._later.append((self._rows, tr.x, tr.y, math.cos(tr.yaw), math.sin(tr.yaw), later, edges))
+        self._rows += 1
         if self.model.rest is not None and "gap_m" not in self.model.rest:
             self.model.rest["gap_m"] = clear
         return out
+
+    def finish(self, log: Any) -> None:
+        """The deferred ticks' clearances: their walls' at once, the nearer of those and their
+        circles' (a circle only when strictly nearer, as PathClearance), into the log and ``min_clear``."""
+        if not self._later:
+            return
+        rows, x, y, c, s, circles, edges = zip(*self._later)
+        x, y, c, s, circles = (np.array(v) for v in (x, y, c, s, circles))
+        walls = self.checker.walls_at(x, y, c, s, list(edges))
+        clear = np.where(circles < walls, circles, walls).tolist()
+        column = log.columns["clearance"]
+        for i, v in zip(rows, clear):
+            column[i] = v
+        self.min_clear = min(self.min_clear, min(clear))
+        self._later = []
 
 
 def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
@@ -298,6 +339,8 @@ def avoid(car: Car, cfg: AvoidConfig, world: Any = None, on_tick=None, *,
     dt = 1.0 / cfg.rate
     model = guard or lab
     log = run_loop(car, wrap(model) if wrap else model, cfg.duration, cfg.rate, on_tick=on_tick)
+    if guard is not None:
+        guard.finish(log)
     cols: dict[str, np.ndarray] = log.arrays()
     n = log.ticks
     if "clearance" not in cols:

@@ -76,7 +76,7 @@ class Clearance:
         return np.column_stack((c * dx + s * dy, -s * dx + c * dy))
 
     def _point_rect(self, q: np.ndarray) -> np.ndarray:
-        return np.hypot(np.maximum(np.abs(q[:, 0]) - self.a, 0.0), np.maximum(np.abs(q[:, 1]) - self.b, 0.0))
+        return _point_rect(q[:, 0], q[:, 1], self.a, self.b)
 
     def __call__(self, x: float, y: float, yaw: float, t: float = 0.0,
                  balls: bool = True) -> tuple[float, tuple[float, float] | None]:
@@ -124,39 +124,66 @@ class Clearance:
                 best, where = float(d[k]), (float(circles[k, 0]), float(circles[k, 1]))
         return best, where
 
-    def _polygon_distances(self, x: float, y: float, c: float, s: float) -> tuple[np.ndarray, np.ndarray]:
+    def _polygon_distances(self, x, y, c, s) -> tuple[np.ndarray, np.ndarray]:
         """(every edge's distance from the footprint, every polygon's: its nearest edge's, or 0 when
-        it holds the car's centre) at the pose (x, y, cos, sin of the heading)."""
-        A = self._to_body(self.p0, x, y, c, s)
-        B = self._to_body(self.p1, x, y, c, s)
-        d, ab = self._edge_distances(A, B), B - A
+        it holds the car's centre) at the pose (x, y, cos, sin of the heading); at several poses at
+        once when they are arrays (P,): then (P, edges) and (P, polygons), each row as one pose's."""
+        x, y = np.asarray(x, dtype=float)[..., None], np.asarray(y, dtype=float)[..., None]
+        c, s = np.asarray(c, dtype=float)[..., None], np.asarray(s, dtype=float)[..., None]
+        ax, ay, bx, by = self._body_ends(self.p0, self.p1, x, y, c, s)
+        d = self._edge_distances(ax, ay, bx, by)
         # the car's centre inside a polygon (no edge crossing it): even-odd rule per polygon
-        crosses = ((A[:, 1] > 0.0) != (B[:, 1] > 0.0))
+        crosses = ((ay > 0.0) != (by > 0.0))
         with np.errstate(divide="ignore", invalid="ignore"):
-            xint = A[:, 0] + (0.0 - A[:, 1]) * ab[:, 0] / ab[:, 1]
-        hits = np.bincount(self.owner[crosses & (xint > 0.0)], minlength=self.n_poly)
-        per_poly = np.minimum.reduceat(d, self._first_edge)  # each polygon's edges are consecutive
+            xint = ax + (0.0 - ay) * (bx - ax) / (by - ay)
+        hits = np.add.reduceat((crosses & (xint > 0.0)).astype(np.int64), self._first_edge, axis=-1)
+        per_poly = np.minimum.reduceat(d, self._first_edge, axis=-1)  # each polygon's edges are consecutive
         per_poly[hits % 2 == 1] = 0.0
         return d, per_poly
 
-    def _edge_distances(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def _body_ends(p0: np.ndarray, p1: np.ndarray, x, y, c, s) -> tuple:
+        """Edges' ends ``p0``, ``p1`` (n, 2) in the body frame of the pose (x, y, cos, sin of the
+        heading; broadcasting): ``ax, ay, bx, by``."""
+        dx, dy = p0[:, 0] - x, p0[:, 1] - y
+        ax, ay = c * dx + s * dy, -s * dx + c * dy
+        dx, dy = p1[:, 0] - x, p1[:, 1] - y
+        return ax, ay, c * dx + s * dy, -s * dx + c * dy
+
+    def _edge_distances(self, ax, ay, bx, by) -> np.ndarray:
         """Every edge's distance from the footprint (0 where they overlap), from its body-frame ends
-        ``A``, ``B``: separating axes of a segment against the rectangle (x, y and the segment's
-        normal), then the nearest of its ends against the rectangle and of each corner against it."""
-        m, h = (A + B) / 2.0, (B - A) / 2.0
-        sep = (np.abs(m[:, 0]) > self.a + np.abs(h[:, 0])) | (np.abs(m[:, 1]) > self.b + np.abs(h[:, 1])) \
-            | (np.abs(h[:, 0] * m[:, 1] - h[:, 1] * m[:, 0]) > self.a * np.abs(h[:, 1]) + self.b * np.abs(h[:, 0]))
-        d = np.minimum(self._point_rect(A), self._point_rect(B))
-        ab = B - A
-        L2 = np.maximum((ab * ab).sum(axis=1), 1e-18)
-        rel = (self._corners[:, None, :] - A) * ab
-        u = np.clip(rel.sum(axis=2) / L2, 0.0, 1.0)
-        d = np.minimum(d, np.hypot(A[:, 0] + u * ab[:, 0] - self._corners[:, 0:1],
-                                   A[:, 1] + u * ab[:, 1] - self._corners[:, 1:2]).min(axis=0))
+        ``(ax, ay)``, ``(bx, by)``: separating axes of a segment against the rectangle (x, y and the
+        segment's normal), then the nearest of its ends against the rectangle and of each corner
+        against it."""
+        a, b = self.a, self.b
+        mx, my, hx, hy = (ax + bx) / 2.0, (ay + by) / 2.0, (bx - ax) / 2.0, (by - ay) / 2.0
+        sep = (np.abs(mx) > a + np.abs(hx)) | (np.abs(my) > b + np.abs(hy)) \
+            | (np.abs(hx * my - hy * mx) > a * np.abs(hy) + b * np.abs(hx))
+        d = np.minimum(_point_rect(ax, ay, a, b), _point_rect(bx, by, a, b))
+        abx, aby = bx - ax, by - ay
+        L2 = np.maximum(abx * abx + aby * aby, 1e-18)
+        for cx, cy in self._corners.tolist():
+            u = np.clip(((cx - ax) * abx + (cy - ay) * aby) / L2, 0.0, 1.0)
+            d = np.minimum(d, np.hypot(ax + u * abx - cx, ay + u * aby - cy))
         return np.where(sep, d, 0.0)
 
 
+def _point_rect(qx, qy, a: float, b: float):
+    """Distance from points (qx, qy) (body frame) to the footprint rectangle of half sides a, b."""
+    return np.hypot(np.maximum(np.abs(qx) - a, 0.0), np.maximum(np.abs(qy) - b, 0.0))
+
+
 _hypot = np.hypot  # (on two floats: the ufunc's number, which Clearance's arrays and the kernel give)
+
+
+def _hypot_of(p: float, q: float) -> float:
+    """``float(np.hypot(p, q))``, the ufunc's number, without calling it when one side is 0: then
+    it is the other's magnitude, exactly (C's hypot(x, +-0) = fabs(x), Annex F)."""
+    if q == 0.0:
+        return abs(p)
+    if p == 0.0:
+        return abs(q)
+    return float(_hypot(p, q))
 
 
 class PathClearance(Clearance):
@@ -175,7 +202,7 @@ class PathClearance(Clearance):
     whose box may hold it) is at 0. The polygon first in the world's order among the nearest is
     the one reported, as :class:`Clearance` (``argmin``) does; circles and balls follow as there."""
 
-    REFRESH = 0.05  #: m: the bound's slack after which the reference pose is redone
+    REFRESH = 0.1  #: m: the bound's slack after which the reference pose is redone (the avoid referee measures most ticks after the run: a refresh costs more than the few more edges a longer slack leaves)
 
     def __init__(self, world: Any, params: QCarParams):
         super().__init__(world, params)
@@ -213,12 +240,53 @@ class PathClearance(Clearance):
             else:
                 best, k = self._walk(x, y, c, s, move + 1e-9)
             where = self.pieces[k]
+        return self._nearest_circle(self._rows_at(t, balls), x, y, c, s, best, where)
+
+    def _rows_at(self, t: float, balls: bool = True) -> list:
+        """The circles (x, y, radius): the posts, and the balls at ``t`` when ``balls``."""
         rows = self._circle_rows
         if balls:
             moving = self.world.obstacles_at(t)
             if moving:
                 rows = rows + [(float(b.x), float(b.y), float(b.radius)) for b in moving]
-        return self._nearest_circle(rows, x, y, c, s, best, where)
+        return rows
+
+    def edges_if_clear(self, x: float, y: float, yaw: float) -> list[int] | None:
+        """When every polygon is surely farther than 0 from the footprint at this pose, by the
+        reference pose's bound alone, the edges that may be the nearest (the rest are farther
+        than one of them, by the bound: at the reference, farther than the nearest by more than
+        twice the move); else None. Surely clear: the pose is within :attr:`REFRESH` of the
+        reference (so a call here would not redo it: leaving the call out changes nothing after),
+        no polygon's box may hold the centre, and the nearest edge at the reference less the move
+        is still > 0."""
+        ref = self._ref
+        if ref is None or self._boxed or not self._order:
+            return None
+        move = math.hypot(x - ref[0], y - ref[1]) + self.half_diag * abs(yaw - ref[2])
+        nearest = self._order[0][0]
+        if move > self.REFRESH or nearest - move - 1e-9 <= 0.0:
+            return None
+        reach = nearest + 2.0 * move + 1e-9
+        edges = []
+        for d_ref, e in self._order:
+            if d_ref > reach:
+                break
+            edges.append(e)
+        return edges
+
+    def circle_clearance(self, x: float, y: float, yaw: float, t: float = 0.0) -> tuple[float, tuple[float, float] | None]:
+        """The nearest circle (post, or ball at ``t``): (clearance, its centre), (inf, None) if none."""
+        return self._nearest_circle(self._rows_at(t), x, y, math.cos(yaw), math.sin(yaw), math.inf, None)
+
+    def walls_at(self, x: np.ndarray, y: np.ndarray, c: np.ndarray, s: np.ndarray, edges: list[list[int]]) -> np.ndarray:
+        """The polygons' clearance at many poses at once (centres ``x``, ``y``, the heading's cos and
+        sin as ``math`` gives them), each pose's over its ``edges`` (:meth:`edges_if_clear`'s): the
+        number :meth:`__call__` takes before the circles."""
+        counts = [len(es) for es in edges]
+        pose = np.repeat(np.arange(len(edges)), counts)
+        e = np.fromiter((k for es in edges for k in es), dtype=np.int64, count=sum(counts))
+        d = self._edge_distances(*self._body_ends(self.p0[e], self.p1[e], x[pose], y[pose], c[pose], s[pose]))
+        return np.minimum.reduceat(d, np.cumsum(counts) - counts)
 
     def _reference(self, x: float, y: float, yaw: float, c: float, s: float) -> tuple[float, int]:
         """Every edge's distance at this pose (Clearance's arrays), kept sorted as the new
@@ -302,13 +370,13 @@ class PathClearance(Clearance):
             u = min(max(u, 0.0), 1.0)
             p, q = ax + u * abx - cx, ay + u * aby - cy
             pairs.append((p * p + q * q, p, q))
-        pairs.sort()
-        lim = pairs[0][0] * (1.0 + 1e-12)
-        d = float(_hypot(pairs[0][1], pairs[0][2]))
-        for v, p, q in pairs[1:]:
-            if v > lim:
-                break
-            d = min(d, float(_hypot(p, q)))
+        lim = min(pairs)[0] * (1.0 + 1e-12)
+        d = math.inf
+        for v, p, q in pairs:  # (every pair whose square ties the smallest, in any order: the least hypot)
+            if v <= lim:
+                h = _hypot_of(p, q)
+                if h < d:
+                    d = h
         return d, k
 
     def _nearest_circle(self, rows: list, x: float, y: float, c: float, s: float, best: float,
@@ -319,7 +387,7 @@ class PathClearance(Clearance):
         for cx, cy, r in rows:
             dx, dy = cx - x, cy - y
             qx, qy = c * dx + s * dy, -s * dx + c * dy
-            d = max(float(_hypot(max(abs(qx) - a, 0.0), max(abs(qy) - b, 0.0))) - r, 0.0)
+            d = max(_hypot_of(max(abs(qx) - a, 0.0), max(abs(qy) - b, 0.0)) - r, 0.0)
             if d < d_min:
                 d_min, at = d, (cx, cy)
         if d_min < best:

@@ -171,7 +171,7 @@ def scan_edges(ox: float, oy: float, yaw: float, cos_b: np.ndarray, sin_b: np.nd
         with np.errstate(divide="ignore", invalid="ignore"):
             tt = (axe[ok] * ey[ok] - aye[ok] * ex[ok]) / den[ok]
         hit = tt >= 0.0
-        np.minimum.at(dist, i[ok][hit], tt[hit])
+        _min_at(dist, i[ok][hit], tt[hit])
     circ = np.flatnonzero(kinds == KIND_CIRCLE)
     if len(circ):
         qx, qy, r = circles[circ, 0] - ox, circles[circ, 1] - oy, circles[circ, 2]
@@ -187,8 +187,21 @@ def scan_edges(ox: float, oy: float, yaw: float, cos_b: np.ndarray, sin_b: np.nd
         ok = disc >= 0.0
         tt = -b[ok] - np.sqrt(disc[ok])
         hit = tt >= 0.0
-        np.minimum.at(dist, i[ok][hit], tt[hit])
+        _min_at(dist, i[ok][hit], tt[hit])
     return dist, dx, dy, work
+
+
+def _min_at(dist: np.ndarray, idx: np.ndarray, val: np.ndarray) -> None:
+    """``np.minimum.at(dist, idx, val)``, the same numbers (each index's smallest value, a min being
+    exact in any order): the pairs sorted by index and each index's run reduced at once, which is
+    several times faster than ``minimum.at`` on a scan's few thousand pairs."""
+    if not len(idx):
+        return
+    order = np.argsort(idx, kind="stable")
+    idx = idx[order]
+    starts = np.flatnonzero(np.concatenate(((True,), idx[1:] != idx[:-1])))
+    at = idx[starts]
+    dist[at] = np.minimum(dist[at], np.minimum.reduceat(val[order], starts))
 
 
 def readings(dist: np.ndarray, ox: float, oy: float, dx: np.ndarray, dy: np.ndarray, balls: np.ndarray,
