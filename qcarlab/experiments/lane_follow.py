@@ -370,7 +370,7 @@ class LaneFollowingLab(LabModel):
         if fit is not None or not backup:
             return LaneDetection(fit, "yellow" if fit is not None else None, ny, 0, yellow, yellow)
         white = band.white_edge(c.lane, c.white_s_max, c.white_v_min)
-        fit = band.fit(white, c.min_pixels)[0] if white is not None else None
+        fit = band.fit_edge(white, c.min_pixels) if white is not None else None
         nw = cv2.countNonZero(white) if white is not None else 0
         return LaneDetection(fit, "white" if fit is not None else None, ny, nw,
                              band.full(white) if fit is not None else yellow, yellow)
@@ -490,7 +490,7 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     p = car.params
     dt = 1.0 / cfg.rate
     lab = LaneFollowingLab(cfg, p, car.throttle_limit, blocks)
-    lab.read_rgbd = car.read_rgbd
+    lab.read_rgbd = getattr(car, "read_rgbd_rows", car.read_rgbd)  # (a simulator's: the rows read drawn alone)
     truth0 = car.truth()
     centre = lane_centre(world, (truth0.x, truth0.y, truth0.yaw)) if (world is not None and truth0 is not None) else None
     model: Any = lab
@@ -549,6 +549,8 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     shown = lab.shown or ((lab.frame, lab.det, lab.box) if lab.frame is not None else None)
     if shown is not None:
         frame, det, box = shown
+        frame = getattr(frame, "whole", lambda: frame)()  # (a frame read by rows: all of it)
+        shown = (frame, det, box)
         result.data["frame"] = shown
         result.figures["frame.png"] = lambda f: save_figure(f, frame_figure(frame.color, det, box))
     if world is not None and "true_x" in cols and n:

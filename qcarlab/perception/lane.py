@@ -487,6 +487,16 @@ class LaneBand:
         and the tracked line's pixels (band-sized mask or None)."""
         return track_line(mask, min_pixels, self.w, self.r0, col0, image_shape=(self.h, self.w))
 
+    def fit_edge(self, line: np.ndarray, min_pixels: int) -> LineFit | None:
+        """:meth:`fit` (``linear_poly_fit``) of :meth:`white_edge`'s ``line``. Tracked again, its
+        pixels give back the outlines of the group it was picked as (the islands in its holes are
+        no outlines of their own), the same blobs in the same order, one group again (each joins
+        it as before) of as many pixels: while ``min_pixels`` asks for no more than the edge was
+        tracked with, its fit is the per-row fit of ``line`` itself, without a second search."""
+        if int(min_pixels) > _scaled(MIN_PIXELS, self.h, self.w):
+            return self.fit(line, min_pixels)[0]
+        return _fit_rows(line, min_pixels, self.r0, 0)
+
     def full(self, mask: np.ndarray | None, col0: int = 0) -> np.ndarray:
         """The frame-sized uint8 mask of a band's ``mask`` (at column ``col0``; None: all zeros)."""
         return _paste(mask, (self.h, self.w), self.r0, col0)
