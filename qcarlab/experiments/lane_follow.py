@@ -364,13 +364,15 @@ class LaneFollowingLab(LabModel):
         """:meth:`detect` with qcarlab's vision blocks, on the frame's lower band alone."""
         c = self.cfg
         ymask, c0 = band.yellow(c.lane, c.hsv_min, c.hsv_max)
-        fit, _ = band.fit(ymask, c.min_pixels, c0)
         ny = cv2.countNonZero(ymask)
+        # (fewer pixels than min_pixels: no line of as many, the fit is None)
+        fit = band.fit(ymask, c.min_pixels, c0)[0] if ny >= max(2, int(c.min_pixels)) else None
         yellow = band.full(ymask, c0)
         if fit is not None or not backup:
             return LaneDetection(fit, "yellow" if fit is not None else None, ny, 0, yellow, yellow)
-        white = band.white_edge(c.lane, c.white_s_max, c.white_v_min)
-        fit = band.fit_edge(white, c.min_pixels) if white is not None else None
+        edge = band.white_edge(c.lane, c.white_s_max, c.white_v_min)
+        white = edge[1]
+        fit = band.fit_edge(edge, c.min_pixels)
         nw = cv2.countNonZero(white) if white is not None else 0
         return LaneDetection(fit, "white" if fit is not None else None, ny, nw,
                              band.full(white) if fit is not None else yellow, yellow)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -52,17 +53,22 @@ class LineBlob:
     rows: tuple[int, int]  # first and last row the blob covers
     cut: bool = False  # touches the region's side or bottom edge: only part of it is seen
 
-    @property
+    # (the measures below are computed once per blob: the group search asks for them often)
+    @cached_property
     def centroid(self) -> tuple[float, float]:
         n, su, sv = self.sums[:3]
         return su / n, sv / n
 
     def _central(self) -> tuple[float, float, float]:
+        return self._central_moments
+
+    @cached_property
+    def _central_moments(self) -> tuple[float, float, float]:
         n, su, sv, suu, svv, suv = self.sums
         mu, mv = su / n, sv / n
         return max(0.0, suu / n - mu * mu), max(0.0, svv / n - mv * mv), suv / n - mu * mv
 
-    @property
+    @cached_property
     def theta(self) -> float:
         """The major axis' angle from the image rows (the u axis), rad in (-pi/2, pi/2]."""
         cuu, cvv, cuv = self._central()
@@ -80,7 +86,7 @@ class LineBlob:
         mu, mv = self.centroid
         return mu - self.slope * mv
 
-    @property
+    @cached_property
     def eigen(self) -> tuple[float, float]:
         cuu, cvv, cuv = self._central()
         mean, diff = (cuu + cvv) / 2.0, math.hypot((cuu - cvv) / 2.0, cuv)

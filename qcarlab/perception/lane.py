@@ -465,37 +465,44 @@ class LaneBand:
         c0, c1 = region_columns(self.w, _check_lane(lane), "yellow")
         return in_hsv_range(self.hsv[:, c0:c1], hsv_min, hsv_max), c0
 
-    def white_edge(self, lane: str, s_max: int = WHITE_S_MAX, v_min: int = WHITE_V_MIN) -> np.ndarray | None:
-        """The lane's white edge line's pixels (band-sized, from column 0), None when none: the
-        white paint (:func:`white_from_hsv`, its level from the whole band) without the
+    def white_edge(self, lane: str, s_max: int = WHITE_S_MAX,
+                   v_min: int = WHITE_V_MIN) -> tuple[LineFit | None, np.ndarray | None]:
+        """The lane's white edge line: its fit (with :data:`MIN_PIXELS`, scaled) and its pixels
+        (band-sized, from column 0), (None, None) when none. The white paint
+        (:func:`white_from_hsv`, its level from the whole band) without the
         :data:`WHITE_EDGE_SKIP` of the width on the yellow line's side, its line-shaped blob
         group nearest the road (:func:`edge_line_side`)."""
         _check_lane(lane)
         w = self.w
         if not self.band.shape[0]:
-            return None
+            return None, None
         white = white_from_hsv(self.hsv, s_max, v_min, WHITE_CONTRAST, w)
         if lane == "right":
             white[:, : int(WHITE_EDGE_SKIP * w)] = 0
         else:
             white[:, int((1.0 - WHITE_EDGE_SKIP) * w):] = 0
         return track_line(white, _scaled(MIN_PIXELS, self.h, w), w, self.r0, 0, pick=edge_line_side(lane),
-                          image_shape=(self.h, w))[1]
+                          image_shape=(self.h, w))
 
     def fit(self, mask: np.ndarray, min_pixels: int, col0: int = 0) -> tuple[LineFit | None, np.ndarray | None]:
         """``linear_poly_fit(full mask, min_pixels)`` of a band's ``mask`` (at column ``col0``),
         and the tracked line's pixels (band-sized mask or None)."""
         return track_line(mask, min_pixels, self.w, self.r0, col0, image_shape=(self.h, self.w))
 
-    def fit_edge(self, line: np.ndarray, min_pixels: int) -> LineFit | None:
-        """:meth:`fit` (``linear_poly_fit``) of :meth:`white_edge`'s ``line``. Tracked again, its
-        pixels give back the outlines of the group it was picked as (the islands in its holes are
-        no outlines of their own), the same blobs in the same order, one group again (each joins
-        it as before) of as many pixels: while ``min_pixels`` asks for no more than the edge was
-        tracked with, its fit is the per-row fit of ``line`` itself, without a second search."""
-        if int(min_pixels) > _scaled(MIN_PIXELS, self.h, self.w):
+    def fit_edge(self, edge: tuple[LineFit | None, np.ndarray | None], min_pixels: int) -> LineFit | None:
+        """:meth:`fit` (``linear_poly_fit``) of :meth:`white_edge`'s line (``edge``: its fit and
+        pixels). Tracked again, its pixels give back the outlines of the group it was picked as
+        (the islands in its holes are no outlines of their own), the same blobs in the same
+        order, one group again (each joins it as before) of as many pixels: while ``min_pixels``
+        asks for no more than the edge was tracked with, its fit is the per-row fit of the line's
+        pixels, without a second search (the edge's own fit, for as many pixels)."""
+        fit, line = edge
+        if line is None:
+            return None
+        tracked = _scaled(MIN_PIXELS, self.h, self.w)
+        if int(min_pixels) > tracked:
             return self.fit(line, min_pixels)[0]
-        return _fit_rows(line, min_pixels, self.r0, 0)
+        return fit if int(min_pixels) == tracked else _fit_rows(line, min_pixels, self.r0, 0)
 
     def full(self, mask: np.ndarray | None, col0: int = 0) -> np.ndarray:
         """The frame-sized uint8 mask of a band's ``mask`` (at column ``col0``; None: all zeros)."""
@@ -507,7 +514,7 @@ def white_edge_mask(color: np.ndarray, lane: str, s_max: int = WHITE_S_MAX, v_mi
     region), the white line-shaped blob nearest the road (:func:`edge_line_mask`: a brightly lit
     floor beyond the edge line is not taken for it); uint8, the frame's size (:meth:`LaneBand.white_edge`)."""
     band = LaneBand.of(color)
-    return band.full(band.white_edge(lane, s_max, v_min))
+    return band.full(band.white_edge(lane, s_max, v_min)[1])
 
 
 def detect_lane(
