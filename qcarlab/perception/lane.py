@@ -253,11 +253,13 @@ def _fit_rows(nz: np.ndarray, min_pixels: int, row0: int = 0, col0: int = 0) -> 
     sub = (m[y:y + h, x:x + w] != 0).astype(np.float32)
     per_row = sub.sum(axis=1)
     rows = np.nonzero(per_row)[0]
-    if len(rows) < 2:
+    n = len(rows)
+    if n < 2:
         return None
-    mean_u = (sub[rows] @ np.arange(w, dtype=np.float32)).astype(np.float64) / per_row[rows]
+    # (the row counts and column sums are whole numbers below 2^24: exact in float32, in any order)
+    mean_u = (sub @ np.arange(w, dtype=np.float32))[rows].astype(np.float64) / per_row[rows]
     r = rows.astype(np.float64)
-    rm, um = r.mean(), mean_u.mean()
+    rm, um = np.add.reduce(r) / n, np.add.reduce(mean_u) / n  # (r.mean(), mean_u.mean())
     slope = float(np.dot(r - rm, mean_u - um) / np.dot(r - rm, r - rm))
     v0, u0 = y + row0, x + col0
     intercept = float(um + u0 - slope * (rm + v0))
