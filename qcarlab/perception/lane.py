@@ -154,8 +154,10 @@ def white_level(hsv: np.ndarray, grey: np.ndarray, v_min: int = WHITE_V_MIN) -> 
     """The value a white pixel needs: max(``v_min``, 0.8 x the 99th percentile of V over the
     ``grey`` (unsaturated) pixels of the HSV image, or of V itself when ``hsv`` has one channel),
     from a 256-bin histogram (no sort); 256 (nothing is white) when no pixel is grey."""
-    if hsv.ndim == 2 and grey is not None:  # V where grey, 0 elsewhere, unmasked, those zeros taken off bin 0: the same
-        kept = cv2.copyTo(hsv, grey)  # counts, some 20 % faster than a masked calcHist
+    if hsv.ndim == 2 and grey is not None:
+        # V where grey, 0 elsewhere, unmasked, those zeros taken off bin 0: the same counts, some
+        # 20 % faster than a masked calcHist
+        kept = cv2.copyTo(hsv, grey)
         hist = cv2.calcHist([kept], [0], None, [256], [0, 256]).ravel()
         hist[0] -= kept.size - cv2.countNonZero(grey)
     else:
