@@ -37,7 +37,7 @@ each thresholded, so a student sees what the HSV range keeps.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import cv2
 import numpy as np
@@ -280,6 +280,7 @@ class LaneFollowingLab(LabModel):
         self.next_frame = 0.0
         self.delta, self.last_seen, self.d_obs = 0.0, 0.0, 0.0
         self.det = LaneDetection(None, None)
+        self._masks: Any = None  # None or what gives self.det its masks (see _detect)
         self.frame = self.box = self.shown = None
         self.frames = self.lost = self.white = self.yellow = 0
         self.since_yellow: float | None = None  # m driven (by the encoder) since the yellow line was last seen
@@ -345,10 +346,21 @@ class LaneFollowingLab(LabModel):
         ``color``: a BGR frame, or an RGBD frame (its colour). While :data:`BAND_BLOCKS` are
         qcarlab's, they run on the frame's lower band alone, converted to HSV once for both lines
         (:class:`LaneBand`: the same masks and fits; a simulated frame then draws those rows only)."""
+        det, masks = self._detect(color)
+        return masks(det) if masks is not None else det
+
+    def _detect(self, color: np.ndarray | Any) -> tuple[LaneDetection, Any]:
+        """:meth:`detect`, and None or the function that gives the detection its frame-sized masks
+        (the band's: made for the frame a figure shows alone)."""
         c = self.cfg
         backup = c.white_backup and self.since_yellow is not None and self.since_yellow <= c.backup_distance
         if self._reference_in(self.BAND_BLOCKS) and not self._keeps_black:
             return self._detect_band(_band(color), backup)
+        return self._detect_blocks(color, backup), None
+
+    def _detect_blocks(self, color: np.ndarray | Any, backup: bool) -> LaneDetection:
+        """:meth:`detect` through the blocks (a student's among them) on the whole frame."""
+        c = self.cfg
         color = color if isinstance(color, np.ndarray) else color.color
         yellow = self.color_thresholding_hsv(self.image_selector(color))
         fit = self.linear_poly_fit(yellow)
@@ -360,22 +372,26 @@ class LaneFollowingLab(LabModel):
         return LaneDetection(fit, "white" if fit is not None else None, ny, int(np.count_nonzero(white)),
                              white if fit is not None else yellow, yellow)
 
-    def _detect_band(self, band: LaneBand, backup: bool) -> LaneDetection:
-        """:meth:`detect` with qcarlab's vision blocks, on the frame's lower band alone."""
+    def _detect_band(self, band: LaneBand, backup: bool) -> tuple[LaneDetection, Any]:
+        """:meth:`_detect` with qcarlab's vision blocks, on the frame's lower band alone."""
         c = self.cfg
         ymask, c0 = band.yellow(c.lane, c.hsv_min, c.hsv_max)
         ny = cv2.countNonZero(ymask)
         # (fewer pixels than min_pixels: no line of as many, the fit is None)
         fit = band.fit(ymask, c.min_pixels, c0)[0] if ny >= max(2, int(c.min_pixels)) else None
-        yellow = band.full(ymask, c0)
         if fit is not None or not backup:
-            return LaneDetection(fit, "yellow" if fit is not None else None, ny, 0, yellow, yellow)
+            return (LaneDetection(fit, "yellow" if fit is not None else None, ny, 0),
+                    partial(_band_masks, band, (ymask, c0), (ymask, c0)))
         edge = band.white_edge(c.lane, c.white_s_max, c.white_v_min)
         white = edge[1]
         fit = band.fit_edge(edge, c.min_pixels)
         nw = cv2.countNonZero(white) if white is not None else 0
-        return LaneDetection(fit, "white" if fit is not None else None, ny, nw,
-                             band.full(white) if fit is not None else yellow, yellow)
+        return (LaneDetection(fit, "white" if fit is not None else None, ny, nw),
+                partial(_band_masks, band, (white, 0) if fit is not None else (ymask, c0), (ymask, c0)))
+
+    def detection(self) -> LaneDetection:
+        """The last frame's detection, with its masks."""
+        return self._masks(self.det) if self._masks is not None else self.det
 
     def obstacle_distance(self, frame: Any, box: Any) -> float:
         """calculate_distance(frame's depth, box); while :data:`WINDOW_BLOCKS` are qcarlab's, on
@@ -406,7 +422,7 @@ class LaneFollowingLab(LabModel):
         if t + 1e-9 >= self.next_frame:
             frame = self.read_rgbd()
             self.next_frame = (math.floor((t + 1e-9) / self.frame_dt) + 1) * self.frame_dt
-            det = self.detect(frame)
+            det, masks = self._detect(frame)
             self.frames += 1
             if det.source == "yellow":
                 self.yellow += 1
@@ -422,9 +438,10 @@ class LaneFollowingLab(LabModel):
                 if t - self.last_seen > c.hold_lost:
                     self.delta = 0.0
             box = self.draw_box(_shape(frame), self.delta)
-            self.d_obs, self.box, self.det, self.frame = self.obstacle_distance(frame, box), box, det, frame
+            self.d_obs, self.box, self.det, self._masks, self.frame = (self.obstacle_distance(frame, box), box, det,
+                                                                       masks, frame)
             if self.shown is None and det.source == "yellow" and t >= 1.0:
-                self.shown = (frame, det, box)
+                self.shown = (frame, self.detection(), box)
         delta = self.delta
         armed = t + 1e-9 >= c.start_at and (c.stop_at is None or t + 1e-9 < c.stop_at)
         if armed:
@@ -440,6 +457,13 @@ class LaneFollowingLab(LabModel):
         return Step(Command(throttle, delta, lamps_named(names)),
                     {"v_ref": v_ref, "v_meas": v, "line": self.det.source or "none", "obstacle_distance": self.d_obs,
                      "armed": int(armed), "lamps": "+".join(names)})
+
+
+def _band_masks(band: LaneBand, mask: tuple[np.ndarray | None, int], yellow: tuple[np.ndarray, int],
+                det: LaneDetection) -> LaneDetection:
+    """``det`` with its frame-sized masks: the tracked one and the yellow one, each (band mask, column)."""
+    yellow_full = band.full(*yellow)
+    return replace(det, mask=yellow_full if mask[0] is yellow[0] else band.full(*mask), yellow_mask=yellow_full)
 
 
 def _shape(frame: Any) -> tuple[int, int]:
@@ -548,7 +572,7 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     finish(metrics, log, lab, watch, goal, why)
 
     result = Result("lane-follow", metrics, logs={"log.csv": _log_columns(cols)}, figures={})
-    shown = lab.shown or ((lab.frame, lab.det, lab.box) if lab.frame is not None else None)
+    shown = lab.shown or ((lab.frame, lab.detection(), lab.box) if lab.frame is not None else None)
     if shown is not None:
         frame, det, box = shown
         frame = getattr(frame, "whole", lambda: frame)()  # (a frame read by rows: all of it)
