@@ -487,21 +487,21 @@ class RowFrame:
     def _draw(self, a: int, b: int) -> None:
         H = self.shape[0]
         a, b = max(0, min(a, H)), max(0, min(b, H))
-        todo = self._todo
-        while a < b:
-            if not todo[a]:
-                a += 1
-                continue
-            e = a + 1
-            while e < b and todo[e]:
-                e += 1
-            assert self._plan is not None
-            self._camera._draw_rows(self._plan, self._color, self._depth, a, e)
+        todo = self._todo[a:b]
+        if not todo.any():
+            return
+        if todo.all():
+            runs = [(a, b)]
+        else:  # the runs of rows not drawn yet
+            edges = np.flatnonzero(np.diff(np.concatenate(([False], todo, [False])).astype(np.int8))) + a
+            runs = list(zip(edges[::2].tolist(), edges[1::2].tolist()))
+        assert self._plan is not None and self._camera is not None
+        for s, e in runs:
+            self._camera._draw_rows(self._plan, self._color, self._depth, s, e)
             if self._finish is not None:
-                self._finish(self._color[a:e])
-            todo[a:e] = False
-            a = e
-        if not todo.any():  # all drawn: the camera and the plan are not needed any more
+                self._finish(self._color[s:e])
+        todo[:] = False
+        if not self._todo.any():  # all drawn: the camera and the plan are not needed any more
             self._camera = self._plan = self._finish = None
 
     def color_rows(self, a: int, b: int) -> np.ndarray:
