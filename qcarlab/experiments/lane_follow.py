@@ -517,6 +517,9 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     dt = 1.0 / cfg.rate
     lab = LaneFollowingLab(cfg, p, car.throttle_limit, blocks)
     lab.read_rgbd = getattr(car, "read_rgbd_rows", car.read_rgbd)  # (a simulator's: the rows read drawn alone)
+    warm = getattr(car, "warm_physics", None)  # a simulator's compiled physics: the camera loads numba anyway,
+    if callable(warm):  # the kernel's load (some 10 ms then) costs less than the plain steps it replaces
+        warm()
     truth0 = car.truth()
     centre = lane_centre(world, (truth0.x, truth0.y, truth0.yaw)) if (world is not None and truth0 is not None) else None
     model: Any = lab
