@@ -220,6 +220,12 @@ class Car(ABC):
         """The latest RGBD frame pair (640x480 BGR uint8, depth float32 m aligned to it)."""
         raise NotBuiltError(f"{self.identity().backend} car: the RGBD camera is not available on this backend yet")
 
+    def read_rgbd_rows(self) -> Any:
+        """:meth:`read_rgbd`'s frame for a reader of some of its rows (the lane lab: ``color_rows``,
+        ``depth_rows`` where the frame has them); a car that draws its frames (the simulator) may
+        draw only the rows read. This one: :meth:`read_rgbd` (a wrapper, a recorder, sees the read)."""
+        return self.read_rgbd()
+
     def read_csi(self) -> Any:
         """The latest four CSI frames (right, rear, left, front), 820x410 BGR uint8."""
         raise NotBuiltError(f"{self.identity().backend} car: the CSI cameras are not available on this backend yet")

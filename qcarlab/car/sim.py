@@ -316,7 +316,12 @@ class SimCar(Car):
         The RGBD camera applies the exposure gain itself, in the pass that adds the colour noise
         (the numbers of :meth:`CameraEffects.apply <qcarlab.sim.realism.CameraEffects.apply>`,
         without a pass of its own over the frame); the blur follows."""
-        fx = self._effects.get("camera") if kind == "rgbd" and render is _DRAW["rgbd"] else None
+        fx = self._effects.get("camera") if kind == "rgbd" and render in (_DRAW["rgbd"], _RGBD_ROWS) else None
+        if render is _RGBD_ROWS:  # the rows drawn as read, the blur (row-wise) on each as drawn
+            if fx is None:
+                return sensor.render_rows(pose, t)
+            gain, blur = fx.gain(t), fx.blur_px(yaw_rate, _rgbd_focal(self.params))
+            return sensor.render_rows(pose, t, gain, (lambda rows: fx.apply(rows, 1.0, blur)) if blur >= 2 else None)
         if fx is None:
             return self._finish_frame(kind, render(sensor, pose, t), t, yaw_rate)
         p = self.params
@@ -351,7 +356,13 @@ class SimCar(Car):
         return self._latest_frame("lidar", self.params.lidar_rate, _DRAW["lidar"])
 
     def read_rgbd(self) -> Any:
-        return self._latest_frame("rgbd", self.params.rgbd_rate, _DRAW["rgbd"])
+        return _whole(self._latest_frame("rgbd", self.params.rgbd_rate, _DRAW["rgbd"]))
+
+    def read_rgbd_rows(self) -> Any:
+        """:meth:`read_rgbd`'s frame with its rows drawn as they are read
+        (:class:`~qcarlab.sim.camera.RowFrame`: ``color_rows(a, b)``, ``depth_rows(a, b)``, and
+        ``color``/``depth`` whole): a lab that reads some rows pays for those (the lane lab)."""
+        return self._latest_frame("rgbd", self.params.rgbd_rate, _RGBD_ROWS)
 
     def read_csi(self) -> Any:
         return self._latest_frame("csi", self.params.csi_rate, _DRAW["csi"])
@@ -391,6 +402,17 @@ _DRAW = {
 }
 
 
+def _RGBD_ROWS(sensor: Any, pose: Any, t: float) -> Any:
+    """The RGBD frame, its rows drawn as read (:meth:`SimCar.read_rgbd_rows`)."""
+    return sensor.render_rows(pose, t)
+
+
+def _whole(frame: Any) -> Any:
+    """A frame of :meth:`SimCar.read_rgbd_rows` as the whole :class:`~qcarlab.sensors.RGBDFrame`."""
+    whole = getattr(frame, "whole", None)
+    return whole() if whole is not None else frame
+
+
 class _FrameJob:
     """Sensor ``kind``'s frame ``k``, taken at ``t`` from ``pose``: calling it draws it (or returns
     it, when it was drawn already: ``pose`` is then None)."""
@@ -411,7 +433,7 @@ class _FrameJob:
             sensor = self.car._sensor(self.kind)
             self.frame = self.car._draw(self.kind, sensor, self.render, self.pose, self.t, self.yaw_rate)
             self.car._frames[self.kind] = (self.k, self.frame)
-        return self.frame
+        return self.frame if self.render is _RGBD_ROWS else _whole(self.frame)
 
 
 def _warm_physics(params: QCarParams) -> None:

@@ -37,7 +37,7 @@ each thresholded, so a student sees what the HSV range keeps.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import cv2
 import numpy as np
@@ -74,9 +74,10 @@ from qcarlab.perception.lane import (
     LANES,
     WHITE_S_MAX,
     WHITE_V_MIN,
-    edge_line_mask,
-    white_line_mask,
+    LaneBand,
     linear_poly_fit,
+    region_row,
+    white_edge_mask,
     MIN_PIXELS,
     YELLOW_HSV_MAX,
     YELLOW_HSV_MIN,
@@ -279,16 +280,23 @@ class LaneFollowingLab(LabModel):
         self.next_frame = 0.0
         self.delta, self.last_seen, self.d_obs = 0.0, 0.0, 0.0
         self.det = LaneDetection(None, None)
+        self._masks: Any = None  # None or what gives self.det its masks (see _detect)
         self.frame = self.box = self.shown = None
         self.frames = self.lost = self.white = self.yellow = 0
         self.since_yellow: float | None = None  # m driven (by the encoder) since the yellow line was last seen
         self.line_lost = False
         self.driven = 0.0  # m, by the encoder
         self.desired_speed, self.stop_distance, self.lane_gain = cfg.speed, cfg.stop_distance, 1.0
+        self._keeps_black = LaneBand.keeps_black(cfg.hsv_min, cfg.hsv_max)  # (then no band: see detect)
+
+    #: the blocks the lab's vision runs on a frame's lower band alone (:class:`LaneBand`) while they
+    #: are qcarlab's; the obstacle window's blocks, on its rows of the depth alone
+    BAND_BLOCKS = ("image_selector", "color_thresholding_hsv", "linear_poly_fit")
+    WINDOW_BLOCKS = ("draw_box", "calculate_distance")
 
     def reference_blocks(self) -> dict[str, Any]:
         c = self.cfg
-        return {
+        self._reference = {
             "basic_speed_estimation": partial(basic_speed_estimation, params=self.p),
             "image_selector": partial(image_selector, lane=c.lane),
             "color_thresholding_hsv": partial(color_thresholding_hsv, hsv_min=c.hsv_min, hsv_max=c.hsv_max),
@@ -302,6 +310,11 @@ class LaneFollowingLab(LabModel):
             "speed_controller": SpeedController(c.kp, c.ki, c.kff, throttle_limit=self.throttle_limit),
             "indicator_and_lamps": indicator_and_lamps,
         }
+        return self._reference
+
+    def _reference_in(self, names: tuple[str, ...]) -> bool:
+        """Whether the blocks ``names`` are qcarlab's (none replaced by a student's)."""
+        return all(getattr(self, n) is self._reference[n] for n in names)
 
     def _automated_driving(self, desired_speed: float, obstacle_distance: float) -> float:
         """The reference automated_driving at the stop distance the user inputs set."""
@@ -325,21 +338,69 @@ class LaneFollowingLab(LabModel):
                                     "stop distance 0..2.4 m, lane gain 0..1)")
         self.desired_speed, self.stop_distance, self.lane_gain = v, d, g
 
-    def detect(self, color: np.ndarray) -> LaneDetection:
+    def detect(self, color: np.ndarray | Any) -> LaneDetection:
         """The vision half of the diagram: the yellow line, else (backup) the lane's white edge line,
         only where the yellow line was seen less than ``backup_distance`` m ago (it left the view in a
-        curve): the yellow line, found with the student's HSV range, is what the lab follows."""
+        curve): the yellow line, found with the student's HSV range, is what the lab follows.
+
+        ``color``: a BGR frame, or an RGBD frame (its colour). While :data:`BAND_BLOCKS` are
+        qcarlab's, they run on the frame's lower band alone, converted to HSV once for both lines
+        (:class:`LaneBand`: the same masks and fits; a simulated frame then draws those rows only)."""
+        det, masks = self._detect(color)
+        return masks(det) if masks is not None else det
+
+    def _detect(self, color: np.ndarray | Any) -> tuple[LaneDetection, Any]:
+        """:meth:`detect`, and None or the function that gives the detection its frame-sized masks
+        (the band's: made for the frame a figure shows alone)."""
+        c = self.cfg
+        backup = c.white_backup and self.since_yellow is not None and self.since_yellow <= c.backup_distance
+        if self._reference_in(self.BAND_BLOCKS) and not self._keeps_black:
+            return self._detect_band(_band(color), backup)
+        return self._detect_blocks(color, backup), None
+
+    def _detect_blocks(self, color: np.ndarray | Any, backup: bool) -> LaneDetection:
+        """:meth:`detect` through the blocks (a student's among them) on the whole frame."""
+        c = self.cfg
+        color = color if isinstance(color, np.ndarray) else color.color
         yellow = self.color_thresholding_hsv(self.image_selector(color))
         fit = self.linear_poly_fit(yellow)
         ny = int(np.count_nonzero(yellow))
-        c = self.cfg
-        backup = c.white_backup and self.since_yellow is not None and self.since_yellow <= c.backup_distance
         if fit is not None or not backup:
             return LaneDetection(fit, "yellow" if fit is not None else None, ny, 0, yellow, yellow)
         white = white_edge_mask(color, c.lane, c.white_s_max, c.white_v_min)
         fit = self.linear_poly_fit(white)
         return LaneDetection(fit, "white" if fit is not None else None, ny, int(np.count_nonzero(white)),
                              white if fit is not None else yellow, yellow)
+
+    def _detect_band(self, band: LaneBand, backup: bool) -> tuple[LaneDetection, Any]:
+        """:meth:`_detect` with qcarlab's vision blocks, on the frame's lower band alone."""
+        c = self.cfg
+        ymask, c0 = band.yellow(c.lane, c.hsv_min, c.hsv_max)
+        ny = cv2.countNonZero(ymask)
+        # (fewer pixels than min_pixels: no line of as many, the fit is None)
+        fit = band.fit(ymask, c.min_pixels, c0)[0] if ny >= max(2, int(c.min_pixels)) else None
+        if fit is not None or not backup:
+            return (LaneDetection(fit, "yellow" if fit is not None else None, ny, 0),
+                    partial(_band_masks, band, (ymask, c0), (ymask, c0)))
+        edge = band.white_edge(c.lane, c.white_s_max, c.white_v_min)
+        white = edge[1]
+        fit = band.fit_edge(edge, c.min_pixels)
+        nw = cv2.countNonZero(white) if white is not None else 0
+        return (LaneDetection(fit, "white" if fit is not None else None, ny, nw),
+                partial(_band_masks, band, (white, 0) if fit is not None else (ymask, c0), (ymask, c0)))
+
+    def detection(self) -> LaneDetection:
+        """The last frame's detection, with its masks."""
+        return self._masks(self.det) if self._masks is not None else self.det
+
+    def obstacle_distance(self, frame: Any, box: Any) -> float:
+        """calculate_distance(frame's depth, box); while :data:`WINDOW_BLOCKS` are qcarlab's, on
+        the box's rows of the depth alone (the same pixels: a simulated frame draws those rows)."""
+        rows = getattr(frame, "depth_rows", None)
+        if rows is None or not self._reference_in(self.WINDOW_BLOCKS):
+            return float(self.calculate_distance(frame.depth, box))
+        x0, y0, x1, y1 = (int(v) for v in box)
+        return float(obstacle_distance(rows(y0, y1), (x0, 0, x1, y1 - y0)))
 
     def lost_line(self, t: float) -> bool:
         """Whether the yellow line is lost for good: not seen for ``backup_distance`` m driven (or,
@@ -361,7 +422,7 @@ class LaneFollowingLab(LabModel):
         if t + 1e-9 >= self.next_frame:
             frame = self.read_rgbd()
             self.next_frame = (math.floor((t + 1e-9) / self.frame_dt) + 1) * self.frame_dt
-            det = self.detect(frame.color)
+            det, masks = self._detect(frame)
             self.frames += 1
             if det.source == "yellow":
                 self.yellow += 1
@@ -376,10 +437,11 @@ class LaneFollowingLab(LabModel):
                 self.lost += 1
                 if t - self.last_seen > c.hold_lost:
                     self.delta = 0.0
-            box = self.draw_box(frame.depth.shape, self.delta)
-            self.d_obs, self.box, self.det, self.frame = float(self.calculate_distance(frame.depth, box)), box, det, frame
+            box = self.draw_box(_shape(frame), self.delta)
+            self.d_obs, self.box, self.det, self._masks, self.frame = (self.obstacle_distance(frame, box), box, det,
+                                                                       masks, frame)
             if self.shown is None and det.source == "yellow" and t >= 1.0:
-                self.shown = (frame, det, box)
+                self.shown = (frame, self.detection(), box)
         delta = self.delta
         armed = t + 1e-9 >= c.start_at and (c.stop_at is None or t + 1e-9 < c.stop_at)
         if armed:
@@ -397,17 +459,27 @@ class LaneFollowingLab(LabModel):
                      "armed": int(armed), "lamps": "+".join(names)})
 
 
-def white_edge_mask(color: np.ndarray, lane: str, s_max: int = WHITE_S_MAX, v_min: int = WHITE_V_MIN) -> np.ndarray:
-    """The backup line: the lane's own white edge line (on the far side of the yellow line's
-    region), the white line-shaped blob nearest the road (:func:`edge_line_mask`: a brightly lit
-    floor beyond the edge line is not taken for it)."""
-    white = image_selector(white_line_mask(color, s_max, v_min), lane, line="white")
-    w = white.shape[1]
-    if lane == "right":
-        white[:, : int(0.15 * w)] = 0
-    else:
-        white[:, int(0.85 * w):] = 0
-    return edge_line_mask(white, lane)
+def _band_masks(band: LaneBand, mask: tuple[np.ndarray | None, int], yellow: tuple[np.ndarray, int],
+                det: LaneDetection) -> LaneDetection:
+    """``det`` with its frame-sized masks: the tracked one and the yellow one, each (band mask, column)."""
+    yellow_full = band.full(*yellow)
+    return replace(det, mask=yellow_full if mask[0] is yellow[0] else band.full(*mask), yellow_mask=yellow_full)
+
+
+def _shape(frame: Any) -> tuple[int, int]:
+    """An RGBD frame's (H, W), its depth's shape (without drawing a simulated frame's rows)."""
+    shape = getattr(frame, "shape", None)
+    return tuple(shape) if shape is not None else frame.depth.shape
+
+
+def _band(frame: Any) -> LaneBand:
+    """The lower band of a BGR frame or of an RGBD frame's colour, the frame's other rows not read
+    (a simulated frame draws the rows asked for alone: ``color_rows``)."""
+    rows = getattr(frame, "color_rows", None)
+    if rows is None:
+        return LaneBand.of(frame if isinstance(frame, np.ndarray) else frame.color)
+    h, w = _shape(frame)
+    return LaneBand(rows(region_row(h), h), (h, w))
 
 
 class _Laps:
@@ -444,7 +516,10 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     p = car.params
     dt = 1.0 / cfg.rate
     lab = LaneFollowingLab(cfg, p, car.throttle_limit, blocks)
-    lab.read_rgbd = car.read_rgbd
+    lab.read_rgbd = getattr(car, "read_rgbd_rows", car.read_rgbd)  # (a simulator's: the rows read drawn alone)
+    warm = getattr(car, "warm_physics", None)  # a simulator's compiled physics: the camera loads numba anyway,
+    if callable(warm):  # the kernel's load (some 10 ms then) costs less than the plain steps it replaces
+        warm()
     truth0 = car.truth()
     centre = lane_centre(world, (truth0.x, truth0.y, truth0.yaw)) if (world is not None and truth0 is not None) else None
     model: Any = lab
@@ -500,9 +575,11 @@ def run_lane_follow(car: Car, cfg: LaneFollowConfig, world=None, *, blocks: Mapp
     finish(metrics, log, lab, watch, goal, why)
 
     result = Result("lane-follow", metrics, logs={"log.csv": _log_columns(cols)}, figures={})
-    shown = lab.shown or ((lab.frame, lab.det, lab.box) if lab.frame is not None else None)
+    shown = lab.shown or ((lab.frame, lab.detection(), lab.box) if lab.frame is not None else None)
     if shown is not None:
         frame, det, box = shown
+        frame = getattr(frame, "whole", lambda: frame)()  # (a frame read by rows: all of it)
+        shown = (frame, det, box)
         result.data["frame"] = shown
         result.figures["frame.png"] = lambda f: save_figure(f, frame_figure(frame.color, det, box))
     if world is not None and "true_x" in cols and n:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -52,17 +53,22 @@ class LineBlob:
     rows: tuple[int, int]  # first and last row the blob covers
     cut: bool = False  # touches the region's side or bottom edge: only part of it is seen
 
-    @property
+    # (the measures below are computed once per blob: the group search asks for them often)
+    @cached_property
     def centroid(self) -> tuple[float, float]:
         n, su, sv = self.sums[:3]
         return su / n, sv / n
 
     def _central(self) -> tuple[float, float, float]:
+        return self._central_moments
+
+    @cached_property
+    def _central_moments(self) -> tuple[float, float, float]:
         n, su, sv, suu, svv, suv = self.sums
         mu, mv = su / n, sv / n
         return max(0.0, suu / n - mu * mu), max(0.0, svv / n - mv * mv), suv / n - mu * mv
 
-    @property
+    @cached_property
     def theta(self) -> float:
         """The major axis' angle from the image rows (the u axis), rad in (-pi/2, pi/2]."""
         cuu, cvv, cuv = self._central()
@@ -80,7 +86,7 @@ class LineBlob:
         mu, mv = self.centroid
         return mu - self.slope * mv
 
-    @property
+    @cached_property
     def eigen(self) -> tuple[float, float]:
         cuu, cvv, cuv = self._central()
         mean, diff = (cuu + cvv) / 2.0, math.hypot((cuu - cvv) / 2.0, cuv)
@@ -131,16 +137,22 @@ class BlobMap:
         return self.mask.shape
 
 
-def _blobs(mask: np.ndarray, min_area: int, row0: int, col0: int) -> tuple[list[LineBlob], BlobMap]:
+def _blobs(mask: np.ndarray, min_area: int, row0: int, col0: int,
+           image_shape: tuple[int, int] | None = None) -> tuple[list[LineBlob], BlobMap]:
     """The blobs of ``mask`` (8-connected outer outlines) with at least ``min_area`` pixels, by
-    their outlines' moments (Green's theorem: no pass over the pixels)."""
+    their outlines' moments (Green's theorem: no pass over the pixels). A blob is cut where it
+    touches the bottom, left or right edge of the mask or, given ``image_shape`` (H, W), of the
+    image the mask (at ``row0``, ``col0``) is a part of."""
     m = np.asarray(mask)
     if m.ndim != 2:
         raise InputError(f"expected a 2-D mask, got shape {m.shape}")
     if m.dtype != np.uint8:
         m = (m != 0).astype(np.uint8) * 255
     contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE, offset=(col0, row0))
-    H, W = m.shape
+    if image_shape is None:
+        bottom, left, right = row0 + m.shape[0], col0, col0 + m.shape[1]
+    else:
+        bottom, left, right = int(image_shape[0]), 0, int(image_shape[1])
     out = []
     for i, c in enumerate(contours):
         if len(c) < 3:  # a speck or a one-pixel-wide segment: an outline of no area (m00 = 0 < 2)
@@ -153,7 +165,7 @@ def _blobs(mask: np.ndarray, min_area: int, row0: int, col0: int) -> tuple[list[
         if pixels < min_area:
             continue
         x, y, w, h = cv2.boundingRect(c)
-        cut = (y + h - row0 >= H) or (x - col0 <= 0) or (x + w - col0 >= W)
+        cut = (y + h >= bottom) or (x <= left) or (x + w >= right)
         out.append(LineBlob((i,), int(round(pixels)), (a, mo["m10"], mo["m01"], mo["m20"], mo["m02"], mo["m11"]),
                             (int(y), int(y + h - 1)), bool(cut)))
     return out, BlobMap(m, list(contours), row0, col0)
@@ -168,15 +180,17 @@ def line_components(
     row0: int = 0,
     col0: int = 0,
     return_labels: bool = False,
+    image_shape: tuple[int, int] | None = None,
 ):
     """The blobs of ``mask`` shaped like a lane line (see the module docstring), largest first.
 
     ``row0``/``col0``: where the mask's (0, 0) lies in the full image (a crop), so the lines come
     out in full-image pixels. ``max_thickness`` defaults to :data:`MAX_THICKNESS` of the mask's
-    width; a blob cut by the mask's side or bottom edge needs only :data:`MIN_ELONGATION_CUT`. With
+    width; a blob cut by the mask's side or bottom edge (or, given ``image_shape`` (H, W), the
+    image's, of which the mask is a part) needs only :data:`MIN_ELONGATION_CUT`. With
     ``return_labels`` also the :class:`BlobMap` (for :func:`mask_of`).
     """
-    blobs, labels = _blobs(mask, min_area, row0, col0)
+    blobs, labels = _blobs(mask, min_area, row0, col0, image_shape)
     if max_thickness is None:
         max_thickness = MAX_THICKNESS * labels.shape[1]
     ok = [b for b in blobs

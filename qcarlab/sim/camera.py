@@ -60,6 +60,7 @@ it up). Noise comes from precomputed tiles at random offsets.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import cv2
 import numpy as np
@@ -460,6 +461,78 @@ def _level_view_size(W: int, H: int, fx: float, fy: float, cx: float, cy: float,
 # --------------------------------------------------------------------------------------------
 # the RGBD camera
 # --------------------------------------------------------------------------------------------
+class _Plan:
+    """What an unpitched RGBD frame's rows are drawn from, fixed when it is taken: the camera's
+    pose, the noise's windows, the balls, the signs' patches, the exposure (gain and table)."""
+
+    __slots__ = ("cam", "o", "balls", "gain", "lut", "signs", "n_layers")
+
+    def __init__(self, cam: tuple[float, float, float], o: list[int] | None, balls: np.ndarray, gain: float):
+        self.cam, self.o, self.balls, self.gain = cam, o, balls, gain
+        self.lut = exposure_lut(gain) if gain != 1.0 else _NO_LUT
+        self.signs = _NO_SIGNS
+        self.n_layers = 0
+
+
+class RowFrame:
+    """An RGBD frame (:meth:`RGBDCamera.render_rows`) whose rows are drawn when first read:
+    ``color_rows(a, b)`` / ``depth_rows(a, b)`` draw rows a..b-1 (both images) and return them;
+    ``color`` / ``depth`` draw the rest; :meth:`whole` is the :class:`RGBDFrame`. ``shape`` is (H, W)."""
+
+    __slots__ = ("t", "shape", "_camera", "_plan", "_finish", "_color", "_depth", "_todo")
+
+    def __init__(self, camera: RGBDCamera, plan: _Plan, t: float, finish: Any = None):
+        H, W = camera.intrinsics.height, camera.intrinsics.width
+        self.t, self.shape = t, (H, W)
+        self._camera, self._plan, self._finish = camera, plan, finish
+        self._color = np.empty((H, W, 3), np.uint8)
+        self._depth = np.empty((H, W), np.float32)
+        self._todo = np.ones(H, bool)  # rows not drawn yet
+
+    def _draw(self, a: int, b: int) -> None:
+        H = self.shape[0]
+        a, b = max(0, min(a, H)), max(0, min(b, H))
+        todo = self._todo[a:b]
+        if not todo.any():
+            return
+        if todo.all():
+            runs = [(a, b)]
+        else:  # the runs of rows not drawn yet
+            edges = np.flatnonzero(np.diff(np.concatenate(([False], todo, [False])).astype(np.int8))) + a
+            runs = list(zip(edges[::2].tolist(), edges[1::2].tolist()))
+        assert self._plan is not None and self._camera is not None
+        for s, e in runs:
+            self._camera._draw_rows(self._plan, self._color, self._depth, s, e)
+            if self._finish is not None:
+                self._finish(self._color[s:e])
+        todo[:] = False
+        if not self._todo.any():  # all drawn: the camera and the plan are not needed any more
+            self._camera = self._plan = self._finish = None
+
+    def color_rows(self, a: int, b: int) -> np.ndarray:
+        self._draw(a, b)
+        return self._color[a:b]
+
+    def depth_rows(self, a: int, b: int) -> np.ndarray:
+        self._draw(a, b)
+        return self._depth[a:b]
+
+    @property
+    def color(self) -> np.ndarray:
+        self._draw(0, self.shape[0])
+        return self._color
+
+    @property
+    def depth(self) -> np.ndarray:
+        self._draw(0, self.shape[0])
+        return self._depth
+
+    def whole(self) -> RGBDFrame:
+        """The whole frame (every row drawn) as an :class:`RGBDFrame`."""
+        self._draw(0, self.shape[0])
+        return RGBDFrame(t=self.t, color=self._color, depth=self._depth)
+
+
 class RGBDCamera:
     """The Intel D435 at its mount: ``render(pose, t)`` -> :class:`~qcarlab.sensors.RGBDFrame`."""
 
@@ -517,6 +590,7 @@ class RGBDCamera:
         self._cr_t = np.empty((lw, _kernels.CMAX), np.float64)  # scratch of vector_crossings
         self._cr_e = np.empty((lw, _kernels.CMAX), np.int64)
         self._ncr = np.empty(lw, np.int64)
+        self._layers_of: _Plan | None = None  # the frame whose layers are in the buffers above
 
     @property
     def rate(self) -> float:
@@ -534,26 +608,18 @@ class RGBDCamera:
         ``cv2.convertScaleAbs``), before the sensor's noise: a frame with a gain costs what one
         without does (a pass of its own over the frame took 0.1 ms). Without noise the frame is
         exactly the ungained frame through ``convertScaleAbs``."""
+        if self._rot is None:
+            return self.render_rows(pose, t, gain).whole()
         gain = float(gain)
         v = self._view
         cx_w, cy_w, yaw = v.camera_pose(pose)
         W, H = self.intrinsics.width, self.intrinsics.height
         o = self._noise.windows() if self._noise is not None else None
-        # what each column sees (this thread), then the rows: floor, layers, signs, noise
         balls = v.balls_at(t)
         layers = (self._columns(cx_w, cy_w, yaw, balls), balls)
         signs = v.sign_patches(cx_w, cy_w, yaw)
-        lut = _NO_LUT
-        if gain != 1.0 and self._rot is None:  # the layers' and signs' colours, once (before the rows are split)
-            lut = exposure_lut(gain)
-            _kernels.gain_words(self._lcol[: layers[0]].reshape(-1), lut)
-            _kernels.gain_words(signs[2], lut)
         lv = self._level
         depth = np.empty((lv.height, lv.width), np.float32)
-        if self._rot is None:
-            color = np.empty((H, W, 3), np.uint8)
-            self._rows(color, depth, (cx_w, cy_w, yaw), layers, signs, o, (gain, lut), 0, H)
-            return RGBDFrame(t=float(t), color=color, depth=depth)
         # pitched: the level view upright, then rotated
         self._compose(depth, (cx_w, cy_w, yaw), layers, signs, None, 0, lv.height)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
@@ -569,6 +635,45 @@ class RGBDCamera:
         depth = cv2.multiply(depth, self._depth_factor)
         self._finish_depth(depth, o)
         return RGBDFrame(t=float(t), color=color, depth=depth)
+
+    def render_rows(self, pose: tuple[float, float, float], t: float = 0.0, gain: float = 1.0,
+                    finish: Any = None) -> RowFrame | RGBDFrame:
+        """:meth:`render`'s frame, its rows drawn when first read (:class:`RowFrame`): a reader of
+        some rows (the lane lab's band, its obstacle window) pays for those alone; the pixels are
+        :meth:`render`'s. ``finish(color_rows)``: a row-wise effect on the colour (the realism
+        profile's horizontal motion blur), applied to the rows as they are drawn. Everything
+        random (the noise's windows) is drawn now, as :meth:`render` draws it. A pitched camera
+        rotates the whole view: its frame is drawn at once (an :class:`RGBDFrame`)."""
+        if self._rot is not None:
+            frame = self.render(pose, t, gain)
+            if finish is not None:
+                finish(frame.color)
+            return frame
+        gain = float(gain)
+        v = self._view
+        cam = v.camera_pose(pose)
+        o = self._noise.windows() if self._noise is not None else None
+        plan = _Plan(cam, o, v.balls_at(t), gain)
+        self._layers(plan)
+        plan.signs = v.sign_patches(*cam)
+        if gain != 1.0:  # the signs' colours, once (the layers' with each drawing of them: _layers)
+            _kernels.gain_words(plan.signs[2], plan.lut)
+        return RowFrame(self, plan, float(t), finish)
+
+    def _layers(self, plan: _Plan) -> int:
+        """The layers of every column for ``plan``'s pose (:meth:`_columns`, their colours through
+        its exposure table), unless they are in the buffers already; returns how many."""
+        if self._layers_of is not plan:
+            plan.n_layers = self._columns(*plan.cam, plan.balls)
+            if plan.gain != 1.0:
+                _kernels.gain_words(self._lcol[: plan.n_layers].reshape(-1), plan.lut)
+            self._layers_of = plan
+        return plan.n_layers
+
+    def _draw_rows(self, plan: _Plan, color: np.ndarray, depth: np.ndarray, a: int, b: int) -> None:
+        """Rows a..b of ``plan``'s (unpitched) frame, done, into ``color`` and ``depth``."""
+        layers = (self._layers(plan), plan.balls)
+        self._rows(color, depth, plan.cam, layers, plan.signs, plan.o, (plan.gain, plan.lut), a, b)
 
     def _columns(self, cx_w: float, cy_w: float, yaw: float, balls: np.ndarray) -> int:
         """The layers of every column (:func:`~qcarlab.sim._kernels.column_layers`); returns how many."""
