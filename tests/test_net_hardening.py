@@ -246,8 +246,8 @@ def test_a_frozen_controller_loses_control_to_the_next_one(served, netlog):
     server, car = served(watchdog=0.05, controller_timeout=0.3)
     frozen = RawClient(server.address)
     frozen.hello("control")
-    drive(frozen)
-    froze = time.monotonic()  # from now on it sends nothing and reads nothing
+    froze = time.monotonic()  # before its last command: the server last heard it no earlier than this
+    drive(frozen)  # from now on it sends nothing and reads nothing
     with pytest.raises(TcpConnectError) as busy:
         TcpCar(*server.address, timeout=2.0)
     assert busy.value.kind == "busy" and "silent for 0.3 s" in str(busy.value)
@@ -262,7 +262,7 @@ def test_a_frozen_controller_loses_control_to_the_next_one(served, netlog):
             continue
         took = time.monotonic() - froze
         break
-    assert took is not None and 0.3 <= took < 0.3 + 0.5
+    assert took is not None and 0.3 <= took < 0.3 + 1.5  # not before its silence; then soon (load 8: 1.5 s)
     assert car.cmd.throttle == 0.0 and server.takeovers == 1
     with ctl:
         ctl.write(0.15, 0.0)
@@ -280,8 +280,8 @@ def test_a_controller_that_froze_before_its_first_command_loses_control_too(serv
     stopped) and falls silent is taken over all the same."""
     server, car = served(watchdog=0.05, controller_timeout=0.3)
     with RawClient(server.address) as frozen:
+        froze = time.monotonic()  # before the hello: the server last heard it no earlier than this
         frozen.hello("control")
-        froze = time.monotonic()
         with pytest.raises(TcpConnectError) as busy:
             TcpCar(*server.address, timeout=2.0)
         assert busy.value.kind == "busy"
