@@ -270,8 +270,8 @@ def _tuples(v: Any) -> Any:
 # --------------------------------------------------------------------------------------------
 _REQUEST = struct.Struct("<II")  # a request's pickle: its bytes, its out-of-band buffers
 _BUFFER = struct.Struct("<BBQ")  # an out-of-band buffer: what follows (below), its slot, its bytes
-_NEW, _KEEP, _SAME, _READONLY = 0, 1, 2, 4  # its bytes follow / follow and are kept in the slot / are the slot's
-KEEP_MIN = 1 << 16  #: bytes: a buffer this large (an image) is kept by both ends and sent again only once changed
+_KEEP, _SAME, _READONLY = 1, 2, 4  # its bytes follow (kept in the slot) / are the slot's; (a flag) read-only
+KEEP_MIN = 1 << 16  #: bytes: a buffer this large (an image) goes out of band, kept by both ends, sent again once changed
 KEEP_SLOTS = 4  #: buffers kept (a block's image and depth, another block's)
 
 
@@ -283,9 +283,9 @@ class Channel:
     :func:`encode`'s bytes), decoded by :func:`decode`: a pickle from the student's process would
     run their code in the trusted one. The trusted side's requests are pickled (fast, in C; it is
     the student's process that unpickles them, and a pickle from the trusted side is no risk to
-    it), their arrays' bytes out of band: the pickle's length and its buffers' count (two 4-byte
-    lengths), each buffer's head (``_BUFFER``), the pickle, then the buffers' bytes, one
-    ``sendmsg`` from the arrays' own memory. A buffer of ``KEEP_MIN`` bytes or more (an image) is
+    it): the pickle's length and its out-of-band buffers' count (two 4-byte lengths), each such
+    buffer's head (``_BUFFER``), the pickle, then the buffers' bytes, in one ``sendmsg`` from the
+    arrays' own memory. An array of ``KEEP_MIN`` bytes or more (an image) goes out of band and is
     kept by both ends in one of ``KEEP_SLOTS`` slots; when a later request carries the same bytes
     (compared in full: the trusted side keeps a copy), its head names the slot and the bytes are
     not sent again: the ``red_share`` calls of one frame send the frame once. The student's
@@ -309,15 +309,14 @@ class Channel:
             else:  # (not copied again to prepend the length)
                 _send_parts(self.sock, [_LEN.pack(len(data)), data])
             return
-        buffers: list[pickle.PickleBuffer] = []
-        data = pickle.dumps(value, protocol=5, buffer_callback=buffers.append)
+        buffers: list[memoryview] = []
+        data = pickle.dumps(value, protocol=5, buffer_callback=lambda b: _in_band(b, buffers))
         if not buffers:
             self.sock.sendall(_REQUEST.pack(len(data), 0) + data)
             return
         heads, parts = [_REQUEST.pack(len(data), len(buffers))], []
-        for buffer in buffers:
-            raw = buffer.raw()
-            kind, slot = self._keep(raw) if raw.nbytes >= KEEP_MIN else (_NEW, 0)
+        for raw in buffers:
+            kind, slot = self._keep(raw)
             heads.append(_BUFFER.pack(kind | (_READONLY if raw.readonly else 0), slot, raw.nbytes))
             if kind != _SAME:
                 parts.append(raw)
@@ -374,8 +373,7 @@ class Channel:
             else:
                 buffer = bytearray(size)
                 self._fill(memoryview(buffer))
-                if kind & ~_READONLY == _KEEP:
-                    self.kept[slot] = bytes(buffer)
+                self.kept[slot] = bytes(buffer)
             buffers.append(bytes(buffer) if kind & _READONLY else buffer)
         return pickle.loads(data, buffers=buffers)
 
@@ -408,6 +406,15 @@ class Channel:
         if k == 0:
             raise EOFError("the other side closed the connection")
         self.buf += memoryview(self.chunk)[:k]
+
+
+def _in_band(buffer: pickle.PickleBuffer, out_of_band: list[memoryview]) -> bool:
+    """A pickle's buffer: True (in the pickle) when small, else its bytes go in ``out_of_band``."""
+    raw = buffer.raw()
+    if raw.nbytes < KEEP_MIN:
+        return True
+    out_of_band.append(raw)
+    return False
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> bool:
