@@ -15,6 +15,7 @@ process loads) send an image once while it is unchanged (:class:`Channel`).
 
 from __future__ import annotations
 
+import functools
 import math
 import pickle
 import socket
@@ -300,6 +301,8 @@ class Channel:
         self.chunk = bytearray(1 << 16)
         self.sent: list[tuple[int, np.ndarray]] = []  # the trusted side: (slot, a copy), least recently used first
         self.kept: dict[int, bytes] = {}  # the student's side: slot -> the bytes
+        self.out_of_band: list[memoryview] = []  # the trusted side: the request's large buffers, while it is sent
+        self.in_band = functools.partial(_in_band, out_of_band=self.out_of_band)
 
     def send(self, value: Any) -> None:
         if self.trusted_peer:  # the student's reply
@@ -309,21 +312,25 @@ class Channel:
             else:  # (not copied again to prepend the length)
                 _send_parts(self.sock, [_LEN.pack(len(data)), data])
             return
-        buffers: list[memoryview] = []
-        data = pickle.dumps(value, protocol=5, buffer_callback=lambda b: _in_band(b, buffers))
+        buffers = self.out_of_band  # (filled by self.in_band while pickling)
+        buffers.clear()
+        data = pickle.dumps(value, protocol=5, buffer_callback=self.in_band)
         if not buffers:
             self.sock.sendall(_REQUEST.pack(len(data), 0) + data)
             return
-        heads, parts = [_REQUEST.pack(len(data), len(buffers))], []
-        for raw in buffers:
-            kind, slot = self._keep(raw)
-            heads.append(_BUFFER.pack(kind | (_READONLY if raw.readonly else 0), slot, raw.nbytes))
-            if kind != _SAME:
-                parts.append(raw)
-        if parts:
-            _send_parts(self.sock, [b"".join(heads), data, *parts])
-        else:
-            self.sock.sendall(b"".join(heads) + data)
+        try:
+            heads, parts = [_REQUEST.pack(len(data), len(buffers))], []
+            for raw in buffers:
+                kind, slot = self._keep(raw)
+                heads.append(_BUFFER.pack(kind | (_READONLY if raw.readonly else 0), slot, raw.nbytes))
+                if kind != _SAME:
+                    parts.append(raw)
+            if parts:
+                _send_parts(self.sock, [b"".join(heads), data, *parts])
+            else:
+                self.sock.sendall(b"".join(heads) + data)
+        finally:
+            buffers.clear()  # (views of the caller's arrays)
 
     def _keep(self, raw: memoryview) -> tuple[int, int]:
         """(_SAME, its slot) for bytes the student's process keeps already, else (_KEEP, the slot to keep them in)."""
@@ -355,9 +362,18 @@ class Channel:
         return decode(self._take(n))
 
     def _request(self) -> Any:
-        n, count = _REQUEST.unpack(self._take(_REQUEST.size))
+        buf = self.buf
+        while len(buf) < _REQUEST.size:
+            self._more()
+        n, count = _REQUEST.unpack_from(buf)
         if n > MAX_MESSAGE or count > MAX_ITEMS:
             raise CodecError(f"a message of {n} bytes and {count} buffers")
+        end = _REQUEST.size + count * _BUFFER.size + n
+        if not count and end <= len(buf):  # a call with numbers: the whole message read already
+            data = bytes(buf[_REQUEST.size:end])
+            del buf[:end]
+            return pickle.loads(data)
+        del buf[:_REQUEST.size]
         heads = self._take(count * _BUFFER.size) if count else b""
         data = self._take(n)
         buffers: list[Any] = []
