@@ -88,3 +88,19 @@ def test_an_unchanged_image_costs_its_bytes_once():
     assert sizes[0] > frame.nbytes and sizes[1] < 1000
     a.close()
     b.close()
+
+
+def test_a_very_large_array_is_sent_each_time_and_kept_by_neither_end(monkeypatch):
+    from qcarlab.sandbox import codec
+
+    monkeypatch.setattr(codec, "KEEP_MAX", 1 << 17)
+    a, b = socket.socketpair()
+    trusted, student = Channel(a, trusted_peer=False), Channel(b, trusted_peer=True)
+    big = np.arange(1 << 15, dtype=np.float64)  # 256 KB
+    sender = threading.Thread(target=lambda: [trusted.send(("call", k, (big,))) for k in range(2)])
+    sender.start()
+    got = [student.recv() for _ in range(2)]
+    sender.join()
+    assert all(np.array_equal(g[2][0], big) for g in got) and not trusted.sent and not student.kept
+    a.close()
+    b.close()

@@ -271,8 +271,9 @@ def _tuples(v: Any) -> Any:
 # --------------------------------------------------------------------------------------------
 _REQUEST = struct.Struct("<II")  # a request's pickle: its bytes, its out-of-band buffers
 _BUFFER = struct.Struct("<BBQ")  # an out-of-band buffer: what follows (below), its slot, its bytes
-_KEEP, _SAME, _READONLY = 1, 2, 4  # its bytes follow (kept in the slot) / are the slot's; (a flag) read-only
+_NEW, _KEEP, _SAME, _READONLY = 0, 1, 2, 4  # its bytes follow / follow, kept in the slot / are the slot's; a flag
 KEEP_MIN = 1 << 16  #: bytes: a buffer this large (an image) goes out of band, kept by both ends, sent again once changed
+KEEP_MAX = 1 << 24  #: bytes: a buffer larger than this is sent each time (a copy kept on each side would cost more)
 KEEP_SLOTS = 4  #: buffers kept (a block's image and depth, another block's)
 
 
@@ -286,12 +287,13 @@ class Channel:
     the student's process that unpickles them, and a pickle from the trusted side is no risk to
     it): the pickle's length and its out-of-band buffers' count (two 4-byte lengths), each such
     buffer's head (``_BUFFER``), the pickle, then the buffers' bytes, in one ``sendmsg`` from the
-    arrays' own memory. An array of ``KEEP_MIN`` bytes or more (an image) goes out of band and is
-    kept by both ends in one of ``KEEP_SLOTS`` slots; when a later request carries the same bytes
-    (compared in full: the trusted side keeps a copy), its head names the slot and the bytes are
-    not sent again: the ``red_share`` calls of one frame send the frame once. The student's
-    process gets every buffer as a fresh copy of its own (writable unless the trusted side's array
-    was not), so what a block does to its argument changes nothing the next call gets.
+    arrays' own memory. An array of ``KEEP_MIN`` bytes or more (an image) goes out of band and,
+    up to ``KEEP_MAX`` bytes, is kept by both ends in one of ``KEEP_SLOTS`` slots; when a later
+    request carries the same bytes (compared in full: the trusted side keeps a copy), its head
+    names the slot and the bytes are not sent again: the ``red_share`` calls of one frame send
+    the frame once. The student's process gets every buffer as a fresh copy of its own (writable
+    unless the trusted side's array was not), so what a block does to its argument changes
+    nothing the next call gets.
     ``trusted_peer`` says which end this is: True in the student's process (its peer, qcarlab, is
     trusted)."""
 
@@ -321,7 +323,7 @@ class Channel:
         try:
             heads, parts = [_REQUEST.pack(len(data), len(buffers))], []
             for raw in buffers:
-                kind, slot = self._keep(raw)
+                kind, slot = self._keep(raw) if raw.nbytes <= KEEP_MAX else (_NEW, 0)
                 heads.append(_BUFFER.pack(kind | (_READONLY if raw.readonly else 0), slot, raw.nbytes))
                 if kind != _SAME:
                     parts.append(raw)
@@ -389,7 +391,8 @@ class Channel:
             else:
                 buffer = bytearray(size)
                 self._fill(memoryview(buffer))
-                self.kept[slot] = bytes(buffer)
+                if kind & ~_READONLY == _KEEP:
+                    self.kept[slot] = bytes(buffer)
             buffers.append(bytes(buffer) if kind & _READONLY else buffer)
         return pickle.loads(data, buffers=buffers)
 
