@@ -272,7 +272,7 @@ def _tuples(v: Any) -> Any:
 _REQUEST = struct.Struct("<II")  # a request's pickle: its bytes, its out-of-band buffers
 _BUFFER = struct.Struct("<BBQ")  # an out-of-band buffer: what follows (below), its slot, its bytes
 _NEW, _KEEP, _SAME, _READONLY = 0, 1, 2, 4  # its bytes follow / follow, kept in the slot / are the slot's; a flag
-KEEP_MIN = 1 << 16  #: bytes: a buffer this large (an image) goes out of band, kept by both ends, sent again once changed
+KEEP_MIN = 1 << 16  #: bytes: a buffer this large (an image) goes out of band, kept by both ends, resent once changed
 KEEP_MAX = 1 << 24  #: bytes: a buffer larger than this is sent each time (a copy kept on each side would cost more)
 KEEP_SLOTS = 4  #: buffers kept (a block's image and depth, another block's)
 
