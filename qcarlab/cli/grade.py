@@ -21,12 +21,21 @@ from qcarlab.record import dumps, inner_folder, write_bytes, write_json
 
 
 class CliCommands:
-    """The CLI's own parser, for the grader (which does not import the CLI)."""
+    """The CLI's own parser, for the grader (which does not import the CLI). A command is parsed
+    once (some 12 ms each: the sheet check and the plan both parse every scenario task's)."""
+
+    def __init__(self) -> None:
+        self.parsed: dict[tuple[str, ...], tuple[str, dict[str, Any], dict[str, str]]] = {}
 
     def parse(self, argv: list[str]) -> tuple[str, dict[str, Any], dict[str, str]]:
+        import copy
+
         from qcarlab.cli.invocation import parse_command
 
-        return parse_command(argv)
+        key = tuple(argv)
+        if key not in self.parsed:
+            self.parsed[key] = parse_command(argv)
+        return copy.deepcopy(self.parsed[key])  # (a caller's changes reach no other)
 
     def accepts(self, argv: list[str], option: str) -> bool:
         from qcarlab.cli.invocation import command_accepts

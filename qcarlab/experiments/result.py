@@ -9,6 +9,11 @@ from typing import Any
 
 from qcarlab.record import IN_PROGRESS, prepare_out_dir, write_csv, write_json
 
+#: Whether :meth:`Result.save` writes the CSV logs. A graded task's process turns it off
+#: (:mod:`qcarlab.grading.child`): the grader keeps a run's figures, reads its results from
+#: ``$QCARLAB_RESULTS`` and deletes the rest (p4-lookahead's logs were a quarter of its saving).
+WRITE_LOGS = True
+
 
 @dataclass
 class Result:
@@ -22,7 +27,8 @@ class Result:
     data: dict[str, Any] = field(default_factory=dict)  # in-memory artefacts (frames, scans), not saved
 
     def save(self, out: str | Path) -> list[Path]:
-        """Write the CSV logs, the figures and, last, results.json into ``out``; return the paths.
+        """Write the CSV logs (unless :data:`WRITE_LOGS` is off), the figures and, last, results.json
+        into ``out``; return the paths.
 
         Each file is written atomically; results.json comes last, so when it is there the logs it
         describes are complete (a run killed while saving leaves no results.json claiming them).
@@ -32,7 +38,7 @@ class Result:
         if stale.exists():
             stale.unlink()  # a results.json of an earlier run must not describe this run's logs
         written = []
-        for filename, columns in self.logs.items():
+        for filename, columns in self.logs.items() if WRITE_LOGS else ():
             written.append(write_csv(folder / filename, columns))
         for filename, draw in self.figures.items():
             draw(folder / filename)

@@ -12,7 +12,7 @@ depending on ``SPEC["kind"]``:
   blocks come in through ``--block``). The student's ``params.yaml`` is cut to its ``lab:``
   section first (the tunables), so a submission cannot change the car's physics. The command
   writes its results to ``$QCARLAB_RESULTS``, a file of this task's folder, which the student's
-  process cannot see.
+  process cannot see; its ``--out`` (the grader's, for the figures) gets no CSV logs.
 - ``block``: the student's block ``SPEC["block"]`` from ``SPEC["file"]``, called on each case's
   inputs through :class:`qcarlab.blocks.StudentBlock` (so a wrong type, NaN, an exception or a
   ``sys.exit`` is one line naming the block); one JSON line per case is appended to
@@ -75,6 +75,9 @@ def lab_only_params(source: Path, target: Path, argv: list[str] = ()) -> None:
 def run_scenario(spec: dict[str, Any]) -> None:
     from qcarlab.cli import main
     from qcarlab.errors import QcarlabError
+    from qcarlab.experiments import result
+
+    result.WRITE_LOGS = False  # the grader keeps only the figures of --out (and reads $QCARLAB_RESULTS)
 
     argv = list(spec["argv"])
     if spec.get("params"):

@@ -7,13 +7,15 @@ this small tagged format, which can only ever decode to these values::
     numpy.ndarray (numeric dtypes only, C order), and an object's public attributes
     (decoded as one of qcarlab's own result types when it names one, else a SimpleNamespace)
 
-A message is a 4-byte little-endian length and that many bytes; a message over ``MAX_MESSAGE``,
+A reply is a 4-byte little-endian length and that many bytes; a message over ``MAX_MESSAGE``,
 nesting deeper than ``MAX_DEPTH``, an unknown tag or a truncated value is :class:`CodecError`.
-Arrays travel as their raw bytes (a 640x480 BGR frame is one 921,600-byte copy each way).
+Arrays travel as their raw bytes; the trusted side's requests (pickles, which only the student's
+process loads) send an image once while it is unchanged (:class:`Channel`).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import pickle
 import socket
@@ -267,60 +269,191 @@ def _tuples(v: Any) -> Any:
 # --------------------------------------------------------------------------------------------
 # framing on a stream socket
 # --------------------------------------------------------------------------------------------
-class Channel:
-    """Values over a stream socket: a 4-byte little-endian length, then the value. Reads what
-    the socket has (usually a whole message in one call) into a buffer of its own.
+_REQUEST = struct.Struct("<II")  # a request's pickle: its bytes, its out-of-band buffers
+_BUFFER = struct.Struct("<BBQ")  # an out-of-band buffer: what follows (below), its slot, its bytes
+_NEW, _KEEP, _SAME, _READONLY = 0, 1, 2, 4  # its bytes follow / follow, kept in the slot / are the slot's; a flag
+KEEP_MIN = 1 << 16  #: bytes: a buffer this large (an image) goes out of band, kept by both ends, resent once changed
+KEEP_MAX = 1 << 24  #: bytes: a buffer larger than this is sent each time (a copy kept on each side would cost more)
+KEEP_SLOTS = 4  #: buffers kept (a block's image and depth, another block's)
 
-    The two directions differ: the trusted side's requests are pickled (fast, in C; it is the
-    student's process that unpickles them, and a pickle from the trusted side is no risk to it),
-    the student's replies are this module's plain values, decoded by :func:`decode` (a pickle
-    from the student's process would run their code in the trusted one). ``trusted_peer`` says
-    which end this is: True in the student's process (its peer, qcarlab, is trusted)."""
+
+class Channel:
+    """Values over a stream socket, each direction in its own format. Reads what the socket has
+    (usually a whole message in one call) into a buffer of its own.
+
+    The student's replies are this module's plain values (a 4-byte little-endian length, then
+    :func:`encode`'s bytes), decoded by :func:`decode`: a pickle from the student's process would
+    run their code in the trusted one. The trusted side's requests are pickled (fast, in C; it is
+    the student's process that unpickles them, and a pickle from the trusted side is no risk to
+    it): the pickle's length and its out-of-band buffers' count (two 4-byte lengths), each such
+    buffer's head (``_BUFFER``), the pickle, then the buffers' bytes, in one ``sendmsg`` from the
+    arrays' own memory. An array of ``KEEP_MIN`` bytes or more (an image) goes out of band and,
+    up to ``KEEP_MAX`` bytes, is kept by both ends in one of ``KEEP_SLOTS`` slots; when a later
+    request carries the same bytes (compared in full: the trusted side keeps a copy), its head
+    names the slot and the bytes are not sent again: the ``red_share`` calls of one frame send
+    the frame once. The student's process gets every buffer as a fresh copy of its own (writable
+    unless the trusted side's array was not), so what a block does to its argument changes
+    nothing the next call gets.
+    ``trusted_peer`` says which end this is: True in the student's process (its peer, qcarlab, is
+    trusted)."""
 
     def __init__(self, sock: socket.socket, trusted_peer: bool):
         self.sock, self.trusted_peer = sock, trusted_peer
         self.buf = bytearray()
         self.chunk = bytearray(1 << 16)
+        self.sent: list[tuple[int, np.ndarray]] = []  # the trusted side: (slot, a copy), least recently used first
+        self.kept: dict[int, bytes] = {}  # the student's side: slot -> the bytes
+        self.out_of_band: list[memoryview] = []  # the trusted side: the request's large buffers, while it is sent
+        self.in_band = functools.partial(_in_band, out_of_band=self.out_of_band)
 
     def send(self, value: Any) -> None:
-        data = encode(value) if self.trusted_peer else pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
-        if len(data) < 65536:
-            self.sock.sendall(_LEN.pack(len(data)) + data)
-        else:  # (not copied again to prepend the length)
-            self.sock.sendall(_LEN.pack(len(data)))
-            self.sock.sendall(data)
+        if self.trusted_peer:  # the student's reply
+            data = encode(value)
+            if len(data) < 65536:
+                self.sock.sendall(_LEN.pack(len(data)) + data)
+            else:  # (not copied again to prepend the length)
+                _send_parts(self.sock, [_LEN.pack(len(data)), data])
+            return
+        buffers = self.out_of_band  # (filled by self.in_band while pickling)
+        buffers.clear()
+        data = pickle.dumps(value, protocol=5, buffer_callback=self.in_band)
+        if not buffers:
+            self.sock.sendall(_REQUEST.pack(len(data), 0) + data)
+            return
+        try:
+            heads, parts = [_REQUEST.pack(len(data), len(buffers))], []
+            for raw in buffers:
+                kind, slot = self._keep(raw) if raw.nbytes <= KEEP_MAX else (_NEW, 0)
+                heads.append(_BUFFER.pack(kind | (_READONLY if raw.readonly else 0), slot, raw.nbytes))
+                if kind != _SAME:
+                    parts.append(raw)
+            if parts:
+                _send_parts(self.sock, [b"".join(heads), data, *parts])
+            else:
+                self.sock.sendall(b"".join(heads) + data)
+        finally:
+            buffers.clear()  # (views of the caller's arrays)
+
+    def _keep(self, raw: memoryview) -> tuple[int, int]:
+        """(_SAME, its slot) for bytes the student's process keeps already, else (_KEEP, the slot to keep them in)."""
+        now = np.frombuffer(raw, np.uint8)
+        for i in range(len(self.sent) - 1, -1, -1):  # the most recently sent first
+            slot, copy = self.sent[i]
+            if copy.size == now.size and _same(copy, now):
+                self.sent.append(self.sent.pop(i))
+                return _SAME, slot
+        slot = len(self.sent) if len(self.sent) < KEEP_SLOTS else self.sent.pop(0)[0]
+        self.sent.append((slot, now.copy()))
+        return _KEEP, slot
 
     def recv(self) -> Any:
         """The next value; EOFError when the other side closed (or died)."""
+        if self.trusted_peer:
+            return self._request()
         buf = self.buf
         while len(buf) < 4:
             self._more()
         n = _U32_AT(buf, 0)[0]
         if n > MAX_MESSAGE:
             raise CodecError(f"a message of {n} bytes is over the {MAX_MESSAGE // 2**20} MB limit")
-        if 4 + n > len(buf) + len(self.chunk):  # a large value (an image): read straight into its own buffer
+        del buf[:4]
+        if n > len(buf) + len(self.chunk):  # a large value (an image): read straight into its own buffer
             data = bytearray(n)
-            have = len(buf) - 4
-            data[:have] = memoryview(buf)[4:]
-            buf.clear()
-            view = memoryview(data)
-            while have < n:
-                k = self.sock.recv_into(view[have:])
-                if k == 0:
-                    raise EOFError("the other side closed the connection")
-                have += k
-            return pickle.loads(data) if self.trusted_peer else decode(bytes(data))
-        while len(buf) < 4 + n:
+            self._fill(memoryview(data))
+            return decode(bytes(data))
+        return decode(self._take(n))
+
+    def _request(self) -> Any:
+        buf = self.buf
+        while len(buf) < _REQUEST.size:
             self._more()
-        data = bytes(buf[4:4 + n])
-        del buf[:4 + n]
-        return pickle.loads(data) if self.trusted_peer else decode(data)
+        n, count = _REQUEST.unpack_from(buf)
+        if n > MAX_MESSAGE or count > MAX_ITEMS:
+            raise CodecError(f"a message of {n} bytes and {count} buffers")
+        end = _REQUEST.size + count * _BUFFER.size + n
+        if not count and end <= len(buf):  # a call with numbers: the whole message read already
+            data = bytes(buf[_REQUEST.size:end])
+            del buf[:end]
+            return pickle.loads(data)
+        del buf[:_REQUEST.size]
+        heads = self._take(count * _BUFFER.size) if count else b""
+        data = self._take(n)
+        buffers: list[Any] = []
+        for i in range(count):
+            kind, slot, size = _BUFFER.unpack_from(heads, i * _BUFFER.size)
+            if size > MAX_MESSAGE:
+                raise CodecError(f"a buffer of {size} bytes is over the {MAX_MESSAGE // 2**20} MB limit")
+            if kind & ~_READONLY == _SAME:
+                kept = self.kept.get(slot)
+                if kept is None or len(kept) != size:
+                    raise CodecError(f"a buffer that names slot {slot}, which holds no such bytes")
+                buffer = bytearray(kept)
+            else:
+                buffer = bytearray(size)
+                self._fill(memoryview(buffer))
+                if kind & ~_READONLY == _KEEP:
+                    self.kept[slot] = bytes(buffer)
+            buffers.append(bytes(buffer) if kind & _READONLY else buffer)
+        return pickle.loads(data, buffers=buffers)
+
+    def _take(self, n: int) -> bytes:
+        """The next ``n`` bytes."""
+        buf = self.buf
+        if n > len(buf) + len(self.chunk):
+            data = bytearray(n)
+            self._fill(memoryview(data))
+            return bytes(data)
+        while len(buf) < n:
+            self._more()
+        data = bytes(buf[:n])
+        del buf[:n]
+        return data
+
+    def _fill(self, view: memoryview) -> None:
+        """``view`` filled with the next bytes: what was read already, then straight from the socket."""
+        have = min(len(self.buf), len(view))
+        view[:have] = self.buf[:have]
+        del self.buf[:have]
+        while have < len(view):
+            k = self.sock.recv_into(view[have:])
+            if k == 0:
+                raise EOFError("the other side closed the connection")
+            have += k
 
     def _more(self) -> None:
         k = self.sock.recv_into(self.chunk)
         if k == 0:
             raise EOFError("the other side closed the connection")
         self.buf += memoryview(self.chunk)[:k]
+
+
+def _in_band(buffer: pickle.PickleBuffer, out_of_band: list[memoryview]) -> bool:
+    """A pickle's buffer: True (in the pickle) when small, else its bytes go in ``out_of_band``."""
+    raw = buffer.raw()
+    if raw.nbytes < KEEP_MIN:
+        return True
+    out_of_band.append(raw)
+    return False
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two byte arrays of one size hold the same bytes: a sample of them first (a new
+    frame differs from the last one nearly everywhere), then all of them, 8 at a time where they can."""
+    if a.size % 8 == 0:
+        a, b = a.view(np.uint64), b.view(np.uint64)
+    step = max(1, a.size // 64)
+    return bool(np.array_equal(a[::step], b[::step]) and np.array_equal(a, b))
+
+
+def _send_parts(sock: socket.socket, parts: list[Any]) -> None:
+    """``parts`` one after the other, in as few ``sendmsg`` calls as the socket takes them."""
+    views = [memoryview(p) for p in parts]
+    while views:
+        sent = sock.sendmsg(views)
+        while views and sent >= views[0].nbytes:
+            sent -= views.pop(0).nbytes
+        if views and sent:
+            views[0] = views[0][sent:]
 
 
 __all__ = ["Channel", "CodecError", "decode", "encode"]
