@@ -142,3 +142,20 @@ def test_the_combined_strategy_dodges_a_ball_rolled_at_it_which_the_windows_alon
     states = ok["time_in_state_s"]
     assert states.get("dodge-left", 0.0) + states.get("dodge-right", 0.0) > 0.3
     assert ok["distance_m"] > 1.0  # and it drove on
+
+
+def test_the_icp_solve_is_numpys_and_a_singular_system_raises_without_a_warning():
+    """``_solve`` calls numpy's LAPACK gufunc directly (the ICP's 3 x 3 step): the same numbers as
+    ``np.linalg.solve``, and a singular system raises LinAlgError as it did, printing nothing."""
+    import warnings
+
+    from qcarlab.control.moving_obstacles import _solve
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        H, b = rng.normal(size=(3, 3)), rng.normal(size=3)
+        assert np.array_equal(_solve(H, b), np.linalg.solve(H, b))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(np.linalg.LinAlgError):
+            _solve(np.zeros((3, 3)), np.ones(3))

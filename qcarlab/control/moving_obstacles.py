@@ -198,8 +198,12 @@ _hypot = np.hypot
 def _solve(H: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``np.linalg.solve(H, b)`` for a 3 x 3 ``H`` and a vector ``b``: the same LAPACK call (its
     gufunc, without the wrapper's checks, a third of an ICP iteration); a singular ``H`` (a NaN
-    result) goes through ``np.linalg.solve``, which raises as before."""
-    x = _SOLVE1(H, b, signature="dd->d") if _SOLVE1 is not None else np.linalg.solve(H, b)
+    result, with no RuntimeWarning printed on the way) goes through ``np.linalg.solve``, which
+    raises as before."""
+    if _SOLVE1 is None:
+        return np.linalg.solve(H, b)
+    with np.errstate(invalid="ignore"):
+        x = _SOLVE1(H, b, signature="dd->d")
     if not np.isfinite(x).all():
         return np.linalg.solve(H, b)
     return x
