@@ -328,7 +328,7 @@ class Channel:
     :func:`encode`'s bytes), decoded by :func:`decode`: a pickle from the student's process would
     run their code in the trusted one. The trusted side's requests are pickled (fast, in C; it is
     the student's process that unpickles them, and a pickle from the trusted side is no risk to
-    it): the pickle's length and its out-of-band buffers' count (two 4-byte lengths), each such
+    it; numpy scalars and small arrays by :class:`_RequestPickler`'s cheaper reductions): the pickle's length and its out-of-band buffers' count (two 4-byte lengths), each such
     buffer's head (``_BUFFER``), the pickle, then the buffers' bytes, in one ``sendmsg`` from the
     arrays' own memory. An array of ``KEEP_MIN`` bytes or more (an image) goes out of band and,
     up to ``KEEP_MAX`` bytes, is kept by both ends in one of ``KEEP_SLOTS`` slots; when a later
