@@ -104,3 +104,34 @@ def test_a_very_large_array_is_sent_each_time_and_kept_by_neither_end(monkeypatc
     assert all(np.array_equal(g[2][0], big) for g in got) and not trusted.sent and not student.kept
     a.close()
     b.close()
+
+
+def test_numpy_scalars_in_a_request_arrive_as_the_same_types_and_bits():
+    a, b = socket.socketpair()
+    trusted, student = Channel(a, trusted_peer=False), Channel(b, trusted_peer=True)
+    values = (np.float64(0.1), np.float64(-0.0), np.float64("nan"), np.float64("-inf"), np.float32(1 / 3),
+              np.int64(-2**62), np.int32(7), np.bool_(True), np.uint8(200), np.float16(0.5), 0.25, 3, True)
+    trusted.send(("call", 0, (values, [np.float64(2.5)]), None, None))
+    got = student.recv()
+    for sent, came in zip(values + (np.float64(2.5),), got[2][0] + tuple(got[2][1])):
+        assert type(came) is type(sent)
+        assert np.asarray(came).tobytes() == np.asarray(sent).tobytes()
+    a.close()
+    b.close()
+
+
+def test_small_arrays_in_a_request_arrive_equal_with_their_dtype_shape_and_writability():
+    a, b = socket.socketpair()
+    trusted, student = Channel(a, trusted_peer=False), Channel(b, trusted_peer=True)
+    frozen = np.arange(6, dtype=np.int16).reshape(2, 3)
+    frozen.flags.writeable = False
+    arrays = [np.array((0.5, 0.6)), np.zeros((0,)), np.array(3.0), frozen, np.arange(12.0).reshape(3, 4).T,
+              np.array([1 + 2j], dtype=np.complex64), np.array([True, False]), np.array([1.5], dtype=">f8"),
+              np.array(["a"]), np.array([(1, 2.0)], dtype=[("i", "i4"), ("f", "f8")])]
+    trusted.send(("call", 0, tuple(arrays), None, None))
+    got = student.recv()[2]
+    for sent, came in zip(arrays, got):
+        assert type(came) is np.ndarray and came.dtype == sent.dtype and came.shape == sent.shape
+        assert np.array_equal(came, sent) and came.flags.writeable == sent.flags.writeable
+    a.close()
+    b.close()

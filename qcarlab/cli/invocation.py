@@ -8,7 +8,6 @@ grader reads a run's results without parsing the student's prints on stdout.
 
 from __future__ import annotations
 
-import functools
 import importlib
 import os
 from pathlib import Path
@@ -49,16 +48,13 @@ def record_invocation(metrics: dict[str, Any]) -> None:
                              "qcarlab": __version__}
 
 
-@functools.lru_cache(maxsize=1)
 def _commands() -> Any:
-    """The CLI's click group, built once (typer builds every command's parser anew on each call:
-    some 70 ms, which the grader paid several times per task)."""
-    import typer.main
-
-    from qcarlab.cli import app, load_commands
+    """The CLI's click group with every command loaded, built once (:func:`qcarlab.cli.app.click_group`)."""
+    from qcarlab.cli import load_commands
+    from qcarlab.cli.app import click_group
 
     load_commands()
-    return typer.main.get_command(app)
+    return click_group()
 
 
 def parse_command(argv: list[str]) -> tuple[str, dict[str, Any], dict[str, str]]:

@@ -28,6 +28,7 @@ does not start, every task is a fresh ``python -m qcarlab.grading.child`` as bef
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import signal
@@ -170,7 +171,8 @@ MODULES = ("qcarlab.cli", "qcarlab.cli.invocation", "qcarlab.cli.recording", "qc
 
 def warm_up() -> None:
     """Load once what every task process loads: qcarlab's commands, the grader's child, the
-    simulator's modules, typer's parameter parsing (pydantic), numba and the compiled physics,
+    simulator's modules, typer's parameter parsing (pydantic) and the CLI's click group, numba and
+    the compiled physics, the sandbox's libc and its probe (:func:`qcarlab.sandbox.jail.probe`),
     matplotlib's Agg canvas with its fonts. No OpenCV call, no sensor frame, no thread."""
     import importlib
 
@@ -194,6 +196,14 @@ def warm_up() -> None:
     except Exception:  # noqa: BLE001 - a task then loads it itself
         pass
     try:
+        from qcarlab.sandbox import jail
+
+        if sys.platform.startswith("linux"):
+            jail.libc()  # ctypes' find_library runs ``ldconfig -p``: once here, not in each student's process
+            jail.probe()  # whether this machine can sandbox (a fork that unshares): once, not once per task
+    except Exception:  # noqa: BLE001 - a task then finds out itself
+        pass
+    try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 
@@ -210,6 +220,8 @@ def serve(address: str) -> None:
     import selectors
 
     warm_up()
+    gc.collect()
+    gc.freeze()  # what the zygote loaded is left out of every task's collections (and its pages unwritten)
     if threading.active_count() > 1:  # a fork keeps one thread: the others' locks would hang a task
         sys.stdout.write("not ready: the warm-up started a thread\n")
         sys.stdout.flush()

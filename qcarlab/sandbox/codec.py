@@ -15,7 +15,9 @@ process loads) send an image once while it is unchanged (:class:`Channel`).
 
 from __future__ import annotations
 
+import copyreg
 import functools
+import io
 import math
 import pickle
 import socket
@@ -277,6 +279,47 @@ KEEP_MAX = 1 << 24  #: bytes: a buffer larger than this is sent each time (a cop
 KEEP_SLOTS = 4  #: buffers kept (a block's image and depth, another block's)
 
 
+def _scalar(x: np.generic) -> tuple:
+    """A numpy scalar as its type and its Python value: ``numpy.float64(0.5)`` pickles as the
+    type (a reference, once per pickle) and a float, where numpy's own reduction pickles its
+    dtype and its bytes (some 2 us each way per scalar: a pose of three is most of a call's
+    pickle). Exact for these types (a float64 is a Python float; float32, the integers and bool
+    widen and narrow back unchanged), so the student's block gets the same values of the same types."""
+    return type(x), (x.item(),)
+
+
+def _small_array(a: np.ndarray) -> tuple:
+    """A small numeric array (a target point, a pose: under ``KEEP_MIN`` bytes, C order) as its
+    bytes, dtype string and shape, rebuilt by :func:`_array`: numpy's own reduction pickles the
+    dtype as an object (some 3 us each way). Writable or not as it was, as numpy's in-band pickle
+    makes it; any other array as numpy pickles it."""
+    if a.dtype.kind in "biufc" and a.nbytes < KEEP_MIN and a.flags.c_contiguous and a.dtype.fields is None:
+        return _array, ((bytearray if a.flags.writeable else bytes)(a), a.dtype.str, a.shape)
+    return a.__reduce_ex__(5)
+
+
+def _array(data: bytes | bytearray, dtype: str, shape: tuple) -> np.ndarray:
+    """The student's side of :func:`_small_array`."""
+    return np.frombuffer(data, dtype).reshape(shape)
+
+
+_REQUEST_REDUCERS: dict[type, Any] = {t: _scalar for t in (np.float64, np.float32, np.int64, np.int32, np.bool_)}
+_REQUEST_REDUCERS[np.ndarray] = _small_array
+
+
+class _RequestPickler(pickle.Pickler):
+    """The trusted side's pickler: numpy scalars by :func:`_scalar`, small arrays by
+    :func:`_small_array`, everything else as ``pickle.dumps``."""
+
+    dispatch_table = {**copyreg.dispatch_table, **_REQUEST_REDUCERS}
+
+
+def _dumps(value: Any, buffer_callback: Any) -> bytes:
+    out = io.BytesIO()
+    _RequestPickler(out, protocol=5, buffer_callback=buffer_callback).dump(value)
+    return out.getvalue()
+
+
 class Channel:
     """Values over a stream socket, each direction in its own format. Reads what the socket has
     (usually a whole message in one call) into a buffer of its own.
@@ -285,7 +328,7 @@ class Channel:
     :func:`encode`'s bytes), decoded by :func:`decode`: a pickle from the student's process would
     run their code in the trusted one. The trusted side's requests are pickled (fast, in C; it is
     the student's process that unpickles them, and a pickle from the trusted side is no risk to
-    it): the pickle's length and its out-of-band buffers' count (two 4-byte lengths), each such
+    it; numpy scalars and small arrays by :class:`_RequestPickler`'s cheaper reductions): the pickle's length and its out-of-band buffers' count (two 4-byte lengths), each such
     buffer's head (``_BUFFER``), the pickle, then the buffers' bytes, in one ``sendmsg`` from the
     arrays' own memory. An array of ``KEEP_MIN`` bytes or more (an image) goes out of band and,
     up to ``KEEP_MAX`` bytes, is kept by both ends in one of ``KEEP_SLOTS`` slots; when a later
@@ -316,7 +359,7 @@ class Channel:
             return
         buffers = self.out_of_band  # (filled by self.in_band while pickling)
         buffers.clear()
-        data = pickle.dumps(value, protocol=5, buffer_callback=self.in_band)
+        data = _dumps(value, self.in_band)
         if not buffers:
             self.sock.sendall(_REQUEST.pack(len(data), 0) + data)
             return
