@@ -7,6 +7,9 @@ returns the matplotlib Figure (to check or change) and :func:`save_figure` write
 
 from __future__ import annotations
 
+import io
+import struct
+import zlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -35,7 +38,8 @@ def _save(fig: Any, file: str | Path) -> Path:
     ``bbox_inches="tight"`` (and an inert layout engine a finished ``fig.tight_layout()`` leaves)
     makes savefig draw the whole figure twice: a layout pass (which resamples every image) and the
     real one. The tight box (``fig.get_tightbbox`` padded by ``savefig.pad_inches``) needs no draw,
-    so it is measured first and handed over; the pixels are the same (tests/test_plots_save.py).
+    so it is measured first and handed over; the RGBA buffer drawn in it is encoded by
+    :func:`_png`. The pixels are those of ``savefig(bbox_inches="tight")`` (tests/test_plots_save.py).
     """
     import matplotlib as mpl
     from matplotlib.layout_engine import PlaceHolderLayoutEngine
@@ -45,18 +49,41 @@ def _save(fig: Any, file: str | Path) -> Path:
     engine = fig.get_layout_engine()
     inert = isinstance(engine, PlaceHolderLayoutEngine) and not (
         mpl.rcParams["figure.autolayout"] or mpl.rcParams["figure.constrained_layout.use"])
-    if engine is not None and not inert:  # a live layout engine lays out in savefig's first pass
+    pad, dpi = mpl.rcParams["savefig.pad_inches"], mpl.rcParams["savefig.dpi"]
+    if (engine is not None and not inert) or not isinstance(pad, float) or dpi not in ("figure", fig.dpi):
+        # a live layout engine lays out in savefig's first pass; a savefig dpi of its own measures there
         fig.savefig(out, format="png", bbox_inches="tight", pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
         return out
-    bbox = fig.get_tightbbox(fig.canvas.get_renderer()).padded(mpl.rcParams["savefig.pad_inches"])
+    bbox = fig.get_tightbbox(fig.canvas.get_renderer()).padded(pad)
+    raw = io.BytesIO()
     if inert:
         fig.set_layout_engine(None)  # its execute() does nothing; without it savefig skips the layout pass
     try:
-        fig.savefig(out, format="png", bbox_inches=bbox, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
+        fig.savefig(raw, format="rgba", bbox_inches=bbox)
     finally:
         if inert:
             fig.set_layout_engine(engine)
+    shape = np.asarray(fig.canvas.buffer_rgba()).shape  # the canvas savefig drew last: (H, W, 4)
+    rgba = np.frombuffer(raw.getbuffer(), np.uint8).reshape(shape)
+    out.write_bytes(_png(rgba, fig.dpi))
     return out
+
+
+def _png(rgba: np.ndarray, dpi: float) -> bytes:
+    """An (H, W, 4) uint8 RGBA image as PNG bytes (RGBA, 8 bits), with the resolution (a pHYs chunk,
+    ``dpi``) that matplotlib's PNGs carry: OpenCV's encoder at :data:`PNG_COMPRESS_LEVEL`, some 20 %
+    faster than Pillow's at the same level (one filter for every row where Pillow tries each)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA),
+                           [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESS_LEVEL])
+    if not ok:
+        raise OSError("cannot encode the figure as PNG")
+    data = buf.tobytes()
+    ppm = int(dpi / 0.0254 + 0.5)  # pixels per metre, as Pillow rounds it
+    phys = struct.pack(">IIB", ppm, ppm, 1)
+    chunk = struct.pack(">I", len(phys)) + b"pHYs" + phys + struct.pack(">I", zlib.crc32(b"pHYs" + phys))
+    return data[:33] + chunk + data[33:]  # after the signature (8 bytes) and the IHDR chunk (25)
 
 
 def plot_path(
