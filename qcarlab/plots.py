@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import struct
+import sys
 import zlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -70,11 +71,18 @@ def _save(fig: Any, file: str | Path) -> Path:
 
 
 def _png(rgba: np.ndarray, dpi: float) -> bytes:
-    """An (H, W, 4) uint8 RGBA image as PNG bytes (RGBA, 8 bits), with the resolution (a pHYs chunk,
-    ``dpi``) that matplotlib's PNGs carry: OpenCV's encoder at :data:`PNG_COMPRESS_LEVEL`, some 20 %
-    faster than Pillow's at the same level (one filter for every row where Pillow tries each)."""
-    import cv2
+    """An (H, W, 4) uint8 RGBA image as PNG bytes (RGBA, 8 bits) at :data:`PNG_COMPRESS_LEVEL`, with
+    the resolution (``dpi``, a pHYs chunk) matplotlib's PNGs carry. OpenCV's encoder when a camera
+    lab has loaded it (one filter for every row where Pillow tries each: some 20 % faster on camera
+    panels), else Pillow's, which matplotlib has loaded (importing OpenCV would cost more than it saves)."""
+    cv2 = sys.modules.get("cv2")
+    if cv2 is None:
+        from PIL import Image
 
+        buf = io.BytesIO()
+        Image.frombuffer("RGBA", (rgba.shape[1], rgba.shape[0]), rgba, "raw", "RGBA", 0, 1).save(
+            buf, format="png", compress_level=PNG_COMPRESS_LEVEL, dpi=(dpi, dpi))
+        return buf.getvalue()
     ok, buf = cv2.imencode(".png", cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA),
                            [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESS_LEVEL])
     if not ok:

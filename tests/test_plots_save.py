@@ -89,3 +89,20 @@ def test_a_figure_saves_the_same_twice_and_keeps_its_layout_engine(tmp_path):
     first = plots.save_figure(fig, tmp_path / "a.png").read_bytes()
     assert fig.get_layout_engine() is engine
     assert plots.save_figure(fig, tmp_path / "b.png").read_bytes() == first
+
+
+def test_both_encoders_write_the_same_pixels_and_resolution(monkeypatch):
+    """OpenCV's encoder when a lab has loaded cv2, else Pillow's: the same image either way."""
+    import sys
+
+    from PIL import Image
+
+    rgba = np.dstack([np.random.default_rng(2).integers(0, 256, (37, 53, 3), dtype=np.uint8),
+                      np.full((37, 53), 255, np.uint8)])
+    with_cv2 = plots._png(rgba, 100.0)
+    monkeypatch.delitem(sys.modules, "cv2")
+    with_pillow = plots._png(rgba, 100.0)
+    for png in (with_cv2, with_pillow):
+        im = Image.open(io.BytesIO(png))
+        assert im.mode == "RGBA" and im.info["dpi"] == pytest.approx((100.0, 100.0), abs=0.01)
+        assert np.array_equal(np.asarray(im), rgba)
