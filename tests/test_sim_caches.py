@@ -72,3 +72,30 @@ def test_the_compiled_collision_check_gives_the_numpy_ones_numbers():
             sys.modules["numba"] = numba_module
         assert fast == slow, name
         assert any(d == 0.0 for d, _ in fast) and any(d > 0.1 for d, _ in fast)
+
+
+def test_a_student_at_a_terminal_is_told_once_why_the_first_run_compiles(monkeypatch, caplog):
+    """numba's first compilation after an install takes 10-30 s: at a terminal one line says so,
+    once a process; with stderr captured or redirected (tests, CI, the grader) nothing is said."""
+    import io
+    import logging
+
+    from qcarlab.sim import _kernels
+
+    if _kernels.COMPILE_NOTICE is None:
+        pytest.skip("numba is not installed")
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    with caplog.at_level(logging.INFO, logger="qcarlab.sim"):
+        monkeypatch.setattr("sys.stderr", io.StringIO())
+        quiet = type(_kernels.COMPILE_NOTICE)()
+        quiet.on_start(None)
+        monkeypatch.setattr("sys.stderr", Terminal())
+        told = type(_kernels.COMPILE_NOTICE)()
+        told.on_start(None)
+        told.on_start(None)
+    said = [r.getMessage() for r in caplog.records if "compiling" in r.getMessage()]
+    assert len(said) == 1 and "once after an install" in said[0]
