@@ -10,7 +10,7 @@ from typing import Annotated, Any
 
 import typer
 from rich.console import Console
-from rich.table import Table
+from rich import table as _rich_table
 
 from qcarlab.car import Car, open_car, parse_car_uri
 from qcarlab.constants import load_params
@@ -395,6 +395,15 @@ def emit(result: Result, json_out: bool, out: Path | None, summary) -> None:
                      f"{replay['max_throttle_difference']:.3g}, steering {replay['max_steering_difference_rad']:.3g} rad)",
                      markup=False)
         raise typer.Exit(1)
+
+
+class Table(_rich_table.Table):
+    """rich's Table whose cells wrap at the terminal's width, a word wider than its column (a
+    file's path, a long number) folding onto the next line instead of being cut with an ellipsis.
+    A column can still ask for its own ``overflow``."""
+
+    def add_column(self, *args: Any, overflow: Any = "fold", **kwargs: Any) -> None:
+        super().add_column(*args, overflow=overflow, **kwargs)
 
 
 def summary_table(title: str) -> Table:

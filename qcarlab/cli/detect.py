@@ -22,10 +22,9 @@ import cv2
 import numpy as np
 import typer
 from rich.console import Console
-from rich.table import Table
 
 from qcarlab.cli.app import app
-from qcarlab.cli.common import DebugOpt, check_out, parse_hsv, stdout
+from qcarlab.cli.common import DebugOpt, Table, check_out, parse_hsv, stdout
 from qcarlab.cli.helpfmt import Typer
 from qcarlab.errors import InputError
 from qcarlab.hsv_profile import load_hsv_profile

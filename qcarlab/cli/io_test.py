@@ -7,12 +7,12 @@ from typing import Annotated
 
 import typer
 from rich.live import Live
-from rich.table import Table
 
 from qcarlab.car.lamps import known_lamp_words, lamps_on, parse_lamps
 from qcarlab.cli.app import app
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
+    Table,
     CarTokenOpt,
     CarOpt, DebugOpt, JsonOpt, OutOpt, ParamsOpt, RateOpt, RealtimeOpt, SeedOpt, WorldOpt, UseOpt, BlockOpt,
     emit, interactive, open_from_options, stdout, student_blocks, summary_table,

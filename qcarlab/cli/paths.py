@@ -8,13 +8,13 @@ from typing import Annotated
 
 import numpy as np
 import typer
-from rich.table import Table
 
 from qcarlab import paths, plots
 from qcarlab.car import parse_car_uri
 from qcarlab.cli.app import app, stderr
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
+    Table,
     CarTokenOpt,
     KpOpt, KiOpt, KffOpt, KP, KI, KFF, UseOpt, BlockOpt, student_blocks, apply_tunables,
     check_out,

@@ -236,7 +236,7 @@ def print_after(info: dict[str, Any], console) -> None:
 
 
 def _print_replay(comparison: dict[str, Any], console) -> None:
-    from rich.table import Table
+    from qcarlab.cli.common import Table
 
     s = comparison["summary"]
     table = Table(title=f"replay of {s['source']}: what the lab would command beside what was commanded",

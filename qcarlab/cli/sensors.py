@@ -9,13 +9,13 @@ from typing import Annotated
 import cv2
 import typer
 from rich.live import Live
-from rich.table import Table
 
 from qcarlab import plots
 from qcarlab.car import parse_car_uri
 from qcarlab.cli.app import app
 from qcarlab.cli.common import recordable  # noqa: I001  (--record, --live)
 from qcarlab.cli.common import (
+    Table,
     CarTokenOpt,
     StartOpt, WorldOpt, sim_world,
     check_out,

@@ -8,10 +8,9 @@ import math
 from typing import Annotated, Any
 
 import typer
-from rich.table import Table
 
 from qcarlab.car import parse_car_uri
-from qcarlab.cli.common import interactive, stderr, stdout, summary_table
+from qcarlab.cli.common import Table, interactive, stderr, stdout, summary_table
 from qcarlab.errors import InputError
 from qcarlab.experiments.result import Result
 
