@@ -51,7 +51,8 @@ def _save(fig: Any, file: str | Path) -> Path:
     inert = isinstance(engine, PlaceHolderLayoutEngine) and not (
         mpl.rcParams["figure.autolayout"] or mpl.rcParams["figure.constrained_layout.use"])
     pad, dpi = mpl.rcParams["savefig.pad_inches"], mpl.rcParams["savefig.dpi"]
-    if (engine is not None and not inert) or not isinstance(pad, float) or dpi not in ("figure", fig.dpi):
+    agg = hasattr(fig.canvas, "get_renderer") and hasattr(fig.canvas, "buffer_rgba")  # (a bare Figure() has none)
+    if not agg or (engine is not None and not inert) or not isinstance(pad, float) or dpi not in ("figure", fig.dpi):
         # a live layout engine lays out in savefig's first pass; a savefig dpi of its own measures there
         fig.savefig(out, format="png", bbox_inches="tight", pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
         return out

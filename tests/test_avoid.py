@@ -173,3 +173,27 @@ def test_a_collision_ends_the_run_and_exits_1(cli):
 def test_bad_input_is_one_line_and_exit_2(cli, args, words):
     code, out, err = cli("avoid", *args)
     assert code == 2 and words in err and len(err.strip().splitlines()) == 1
+
+
+def test_ctrl_c_between_the_referees_step_and_the_logs_row_still_saves_the_run():
+    """The referee measures most ticks' wall clearance after the run; a Ctrl-C that lands after
+    its step but before the loop logged that tick must still end in a saved, interrupted run
+    (it raised IndexError in the referee's finish)."""
+    import qcarlab
+    from qcarlab.experiments.avoid import AvoidConfig, avoid
+
+    with qcarlab.open_car("sim", world="hallway", seed=1) as car:
+        write, calls = car.write, [0]
+
+        def interrupted_write(*args, **kwargs):
+            calls[0] += 1
+            if calls[0] == 150:
+                raise KeyboardInterrupt
+            return write(*args, **kwargs)
+
+        car.write = interrupted_write
+        result = avoid(car, AvoidConfig(duration=5.0))
+    clearance = result.logs["log.csv"]["clearance"]
+    assert result.metrics["interrupted"] is True
+    assert len(clearance) == 149 and not any(math.isnan(v) for v in clearance)
+    assert 0.3 < result.metrics["min_clearance_m"] == pytest.approx(min(clearance), abs=0.05)

@@ -106,3 +106,18 @@ def test_both_encoders_write_the_same_pixels_and_resolution(monkeypatch):
         im = Image.open(io.BytesIO(png))
         assert im.mode == "RGBA" and im.info["dpi"] == pytest.approx((100.0, 100.0), abs=0.01)
         assert np.array_equal(np.asarray(im), rgba)
+
+
+def test_a_figure_without_an_agg_canvas_saves_as_savefig_would(tmp_path):
+    """save_figure is public: a bare matplotlib Figure() (no Agg canvas attached) is saved too."""
+    from matplotlib.figure import Figure
+
+    def bare():
+        fig = Figure(figsize=(3, 2))
+        fig.add_subplot().plot([0, 1, 0.5])
+        return fig
+
+    reference = io.BytesIO()
+    bare().savefig(reference, format="png", bbox_inches="tight")
+    out = plots.save_figure(bare(), tmp_path / "bare.png")
+    assert np.array_equal(_decoded(out.read_bytes()), _decoded(reference.getvalue()))

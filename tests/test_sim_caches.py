@@ -99,3 +99,16 @@ def test_a_student_at_a_terminal_is_told_once_why_the_first_run_compiles(monkeyp
         told.on_start(None)
     said = [r.getMessage() for r in caplog.records if "compiling" in r.getMessage()]
     assert len(said) == 1 and "once after an install" in said[0]
+
+
+def test_rows_of_a_lazily_drawn_frame_read_negative_bounds_as_a_slice_does():
+    """RowFrame.color_rows/depth_rows(a, b): negative bounds count from the bottom, as numpy's
+    slices, and every row returned is drawn (equal to the whole frame's)."""
+    from qcarlab.constants import DEFAULT_PARAMS
+    from qcarlab.sim.camera import RGBDCamera
+
+    pose = (0.5, 0.3, 0.2)
+    whole = RGBDCamera("hallway", DEFAULT_PARAMS, np.random.default_rng(3)).render(pose, 1.0)
+    rows = RGBDCamera("hallway", DEFAULT_PARAMS, np.random.default_rng(3)).render_rows(pose, 1.0)
+    assert np.array_equal(rows.depth_rows(400, -1), whole.depth[400:-1])
+    assert np.array_equal(rows.color_rows(-40, 480), whole.color[-40:])

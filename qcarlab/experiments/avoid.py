@@ -313,7 +313,8 @@ class _Collisions:
         clear = np.where(circles < walls, circles, walls).tolist()
         column = log.columns["clearance"]
         for i, v in zip(rows, clear):
-            column[i] = v
+            if i < len(column):  # (a run stopped by Ctrl-C between the referee's step and the log's row)
+                column[i] = v
         self.min_clear = min(self.min_clear, min(clear))
         self._later = []
 

@@ -294,7 +294,8 @@ def _small_array(a: np.ndarray) -> tuple:
     dtype as an object (some 3 us each way). Writable or not as it was, as numpy's in-band pickle
     makes it; any other array as numpy pickles it."""
     if a.dtype.kind in "biufc" and a.nbytes < KEEP_MIN and a.flags.c_contiguous and a.dtype.fields is None:
-        return _array, ((bytearray if a.flags.writeable else bytes)(a), a.dtype.str, a.shape)
+        data = memoryview(a)  # (bytes(a) of a 0-d integer array would be that many zero bytes)
+        return _array, ((bytearray if a.flags.writeable else bytes)(data), a.dtype.str, a.shape)
     return a.__reduce_ex__(5)
 
 

@@ -510,10 +510,14 @@ class RowFrame:
             self._camera = self._plan = self._finish = None
 
     def color_rows(self, a: int, b: int) -> np.ndarray:
+        """Rows ``a:b`` of the colour image (a slice's meaning: negative counts from the bottom)."""
+        a, b, _ = slice(a, b).indices(self.shape[0])
         self._draw(a, b)
         return self._color[a:b]
 
     def depth_rows(self, a: int, b: int) -> np.ndarray:
+        """Rows ``a:b`` of the depth image (as :meth:`color_rows`)."""
+        a, b, _ = slice(a, b).indices(self.shape[0])
         self._draw(a, b)
         return self._depth[a:b]
 
