@@ -171,7 +171,7 @@ MODULES = ("qcarlab.cli", "qcarlab.cli.invocation", "qcarlab.cli.recording", "qc
 
 def warm_up() -> None:
     """Load once what every task process loads: qcarlab's commands, the grader's child, the
-    simulator's modules, typer's parameter parsing (pydantic) and the CLI's click group, numba and
+    simulator's modules, the CLI's click group (every command's parser), numba and
     the compiled physics, the sandbox's libc and its probe (:func:`qcarlab.sandbox.jail.probe`),
     matplotlib's Agg canvas with its fonts. No OpenCV call, no sensor frame, no thread."""
     import importlib
