@@ -19,7 +19,15 @@ _os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
 _os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
 _os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 
-from qcarlab.car import open_car  # noqa: E402
-
 __version__ = "0.1.0"
 __all__ = ["open_car", "__version__"]
+
+
+def __getattr__(name: str):
+    """``qcarlab.open_car`` is imported on first use: the ``qcarlab`` command's first step
+    (:mod:`qcarlab.warm`) imports this package and must not pay for numpy and the simulator."""
+    if name == "open_car":
+        from qcarlab.car import open_car
+
+        return open_car
+    raise AttributeError(f"module 'qcarlab' has no attribute {name!r}")

@@ -14,6 +14,10 @@ from qcarlab.cli import main
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
+# Every ``qcarlab`` process a test starts runs cold: no test starts (or uses) a warm server
+# (qcarlab.warm) unless it asks for one itself (tests/test_warm.py).
+os.environ["QCARLAB_WARM"] = "0"
+
 # A line a server thread logs after its test ended (a client's disconnect) goes nowhere instead of
 # into the progress dots: the root logger's handler keeps logging's last resort from printing it.
 logging.getLogger().addHandler(logging.NullHandler())

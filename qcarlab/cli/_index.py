@@ -7,7 +7,7 @@ as it should be."""
 from __future__ import annotations
 
 #: the command modules, in the order they register their commands
-MODULES = ('io_test', 'net', 'drive', 'paths', 'sensors', 'stop_sign', 'lane_follow', 'avoid', 'grade', 'lab', 'replay', 'onboard', 'detect')
+MODULES = ('io_test', 'net', 'drive', 'paths', 'sensors', 'stop_sign', 'lane_follow', 'avoid', 'grade', 'lab', 'replay', 'onboard', 'detect', 'warmstart')
 
 #: (name, module, the first paragraph of its help), in the order ``qcarlab --help`` lists them
 COMMANDS = (
@@ -45,6 +45,8 @@ COMMANDS = (
      'The car-side server: one Python file that runs on a QCar 1 (Python 3.6) or QCar 2 (3.8) as shipped.'),
     ('deploy', 'onboard',
      'Copy the car-side server to a QCar over ssh/scp, store a token there, print the command that starts it.'),
+    ('warm', 'warmstart',
+     'Keep lab commands quick to start: a warm server that has loaded qcarlab once forks each one.'),
     ('replay', 'replay',
      'Recordings: what they hold (replay one with --car replay:FILE on a lab command).'),
     ('detect', 'detect',

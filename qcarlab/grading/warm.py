@@ -40,6 +40,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from qcarlab.zygote import run_as_interpreter, warm_up
+
 READY = "ready"
 COLD_ENV = "QCARLAB_GRADE_COLD"
 
@@ -162,59 +164,6 @@ def _remove(folder: Path) -> None:
 # --------------------------------------------------------------------------------------------
 # the zygote
 # --------------------------------------------------------------------------------------------
-#: What a task imports after the commands themselves (measured: some 0.7 s per task process).
-MODULES = ("qcarlab.cli", "qcarlab.cli.invocation", "qcarlab.cli.recording", "qcarlab.experiments.labs",
-           "qcarlab.experiments.worlds", "qcarlab.grading.child", "qcarlab.plots", "qcarlab.car.replay",
-           "qcarlab.recording.reader", "qcarlab.sim.world", "qcarlab.sim.raster", "qcarlab.sim.render",
-           "qcarlab.sim.lidar", "qcarlab.sim.camera")
-
-
-def warm_up() -> None:
-    """Load once what every task process loads: qcarlab's commands, the grader's child, the
-    simulator's modules, the CLI's click group (every command's parser), numba and
-    the compiled physics, the sandbox's libc and its probe (:func:`qcarlab.sandbox.jail.probe`),
-    matplotlib's Agg canvas with its fonts. No OpenCV call, no sensor frame, no thread."""
-    import importlib
-
-    for name in MODULES:
-        try:
-            importlib.import_module(name)
-        except ImportError:
-            pass
-    try:
-        from qcarlab.cli.invocation import parse_command
-
-        parse_command(["path-follow", "line", "--speed", "0.5"])  # typer's runtime parameters
-    except Exception:  # noqa: BLE001 - a task then loads it itself
-        pass
-
-    try:
-        from qcarlab.car.sim import SimCar
-
-        car = SimCar()
-        car.warm_physics()  # numba, and the compiled physics kernel loaded from its cache
-    except Exception:  # noqa: BLE001 - a task then loads it itself
-        pass
-    try:
-        from qcarlab.sandbox import jail
-
-        if sys.platform.startswith("linux"):
-            jail.libc()  # ctypes' find_library runs ``ldconfig -p``: once here, not in each student's process
-            jail.probe()  # whether this machine can sandbox (a fork that unshares): once, not once per task
-    except Exception:  # noqa: BLE001 - a task then finds out itself
-        pass
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=(1, 1))
-        FigureCanvasAgg(fig)
-        fig.add_subplot(1, 1, 1).set_title("warm")
-        fig.canvas.draw()  # the font cache and the text renderer
-    except Exception:  # noqa: BLE001
-        pass
-
-
 def serve(address: str) -> None:
     """The zygote's loop: accept a task's spec, fork it, report its pid and its exit code."""
     import selectors
@@ -311,7 +260,6 @@ def _kill_group(pid: int) -> None:
 def _task(request: dict[str, Any], inherited: list[int]) -> None:
     """In the forked task process: its own session, folder, output files and environment, then
     the task as ``python -m qcarlab.grading.child SPEC`` would run it; exits like the interpreter."""
-    code = 1
     try:
         os.setsid()
         signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -333,33 +281,9 @@ def _task(request: dict[str, Any], inherited: list[int]) -> None:
         if sys.path:
             sys.path[0] = request["cwd"]  # as ``python -m`` in the task's folder has it
         from qcarlab.grading.child import main
-
-        try:
-            main([request["spec"]])
-            code = 0
-        except SystemExit as exc:
-            if exc.code is None:
-                code = 0
-            elif isinstance(exc.code, int):
-                code = exc.code
-            else:
-                sys.stderr.write(f"{exc.code}\n")
-                code = 1
-        except BaseException:  # noqa: BLE001 - as the interpreter: the traceback, exit 1
-            sys.excepthook(*sys.exc_info())
-            code = 1
-        shutdown = getattr(threading, "_shutdown", None)
-        if shutdown is not None:
-            shutdown()  # wait for the task's non-daemon threads, as the interpreter does
-        import atexit
-
-        atexit._run_exitfuncs()
     except BaseException:  # noqa: BLE001
-        code = 1
-    finally:
-        from qcarlab.sandbox.host import exit_now
-
-        exit_now(code)
+        os._exit(1)
+    run_as_interpreter(lambda: main([request["spec"]]))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -1,0 +1,713 @@
+"""A warm start for the commands a student types: the start-up paid once, not on every command.
+
+A cold ``qcarlab stop-sign`` spends some 0.75 s before its first frame: the interpreter's imports
+(numpy, OpenCV, typer, rich, the lab's modules) and numba's start-up with its compiled kernels
+loaded from the cache. A student types such commands again and again. At a terminal, the
+``qcarlab`` command therefore hands a lab command to a per-user *warm server* that did all of that
+once (:func:`qcarlab.zygote.warm_up`) and forks a process for it::
+
+    qcarlab stop-sign            --(Unix socket: the arguments, folder, environment, sys.path,
+      (this module only:             stream settings; stdin/stdout/stderr themselves)-->  warm server
+       some 40 ms of Python)                                                                |  fork
+           <-- "pid N" ... "exit RC" ------------------------------------------------------+
+                                                                          command process: setsid, the
+                                                                          client's streams, folder and
+                                                                          environment, then
+                                                                          qcarlab.cli.main(ARGS)
+
+The command process is a cold process's twin: it runs the same ``qcarlab.cli.main`` on the same
+arguments, streams (a terminal stays a terminal: colours, width, live views), folder and
+environment, and the server was started with the same values of every variable a module reads
+when it is imported (:data:`IMPORT_ENV`); so its output and exit status are a cold run's. The
+server itself never runs a command, so no command sees another's state. Ctrl-C, Ctrl-Z and
+``kill`` on ``qcarlab`` are passed on to the command's process group; if ``qcarlab`` dies, the
+server stops the command (SIGTERM: the car is stopped) as a cold process would have been stopped.
+
+When: ``QCARLAB_WARM`` is unset (the default): for the lab commands (:data:`COMMANDS`) typed at a
+terminal (stdin and stdout are terminals). The first such command runs cold and starts the server
+in the background; it serves the later ones and leaves after 20 idle minutes
+(``QCARLAB_WARM_IDLE``, seconds). ``QCARLAB_WARM=1``: for the lab commands whatever the streams
+(the first one starts the server and waits for it). ``QCARLAB_WARM=0``: never. Scripts, pipes,
+CI and the grader therefore run cold unless they ask. ``qcarlab warm`` starts, shows or stops it.
+
+A server is one user's (a folder only they may enter, ``$XDG_RUNTIME_DIR/qcarlab-warm`` or
+``/tmp/qcarlab-warm-UID``, or ``QCARLAB_WARM_DIR``; the peer's uid is checked) and one install's:
+its key hashes the interpreter, qcarlab's files (paths, sizes, modification times) and the
+import-time environment. A client whose key differs (qcarlab was edited or reinstalled) is told
+"stale": that server stops taking commands and leaves when its own are done, and the client
+starts a new one. Linux only; elsewhere every command runs cold.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+
+ENV = "QCARLAB_WARM"
+DIR_ENV = "QCARLAB_WARM_DIR"
+IDLE_ENV = "QCARLAB_WARM_IDLE"
+IDLE = 1200.0  # s without a command before the server leaves
+START_TIMEOUT = 120.0  # s to wait for a server that is starting (a cold numba cache compiles first)
+
+#: The commands the warm server runs: the labs and their tools, whose start-up is most of a run.
+#: (Not ``serve``/``onboard``, long-lived servers of their own; not ``grade``, which keeps student
+#: code away from every process of the user's; not ``keyboard-drive``, interactive anyway.)
+COMMANDS = frozenset({"io-test", "ping", "path-gen", "path-follow", "lidar-scan", "camera", "stop-sign",
+                      "lane-follow", "avoid", "detect", "blocks", "replay"})
+
+#: Variables a module may read when it is imported (colours, terminal, locale, numerical
+#: libraries' threads, numba, OpenCV, matplotlib, Python itself): a server serves only clients
+#: with the values it was started with, which are in its key.
+IMPORT_ENV = ("TERM", "COLORTERM", "NO_COLOR", "FORCE_COLOR", "PY_COLORS", "CLICOLOR", "CLICOLOR_FORCE",
+              "TTY_COMPATIBLE", "TTY_INTERACTIVE", "GITHUB_ACTIONS", "CI", "COLUMNS", "LINES", "JUPYTER_COLUMNS",
+              "JUPYTER_LINES", "HOME", "TMPDIR", "LANG", "LANGUAGE", "TZ", "MPLBACKEND", "MPLCONFIGDIR", "DISPLAY",
+              "WAYLAND_DISPLAY", "XDG_CACHE_HOME", "XDG_CONFIG_HOME", "XDG_DATA_HOME")
+IMPORT_PREFIXES = ("LC_", "PYTHON", "NUMBA_", "OPENCV_", "QCARLAB_", "OMP_", "OPENBLAS_", "GOTO_", "MKL_",
+                   "NUMEXPR_", "TYPER_", "_TYPER", "RICH_")
+_NOT_KEYED = (ENV, DIR_ENV, IDLE_ENV, "QCARLAB_DEBUG")
+_MAGIC = b"QWRM"
+
+
+# --------------------------------------------------------------------------------------------
+# the client: the ``qcarlab`` command
+# --------------------------------------------------------------------------------------------
+def main() -> None:
+    """The ``qcarlab`` command: a lab command through the warm server when :func:`wanted` (and a
+    server answers), else the CLI in this process as always."""
+    argv = sys.argv[1:]
+    code = run(argv) if wanted(argv) else None
+    if code is None:
+        from qcarlab.cli import main as cold
+
+        cold(argv)
+        return
+    _exit_as(code)
+
+
+def _mode() -> str:
+    value = os.environ.get(ENV, "").strip().lower()
+    if value in ("0", "off", "no", "false"):
+        return "off"
+    return "on" if value in ("1", "on", "yes", "true") else "auto"
+
+
+def wanted(argv: list[str]) -> bool:
+    """Whether ``qcarlab ARGV`` goes to the warm server: a lab command (:data:`COMMANDS`), on
+    Linux, not shell completion, and ``QCARLAB_WARM=1`` or (unset) at a terminal."""
+    mode = _mode()
+    if mode == "off" or not argv or argv[0] not in COMMANDS or not sys.platform.startswith("linux"):
+        return False
+    if not hasattr(socket, "send_fds") or not hasattr(os, "pidfd_open"):
+        return False
+    if any(k.endswith("_COMPLETE") for k in os.environ):
+        return False
+    return mode == "on" or _at_terminal()
+
+
+def _at_terminal() -> bool:
+    try:
+        return os.isatty(0) and os.isatty(1)
+    except OSError:
+        return False
+
+
+class Place:
+    """Where this install's server lives: its folder, socket, lock file and key."""
+
+    def __init__(self, folder: str, key: str):
+        self.folder, self.key = folder, key
+        lineage = key.split("-", 1)[0]
+        self.socket = os.path.join(folder, f"{lineage}.sock")
+        self.lock = os.path.join(folder, f"{lineage}.lock")
+        self.log = os.path.join(folder, f"{lineage}.log")
+
+
+def place() -> Place | None:
+    """This user's and this install's server place, or None (no private folder can be made)."""
+    folder = _folder()
+    return Place(folder, install_key()) if folder else None
+
+
+def _folder() -> str | None:
+    import stat
+    import tempfile
+
+    uid = os.getuid()
+    chosen = os.environ.get(DIR_ENV)
+    if not chosen:
+        runtime = os.environ.get("XDG_RUNTIME_DIR", "")
+        base = runtime if runtime and os.path.isdir(runtime) and os.stat(runtime).st_uid == uid else tempfile.gettempdir()
+        chosen = os.path.join(base, f"qcarlab-warm-{uid}" if base != runtime else "qcarlab-warm")
+    try:
+        os.mkdir(chosen, 0o700)
+    except FileExistsError:
+        pass
+    except OSError:
+        return None
+    try:
+        st = os.lstat(chosen)
+    except OSError:
+        return None
+    # ours alone: a folder someone else made (or a link to one) is not used
+    if not stat.S_ISDIR(st.st_mode) or st.st_uid != uid or st.st_mode & 0o077:
+        return None
+    return chosen
+
+
+def install_key() -> str:
+    """``LINEAGE-CONTENT``. The lineage names a server: the interpreter, qcarlab's folder and the
+    import-time environment (:data:`IMPORT_ENV`, which a server must share with its clients), so
+    two terminals with different colours get a server each. The content hashes qcarlab's files
+    (path, size, modification time): a server whose content differs from a client's is stale."""
+    import hashlib
+
+    root = os.path.dirname(os.path.abspath(__file__))
+    env = "".join(f"{name}={os.environ[name]}\0" for name in sorted(os.environ)
+                  if name not in _NOT_KEYED and (name in IMPORT_ENV or name.startswith(IMPORT_PREFIXES)))
+    lineage = hashlib.sha256(f"{sys.executable}\0{root}\0{sys.version}\0{env}".encode()).hexdigest()[:16]
+    h = hashlib.sha256()
+    for folder, dirs, files in os.walk(root):
+        dirs[:] = sorted(d for d in dirs if d != "__pycache__")
+        for name in sorted(files):
+            if name.endswith((".py", ".yaml", ".yml", ".json", ".npz", ".png", ".pgm")):
+                try:
+                    st = os.stat(os.path.join(folder, name))
+                except OSError:
+                    continue
+                h.update(f"{folder}/{name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return f"{lineage}-{h.hexdigest()[:24]}"
+
+
+def connect(where: Place) -> socket.socket | None:
+    """A connection to the server at ``where``, or None when none listens there."""
+    conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        conn.connect(where.socket)
+    except OSError:
+        conn.close()
+        return None
+    return conn
+
+
+def running(where: Place) -> bool:
+    """Whether a server holds this install's lock (ready or still starting)."""
+    import fcntl
+
+    try:
+        fd = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    finally:
+        os.close(fd)  # closing drops a lock we took
+    return False
+
+
+def start_server(where: Place) -> None:
+    """Start a server for ``where`` in the background (its own session, no terminal, the
+    environment of this process); it answers once it is warm. A second one gives way to the first."""
+    import subprocess
+
+    env = {k: v for k, v in os.environ.items() if k != ENV}
+    try:
+        log = os.open(where.log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    except OSError:
+        log = subprocess.DEVNULL
+    try:
+        subprocess.Popen([sys.executable, "-m", "qcarlab.warm", "serve", where.folder, where.key],
+                         stdin=subprocess.DEVNULL, stdout=log, stderr=log, cwd="/", env=env,
+                         start_new_session=True, close_fds=True)
+    except OSError:
+        pass
+    finally:
+        if isinstance(log, int) and log >= 0:
+            os.close(log)
+
+
+def wait_ready(where: Place, timeout: float = START_TIMEOUT) -> socket.socket | None:
+    """A connection to the server once it answers (None: none is starting, or not in ``timeout``)."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        conn = connect(where)
+        if conn is not None:
+            return conn
+        if not running(where):
+            time.sleep(0.05)  # the server may be between its start and taking its lock
+            conn = connect(where)
+            if conn is not None or not running(where):
+                return conn
+        time.sleep(0.02)
+    return None
+
+
+def ask(conn: socket.socket, request: dict, fds: list[int] | None = None) -> None:
+    """Send ``request`` (JSON), with ``fds`` passed alongside (SCM_RIGHTS)."""
+    import json
+
+    payload = json.dumps(request).encode()
+    socket.send_fds(conn, [_MAGIC + len(payload).to_bytes(4, "big")], fds or [])
+    conn.sendall(payload)
+
+
+def run(argv: list[str]) -> int | None:
+    """Run ``qcarlab ARGV`` in a process forked by the warm server: its exit status (negative: the
+    signal that ended it), or None when it was not run there (the caller runs it cold)."""
+    mode = _mode()
+    where = place()
+    if where is None:
+        return None
+    conn = connect(where)
+    if conn is None:
+        if not running(where):
+            start_server(where)
+        if mode != "on":
+            return None  # this one cold; the next finds the server warm
+        conn = wait_ready(where)
+        if conn is None:
+            return None
+    code = _run_on(conn, argv, where)
+    if code == "stale":  # qcarlab changed since that server started: it is leaving; a new one comes
+        start_server(where)
+        if mode != "on" or (conn := wait_ready(where)) is None:
+            return None
+        code = _run_on(conn, argv, where)
+    return None if code == "stale" else code
+
+
+def _streams() -> list[list]:
+    out = []
+    for stream in (sys.stdin, sys.stdout, sys.stderr):
+        out.append([getattr(stream, "encoding", None) or "utf-8", getattr(stream, "errors", None) or "strict",
+                    bool(getattr(stream, "line_buffering", False)), bool(getattr(stream, "write_through", False))])
+    return out
+
+
+def _run_on(conn: socket.socket, argv: list[str], where: Place) -> int | str | None:
+    import signal
+
+    try:
+        cwd = os.getcwd()
+    except OSError:
+        conn.close()
+        return None
+    umask = os.umask(0o022)
+    os.umask(umask)
+    request = {"kind": "run", "key": where.key, "argv": argv, "argv0": sys.argv[0] if sys.argv else "qcarlab",
+               "cwd": cwd, "env": dict(os.environ), "path": list(sys.path), "umask": umask, "streams": _streams()}
+    child: list[int] = []
+    pending: list[int] = []
+
+    def forward(signum: int, frame: object) -> None:
+        if not child:
+            pending.append(signum)
+            return
+        _signal_group(child[0], signum)
+        if signum == signal.SIGTSTP:  # Ctrl-Z: the command stops (above), then this process
+            signal.signal(signal.SIGTSTP, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGTSTP)
+            signal.signal(signal.SIGTSTP, forward)
+            _signal_group(child[0], signal.SIGCONT)  # here again after fg/bg: so is the command
+
+    forwarded = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP, signal.SIGWINCH)
+    previous = {s: signal.signal(s, forward) for s in forwarded}
+    lines = _Lines(conn)
+    try:
+        try:
+            ask(conn, request, [0, 1, 2])
+            first = lines.next()
+        except OSError:
+            return None
+        if first == "stale":
+            return "stale"
+        if not first.startswith("pid "):
+            return None  # refused before anything ran: the caller runs it cold
+        child.append(int(first.split()[1]))
+        for signum in pending:
+            forward(signum, None)
+        try:
+            last = lines.next()
+        except OSError:
+            last = ""
+        if last.startswith("exit "):
+            return int(last.split()[1])
+        sys.stderr.write("qcarlab: the warm server stopped under the command; its exit status is lost\n")
+        return 1
+    finally:
+        conn.close()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _signal_group(pid: int, signum: int) -> None:
+    for kill in (os.killpg, os.kill):
+        try:
+            kill(pid, signum)
+            return
+        except (ProcessLookupError, PermissionError):
+            continue
+
+
+def _exit_as(code: int) -> None:
+    """Exit with ``code``; a negative one is the signal that ended the command: end by it too (a
+    shell then sees what it would have seen), else 128 + the signal."""
+    if code < 0:
+        import signal
+
+        sys.stdout.flush()
+        signal.signal(-code, signal.SIG_DFL)
+        os.kill(os.getpid(), -code)
+        code = 128 - code
+    sys.exit(code)
+
+
+class _Lines:
+    """The lines the server sends on one connection."""
+
+    def __init__(self, conn: socket.socket):
+        self.conn, self.buf = conn, b""
+
+    def next(self) -> str:
+        while b"\n" not in self.buf:
+            chunk = self.conn.recv(4096)
+            if not chunk:
+                return ""
+            self.buf += chunk
+        line, self.buf = self.buf.split(b"\n", 1)
+        return line.decode(errors="replace")
+
+
+# --------------------------------------------------------------------------------------------
+# the server: ``python -m qcarlab.warm serve FOLDER KEY``
+# --------------------------------------------------------------------------------------------
+def serve(folder: str, key: str) -> int:
+    """Warm up, then fork a process for each command until idle (or stale, or asked to stop)."""
+    import fcntl
+    import gc
+    import threading
+    import time
+
+    where = Place(folder, key)
+    lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
+    for attempt in range(50):  # a client's look (:func:`running`) holds it for microseconds; a server for good
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            break
+        except OSError:
+            time.sleep(0.01)
+    else:
+        return 0  # another server has this install
+    os.set_inheritable(lock, False)
+    started = time.monotonic()
+    consoles = _record_consoles()
+    from qcarlab.zygote import MODULES, lab_modules, warm_up
+
+    warm_up(MODULES + lab_modules())
+    consoles.stop()
+    gc.collect()
+    gc.freeze()  # what the server loaded stays out of every command's collections
+    if threading.active_count() > 1:
+        print("not warm: the warm-up started a thread", flush=True)
+        return 1
+    try:
+        os.unlink(where.socket)  # a dead server's (the lock is ours)
+    except FileNotFoundError:
+        pass
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(where.socket)
+    listener.listen(16)
+    ready = time.monotonic() - started
+    print(f"warm in {ready:.2f} s: pid {os.getpid()}, {where.socket}", flush=True)
+    return _Server(where, listener, lock, consoles, ready).loop()
+
+
+class _Consoles:
+    """The rich consoles made during the warm-up, with their arguments: a forked command makes each
+    again on its own streams and environment (a console settles its colours when it is made)."""
+
+    def __init__(self) -> None:
+        from rich.console import Console
+
+        self.made: list[tuple] = []
+        self.original = Console.__init__
+        made, original = self.made, self.original
+
+        def recording(console, *args, **kwargs):
+            original(console, *args, **kwargs)
+            made.append((console, args, kwargs))
+
+        Console.__init__ = recording
+
+    def stop(self) -> None:
+        from rich.console import Console
+
+        Console.__init__ = self.original
+
+    def remake(self) -> None:
+        for console, args, kwargs in self.made:
+            self.original(console, *args, **kwargs)
+
+
+def _record_consoles() -> _Consoles:
+    return _Consoles()
+
+
+class _Server:
+    def __init__(self, where: Place, listener: socket.socket, lock: int, consoles: _Consoles, ready: float):
+        import selectors
+        import time
+
+        self.where, self.listener, self.lock, self.consoles, self.ready = where, listener, lock, consoles, ready
+        self.started = time.time()
+        self.sel = selectors.DefaultSelector()
+        self.sel.register(listener, selectors.EVENT_READ, ("accept", None))
+        self.commands: dict[int, dict] = {}  # pid -> {"conn", "pidfd"}
+        self.served = 0
+        self.accepting = True
+        self.idle = float(os.environ.get(IDLE_ENV) or IDLE)
+
+    def loop(self) -> int:
+        import selectors
+        import signal
+        import time
+
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
+        last = time.monotonic()
+        while self.accepting or self.commands:
+            wait = None if self.commands else max(0.0, self.idle - (time.monotonic() - last))
+            events = self.sel.select(wait)
+            if not events and not self.commands and time.monotonic() - last >= self.idle:
+                break
+            for key, _ in events:
+                what, data = key.data
+                if what == "accept":
+                    try:
+                        conn, _ = self.listener.accept()
+                    except OSError:
+                        continue
+                    self._request(conn)
+                elif what == "hangup":  # the client went away (killed): stop its command as Ctrl-C would
+                    try:
+                        gone = not key.fileobj.recv(64)
+                    except OSError:
+                        gone = True
+                    if gone:
+                        self.sel.unregister(key.fileobj)
+                        if data in self.commands:
+                            _signal_group(data, signal.SIGTERM)
+                elif what == "exit":
+                    self._reap(data)
+            last = time.monotonic()
+        self._leave()
+        return 0
+
+    def _request(self, conn: socket.socket) -> None:
+        import json
+        import struct
+
+        fds: list[int] = []
+        try:
+            conn.settimeout(10.0)
+            creds = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+            _, uid, _ = struct.unpack("3i", creds)
+            head, fds, _, _ = socket.recv_fds(conn, 8, 3)
+            if uid != os.getuid() or len(head) != 8 or head[:4] != _MAGIC:
+                raise ValueError("not a client of ours")
+            size = int.from_bytes(head[4:], "big")
+            payload = b""
+            while len(payload) < size:
+                chunk = conn.recv(min(1 << 20, size - len(payload)))
+                if not chunk:
+                    raise ValueError("short request")
+                payload += chunk
+            request = json.loads(payload)
+            kind = request.get("kind")
+            if kind == "status":
+                conn.sendall((json.dumps(self.status()) + "\n").encode())
+                raise ValueError("answered")
+            if kind == "stop":
+                conn.sendall(b"stopping\n")
+                self._stop_taking()
+                raise ValueError("answered")
+            if not self.accepting or request.get("key") != self.where.key:
+                conn.sendall(b"stale\n")
+                self._stop_taking()
+                raise ValueError("stale")
+            if kind != "run" or len(fds) != 3:
+                raise ValueError("not a command")
+        except (OSError, ValueError, TypeError, KeyError):
+            for fd in fds:
+                os.close(fd)
+            conn.close()
+            return
+        self._fork(conn, request, fds)
+
+    def _fork(self, conn: socket.socket, request: dict, fds: list[int]) -> None:
+        import selectors
+
+        keep = [self.listener.fileno(), self.sel.fileno(), self.lock, conn.fileno()]
+        keep += [c["pidfd"] for c in self.commands.values()] + [c["conn"].fileno() for c in self.commands.values()]
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:
+            _command(request, fds, keep, self.consoles)  # never returns
+        for fd in fds:
+            os.close(fd)
+        self.served += 1
+        pidfd = os.pidfd_open(pid)
+        self.commands[pid] = {"conn": conn, "pidfd": pidfd}
+        try:
+            conn.sendall(f"pid {pid}\n".encode())
+        except OSError:
+            pass
+        self.sel.register(pidfd, selectors.EVENT_READ, ("exit", pid))
+        self.sel.register(conn, selectors.EVENT_READ, ("hangup", pid))
+
+    def _reap(self, pid: int) -> None:
+        command = self.commands.pop(pid)
+        _, status = os.waitpid(pid, 0)
+        self.sel.unregister(command["pidfd"])
+        os.close(command["pidfd"])
+        conn = command["conn"]
+        try:
+            self.sel.unregister(conn)
+        except (KeyError, ValueError):
+            pass
+        try:
+            conn.sendall(f"exit {os.waitstatus_to_exitcode(status)}\n".encode())
+        except OSError:
+            pass
+        conn.close()
+        if not self.commands:  # between commands: what a command compiled since is loaded for the next ones
+            from qcarlab.zygote import load_cached_kernels
+
+            if load_cached_kernels():
+                import gc
+
+                gc.freeze()
+
+    def status(self) -> dict:
+        return {"pid": os.getpid(), "key": self.where.key, "socket": self.where.socket, "warm_in_s": round(self.ready, 3),
+                "since": self.started, "served": self.served, "commands_running": len(self.commands), "idle_s": self.idle,
+                "python": sys.executable}
+
+    def _stop_taking(self) -> None:
+        """Take no more commands: the socket and the lock go (a new server may start now); the
+        commands running finish and report as before."""
+        if not self.accepting:
+            return
+        self.accepting = False
+        try:
+            if os.stat(self.where.socket).st_ino == os.fstat(self.listener.fileno()).st_ino:
+                os.unlink(self.where.socket)
+        except OSError:
+            pass
+        try:
+            self.sel.unregister(self.listener)
+        except (KeyError, ValueError):
+            pass
+        self.listener.close()
+        os.close(self.lock)
+
+    def _leave(self) -> None:
+        self._stop_taking()
+
+
+def _command(request: dict, fds: list[int], inherited: list[int], consoles: _Consoles) -> None:
+    """In the forked command process: the client's session-free twin (its own process group), its
+    streams, folder, environment and sys.path, then ``qcarlab.cli.main(ARGS)``; exits like the
+    interpreter. Never returns."""
+    import signal
+
+    from qcarlab.zygote import run_as_interpreter
+
+    try:
+        os.setsid()
+        signal.set_wakeup_fd(-1)
+        for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP, signal.SIGCHLD):
+            signal.signal(s, signal.SIG_DFL)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)  # as the interpreter sets it
+        for fd in inherited:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        for target, fd in enumerate(fds):
+            os.dup2(fd, target)
+            os.close(fd)
+        os.chdir(request["cwd"])
+        os.umask(int(request["umask"]))
+        os.environ.clear()
+        os.environ.update(request["env"])
+        sys.argv = [request["argv0"], *request["argv"]]
+        sys.path[:] = request["path"]
+        _streams_on(request["streams"])
+        consoles.remake()
+        from qcarlab.cli import main
+    except BaseException:  # noqa: BLE001
+        os._exit(1)
+    run_as_interpreter(lambda: main(list(request["argv"])))
+
+
+def _streams_on(settings: list[list]) -> None:
+    """sys.stdin, sys.stdout and sys.stderr on fds 0, 1, 2 as the client's interpreter made them."""
+    import io
+
+    made = []
+    for fd, (encoding, errors, line_buffering, write_through) in enumerate(settings):
+        raw = io.open(fd, "rb" if fd == 0 else "wb", closefd=False)  # noqa: SIM115 - the process's own stream
+        made.append(io.TextIOWrapper(raw, encoding=encoding, errors=errors, newline="\n" if fd else None,
+                                     line_buffering=line_buffering, write_through=write_through))
+    sys.stdin, sys.stdout, sys.stderr = made
+    sys.__stdin__, sys.__stdout__, sys.__stderr__ = made
+
+
+# --------------------------------------------------------------------------------------------
+# ``qcarlab warm``: start, show, stop
+# --------------------------------------------------------------------------------------------
+def status(where: Place) -> dict | None:
+    """The server's own account (pid, socket, how long its warm-up took, commands served), or None."""
+    import json
+
+    conn = connect(where)
+    if conn is None:
+        return None
+    try:
+        conn.settimeout(5.0)
+        ask(conn, {"kind": "status"})
+        line = _Lines(conn).next()
+        return json.loads(line) if line else None
+    except (OSError, ValueError):
+        return None
+    finally:
+        conn.close()
+
+
+def stop(where: Place) -> bool:
+    """Ask the server to leave (it finishes the commands it runs); False when none answered."""
+    conn = connect(where)
+    if conn is None:
+        return False
+    try:
+        conn.settimeout(5.0)
+        ask(conn, {"kind": "stop"})
+        return _Lines(conn).next() == "stopping"
+    except OSError:
+        return False
+    finally:
+        conn.close()
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "serve":
+        sys.exit(serve(sys.argv[2], sys.argv[3]))
+    sys.stderr.write("usage: python -m qcarlab.warm serve FOLDER KEY (qcarlab starts it; see 'qcarlab warm')\n")
+    sys.exit(2)

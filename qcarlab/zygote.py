@@ -1,0 +1,165 @@
+"""What a forking server (a *zygote*) shares: the warm-up it does once, and how a forked process ends.
+
+Two servers fork processes that are already warm: the grader's (:mod:`qcarlab.grading.warm`: one
+process per graded task) and the student's (:mod:`qcarlab.warm`: one process per command typed
+at a terminal). Both load here, once, what a cold ``qcarlab`` process pays for on every start
+(the interpreter's imports, numba and its compiled kernels, the CLI's parsers, matplotlib's
+fonts), and both end a forked process as the interpreter would end a cold one
+(:func:`run_as_interpreter`). A zygote runs no OpenCV code and starts no thread: a fork keeps only
+the forking thread, and another thread's locks would hang the child.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+from collections.abc import Callable
+
+#: What a lab's process imports besides its command's module (measured: some 0.7 s a process).
+MODULES = ("qcarlab.cli", "qcarlab.cli.invocation", "qcarlab.cli.recording", "qcarlab.experiments.labs",
+           "qcarlab.experiments.worlds", "qcarlab.grading.child", "qcarlab.plots", "qcarlab.car.replay",
+           "qcarlab.recording.reader", "qcarlab.sim.world", "qcarlab.sim.raster", "qcarlab.sim.render",
+           "qcarlab.sim.lidar", "qcarlab.sim.camera")
+
+
+def lab_modules() -> tuple[str, ...]:
+    """Every module of the packages a lab command draws on (experiments, perception, control, the
+    simulator, the cars), for a zygote whose processes run any lab."""
+    import importlib
+    import pkgutil
+
+    names: list[str] = []
+    for package in ("qcarlab.experiments", "qcarlab.perception", "qcarlab.control", "qcarlab.sim", "qcarlab.car"):
+        try:
+            path = importlib.import_module(package).__path__
+        except ImportError:
+            continue
+        names += [f"{package}.{m.name}" for m in pkgutil.iter_modules(path) if not m.ispkg]
+    return tuple(names)
+
+
+def warm_up(modules: tuple[str, ...] = MODULES) -> None:
+    """Load once what every lab process loads: ``modules`` and every command of the CLI with its
+    click group (every command's parser), numba and the compiled physics, every kernel numba has
+    compiled code for in its cache (:func:`load_cached_kernels`), the sandbox's libc and its probe
+    (:func:`qcarlab.sandbox.jail.probe`), matplotlib's Agg canvas with its fonts. No OpenCV call,
+    no sensor frame, no thread. What fails here is left for the forked process to load itself."""
+    import importlib
+
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            pass
+    try:
+        from qcarlab.cli import load_commands
+        from qcarlab.cli.app import click_group
+        from qcarlab.cli.invocation import parse_command
+
+        load_commands()
+        click_group()  # every command's click parser, built once
+        parse_command(["path-follow", "line", "--speed", "0.5"])  # typer's runtime parameters
+    except Exception:  # noqa: BLE001 - a forked process then loads them itself
+        pass
+    try:
+        from qcarlab.car.sim import SimCar
+
+        SimCar().warm_physics()  # numba, and the compiled physics kernel loaded from its cache
+    except Exception:  # noqa: BLE001
+        pass
+    load_cached_kernels()
+    try:
+        from qcarlab.sandbox import jail
+
+        if sys.platform.startswith("linux"):
+            jail.libc()  # ctypes' find_library runs ``ldconfig -p``: once here, not in each student's process
+            jail.probe()  # whether this machine can sandbox (a fork that unshares): once, not once per task
+    except Exception:  # noqa: BLE001
+        pass
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=(1, 1))
+        FigureCanvasAgg(fig)
+        fig.add_subplot(1, 1, 1).set_title("warm")
+        fig.canvas.draw()  # the font cache and the text renderer
+    except Exception:  # noqa: BLE001
+        pass
+
+
+def load_cached_kernels() -> int:
+    """Load, from numba's on-disk cache, every signature of every compiled kernel of qcarlab's
+    imported modules that the cache holds for this machine and this source: what each first call
+    in a cold process does (some 0.2 s for numba's code generator on the first, 20-60 ms each
+    after). A kernel never compiled stays lazy (its first call compiles it, as before). Returns how
+    many signatures were loaded. Uses numba's cache index (``Dispatcher._cache``): where that
+    changes, nothing is loaded here and every process loads its kernels itself."""
+    try:
+        from numba.core.dispatcher import Dispatcher
+    except ImportError:
+        return 0
+    seen: set[int] = set()
+    loaded = 0
+    for name, module in list(sys.modules.items()):
+        if not name.startswith("qcarlab.") or module is None:
+            continue
+        for value in list(vars(module).values()):
+            if not isinstance(value, Dispatcher) or id(value) in seen:
+                continue
+            seen.add(id(value))
+            try:
+                magic = value.targetctx.codegen().magic_tuple()
+                index = value._cache._cache_file._load_index()
+                for key in index:
+                    if key[1] == magic and key[0] not in value.overloads:
+                        value.compile(key[0])
+                        loaded += 1
+            except Exception:  # noqa: BLE001 - numba's internals moved, or a stale entry: stays lazy
+                continue
+    return loaded
+
+
+def exit_code_of(exc: SystemExit) -> int:
+    """The status the interpreter exits with for ``SystemExit(exc.code)`` (a text is printed, 1)."""
+    if exc.code is None:
+        return 0
+    if isinstance(exc.code, int):
+        return exc.code
+    sys.stderr.write(f"{exc.code}\n")
+    return 1
+
+
+def run_as_interpreter(body: Callable[[], object]) -> None:
+    """In a forked process: run ``body`` and end as ``python`` would after it (its ``SystemExit``'s
+    status, or the traceback and 1; the non-daemon threads joined, the atexit handlers run), then
+    leave at once (``os._exit``: nothing of the zygote's runs again). Never returns."""
+    code = 1
+    try:
+        try:
+            body()
+            code = 0
+        except SystemExit as exc:
+            code = exit_code_of(exc)
+        except BaseException:  # noqa: BLE001 - as the interpreter: the traceback, exit 1
+            sys.excepthook(*sys.exc_info())
+            code = 1
+        shutdown = getattr(threading, "_shutdown", None)
+        if shutdown is not None:
+            shutdown()  # wait for the process's non-daemon threads, as the interpreter does
+        import atexit
+
+        atexit._run_exitfuncs()
+    except BaseException:  # noqa: BLE001
+        code = 1
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001
+                pass
+        os._exit(code & 0xFF)
+
+
+__all__ = ["MODULES", "exit_code_of", "lab_modules", "load_cached_kernels", "run_as_interpreter", "warm_up"]
