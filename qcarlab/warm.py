@@ -207,29 +207,44 @@ def running(where: Place) -> bool:
     return False
 
 
-def start_server(where: Place) -> None:
+def start_server(where: Place) -> bool:
     """Start a server for ``where`` in the background (its own session, no terminal, the
-    environment of this process); it answers once it is warm. A second one gives way to the first."""
+    environment of this process); it answers once it is warm. The install's lock is taken here
+    and handed to the server, so there is never a moment when a starting server does not hold it
+    (and never two servers). False when another holds it (one runs or is starting)."""
+    import fcntl
     import subprocess
 
+    try:
+        lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(lock)
+        return False
     env = {k: v for k, v in os.environ.items() if k != ENV}
     try:
         log = os.open(where.log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     except OSError:
         log = subprocess.DEVNULL
     try:
-        subprocess.Popen([sys.executable, "-m", "qcarlab.warm", "serve", where.folder, where.key],
+        subprocess.Popen([sys.executable, "-m", "qcarlab.warm", "serve", where.folder, where.key, str(lock)],
                          stdin=subprocess.DEVNULL, stdout=log, stderr=log, cwd="/", env=env,
-                         start_new_session=True, close_fds=True)
+                         start_new_session=True, close_fds=True, pass_fds=(lock,))
+        return True
     except OSError:
-        pass
+        return False
     finally:
+        os.close(lock)  # the server's copy holds the lock now (or, not started, it is free again)
         if isinstance(log, int) and log >= 0:
             os.close(log)
 
 
 def wait_ready(where: Place, timeout: float = START_TIMEOUT) -> socket.socket | None:
-    """A connection to the server once it answers (None: none is starting, or not in ``timeout``)."""
+    """A connection to the server once it answers (None: no server holds the lock, so none is
+    starting; or not in ``timeout``)."""
     import time
 
     deadline = time.monotonic() + timeout
@@ -238,10 +253,7 @@ def wait_ready(where: Place, timeout: float = START_TIMEOUT) -> socket.socket | 
         if conn is not None:
             return conn
         if not running(where):
-            time.sleep(0.05)  # the server may be between its start and taking its lock
-            conn = connect(where)
-            if conn is not None or not running(where):
-                return conn
+            return connect(where)
         time.sleep(0.02)
     return None
 
@@ -264,8 +276,7 @@ def run(argv: list[str]) -> int | None:
         return None
     conn = connect(where)
     if conn is None:
-        if not running(where):
-            start_server(where)
+        start_server(where)  # unless one runs or is starting
         if mode != "on":
             return None  # this one cold; the next finds the server warm
         conn = wait_ready(where)
@@ -385,23 +396,25 @@ class _Lines:
 # --------------------------------------------------------------------------------------------
 # the server: ``python -m qcarlab.warm serve FOLDER KEY``
 # --------------------------------------------------------------------------------------------
-def serve(folder: str, key: str) -> int:
-    """Warm up, then fork a process for each command until idle (or stale, or asked to stop)."""
+def serve(folder: str, key: str, lock: int | None = None) -> int:
+    """Warm up, then fork a process for each command until idle (or stale, or asked to stop).
+    ``lock``: the install's lock, already taken by the starter (:func:`start_server`)."""
     import fcntl
     import gc
     import threading
     import time
 
     where = Place(folder, key)
-    lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
-    for attempt in range(50):  # a client's look (:func:`running`) holds it for microseconds; a server for good
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            break
-        except OSError:
-            time.sleep(0.01)
-    else:
-        return 0  # another server has this install
+    if lock is None:
+        lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
+        for _ in range(50):  # a client's look (:func:`running`) holds it for microseconds; a server for good
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except OSError:
+                time.sleep(0.01)
+        else:
+            return 0  # another server has this install
     os.set_inheritable(lock, False)
     started = time.monotonic()
     consoles = _record_consoles()
@@ -532,12 +545,12 @@ class _Server:
                 conn.sendall((json.dumps(self.status()) + "\n").encode())
                 raise ValueError("answered")
             if kind == "stop":
+                self._stop_taking()  # first: the lock is free when the client hears it
                 conn.sendall(b"stopping\n")
-                self._stop_taking()
                 raise ValueError("answered")
             if not self.accepting or request.get("key") != self.where.key:
-                conn.sendall(b"stale\n")
                 self._stop_taking()
+                conn.sendall(b"stale\n")
                 raise ValueError("stale")
             if kind != "run" or len(fds) != 3:
                 raise ValueError("not a command")
@@ -707,7 +720,7 @@ def stop(where: Place) -> bool:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 4 and sys.argv[1] == "serve":
-        sys.exit(serve(sys.argv[2], sys.argv[3]))
-    sys.stderr.write("usage: python -m qcarlab.warm serve FOLDER KEY (qcarlab starts it; see 'qcarlab warm')\n")
+    if len(sys.argv) in (4, 5) and sys.argv[1] == "serve":
+        sys.exit(serve(sys.argv[2], sys.argv[3], int(sys.argv[4]) if len(sys.argv) == 5 else None))
+    sys.stderr.write("usage: python -m qcarlab.warm serve FOLDER KEY [LOCK_FD] (qcarlab starts it: 'qcarlab warm')\n")
     sys.exit(2)

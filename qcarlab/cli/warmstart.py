@@ -55,8 +55,7 @@ def warm_cmd(
         info = None
     if info is None and not status_only:
         started = time.monotonic()
-        if not warm.running(where):
-            warm.start_server(where)
+        warm.start_server(where)  # unless one is starting
         conn = warm.wait_ready(where)
         if conn is not None:
             conn.close()

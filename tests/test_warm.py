@@ -1,0 +1,226 @@
+"""The warm start (qcarlab.warm): a lab command run by the warm server prints, writes and exits as a
+cold one; Ctrl-C reaches it; a killed client's command is stopped; a changed install is not
+served by an old server; off a terminal nothing is started unless asked."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import select
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from qcarlab import warm
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the warm server is Linux only")
+
+REPO = Path(__file__).resolve().parents[1]
+CLIENT = "import sys; sys.argv[0] = 'qcarlab'; from qcarlab.warm import main; main()"
+
+
+def _pids(folder: str) -> list[int]:
+    """The servers started in ``folder``, from their logs ("warm in ... pid N, ...")."""
+    pids = []
+    for log in Path(folder).glob("*.log"):
+        m = re.search(r"pid (\d+)", log.read_text(errors="replace"))
+        if m:
+            pids.append(int(m.group(1)))
+    return pids
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ")[1][0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def env():
+    """A private server folder (short: a socket's path has at most 107 bytes); every server
+    started in it is killed at the end, whatever happened."""
+    folder = tempfile.mkdtemp(prefix="qw")
+    e = {k: v for k, v in os.environ.items() if k not in ("QCARLAB_WARM", "COLUMNS", "LINES")}
+    e.update(QCARLAB_WARM="1", QCARLAB_WARM_DIR=folder, TERM="xterm-256color", QCARLAB_WARM_IDLE="300")
+    yield e
+    for pid in _pids(folder):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def qcarlab(env: dict, *args: str, cwd: Path = REPO, timeout: float = 180) -> subprocess.CompletedProcess:
+    """``qcarlab ARGS`` as the console script runs it (qcarlab.warm.main)."""
+    return subprocess.run([sys.executable, "-c", CLIENT, *args], env=env, cwd=cwd, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def cold(env: dict, *args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
+    return qcarlab({**env, "QCARLAB_WARM": "0"}, *args, cwd=cwd)
+
+
+def served(env: dict) -> int:
+    out = subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--status", "--json"], env=env, cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return json.loads(out.stdout)["served"]
+
+
+def test_a_warm_run_prints_writes_and_exits_as_a_cold_one(env, tmp_path):
+    (tmp_path / "w").mkdir()
+    (tmp_path / "c").mkdir()
+    first = qcarlab(env, "stop-sign", "--json", "--out", "run", cwd=tmp_path / "w")  # starts the server, waits
+    n = served(env)
+    again = qcarlab(env, "stop-sign", "--json", "--out", "run", cwd=tmp_path / "w")
+    assert served(env) == n + 1  # the server ran it
+    reference = cold(env, "stop-sign", "--json", "--out", "run", cwd=tmp_path / "c")
+    assert first.returncode == again.returncode == reference.returncode == 0, first.stderr + reference.stderr
+    assert first.stdout == again.stdout == reference.stdout
+    m = json.loads(first.stdout)
+    assert m["stopped"] is True and 0.05 <= m["stop_distance_m"] <= 0.40
+    written = sorted(p.name for p in (tmp_path / "w" / "run").iterdir())  # in the client's folder
+    assert written and written == sorted(p.name for p in (tmp_path / "c" / "run").iterdir())
+    for name in written:
+        if name.endswith((".json", ".csv")):
+            assert (tmp_path / "w" / "run" / name).read_bytes() == (tmp_path / "c" / "run" / name).read_bytes(), name
+
+
+def test_a_missed_goal_and_bad_input_exit_as_cold(env):
+    crash = ("avoid", "--strategy", "steer", "--start", "2.5,0,0", "--duration", "5", "--json")
+    w, c = qcarlab(env, *crash), cold(env, *crash)
+    assert w.returncode == c.returncode == 1 and "goal missed: collision at" in w.stderr
+    assert (w.stdout, w.stderr) == (c.stdout, c.stderr)
+    w, c = qcarlab(env, "stop-sign", "--speed", "fast"), cold(env, "stop-sign", "--speed", "fast")
+    assert w.returncode == c.returncode == 2 and w.stderr == c.stderr and len(w.stderr.strip().splitlines()) == 1
+
+
+def test_ctrl_c_reaches_the_command_and_the_car_is_stopped(env):
+    served(env)  # up and warm
+    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=REPO,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(2.0)
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=60)
+    finally:
+        p.kill()
+    assert p.returncode == 130 and "interrupted; the car was stopped" in err
+
+
+def test_a_killed_client_s_command_is_stopped(env):
+    served(env)
+    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=REPO,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    time.sleep(2.0)
+    p.kill()
+    p.wait()
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        status = json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--status", "--json"], env=env,
+                                           cwd=REPO, capture_output=True, text=True, timeout=60).stdout)
+        if status["commands_running"] == 0:
+            break
+        time.sleep(0.2)
+    assert status["commands_running"] == 0
+
+
+def test_at_a_terminal_the_output_keeps_its_colours(env):
+    served(env)
+    auto = {k: v for k, v in env.items() if k != "QCARLAB_WARM"}  # the default: warm at a terminal
+    n = served(env)
+    texts = []
+    for e in (auto, {**auto, "QCARLAB_WARM": "0"}):
+        master, slave = os.openpty()
+        p = subprocess.Popen([sys.executable, "-c", CLIENT, "path-gen", "butterfly", "--size", "2"], env=e, cwd=REPO,
+                             stdin=slave, stdout=slave, stderr=slave, start_new_session=True)
+        os.close(slave)
+        out = bytearray()
+        while True:
+            ready, _, _ = select.select([master], [], [], 60)
+            if not ready:
+                break
+            try:
+                chunk = os.read(master, 65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            out += chunk
+        os.close(master)
+        assert p.wait(timeout=60) == 0, out.decode(errors="replace")
+        texts.append(out.decode(errors="replace"))
+    assert served(env) == n + 1  # the first went to the server
+    # the console saw a terminal (the title in italics) in both; a warm server has imported numba,
+    # whose colorama resets the terminal at exit ("\x1b[0m", invisible), as a cold lab run does
+    assert "\x1b[3mpath-gen butterfly" in texts[0] and "\x1b[3mpath-gen butterfly" in texts[1]
+    assert texts[0].removesuffix("\x1b[0m") == texts[1]
+
+
+def test_a_server_of_a_changed_install_gives_way(env):
+    key = subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"], env=env,
+                         cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
+    where = warm.Place(env["QCARLAB_WARM_DIR"], key)
+    assert subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--stop"], env=env, cwd=REPO,
+                          capture_output=True, timeout=60).returncode == 0
+    deadline = time.monotonic() + 10
+    while os.path.exists(where.socket) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    old = subprocess.Popen([sys.executable, "-m", "qcarlab.warm", "serve", where.folder, key.split("-")[0] + "-older"],
+                           env=env, cwd="/", stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert old.stdout.readline().startswith("warm in")
+        done = qcarlab(env, "path-gen", "line", "--json")
+        assert done.returncode == 0 and json.loads(done.stdout)
+        assert old.wait(timeout=30) == 0  # told it is stale, it left
+        assert served(env) == 1  # a new server ran it
+    finally:
+        old.kill()
+
+
+def test_off_a_terminal_nothing_starts_unless_asked(tmp_path):
+    folder = tempfile.mkdtemp(prefix="qw")
+    try:
+        e = {k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"}
+        e["QCARLAB_WARM_DIR"] = folder
+        out = qcarlab(e, "path-gen", "line", "--json")
+        assert out.returncode == 0 and json.loads(out.stdout)
+        time.sleep(0.5)
+        assert not list(Path(folder).glob("*.sock")) and not _pids(folder)
+    finally:
+        for pid in _pids(folder):
+            os.kill(pid, signal.SIGKILL)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.mark.parametrize("argv, mode, terminal, expected", [
+    (["stop-sign"], "1", False, True),
+    (["stop-sign"], "", True, True),
+    (["stop-sign"], "", False, False),
+    (["stop-sign"], "0", True, False),
+    (["grade", "x"], "1", True, False),  # student code never runs beside the user's warm server
+    (["serve"], "1", True, False),
+    ([], "1", True, False),
+    (["--help"], "1", True, False),
+])
+def test_which_commands_go_warm(monkeypatch, argv, mode, terminal, expected):
+    monkeypatch.setenv("QCARLAB_WARM", mode)
+    monkeypatch.setattr(warm, "_at_terminal", lambda: terminal)
+    assert warm.wanted(argv) is expected
+
+
+def test_the_client_imports_nothing_heavy():
+    out = subprocess.run([sys.executable, "-c", "import sys, qcarlab.warm; "
+                          "print(sorted(m for m in ('numpy', 'typer', 'rich', 'cv2', 'numba') if m in sys.modules))"],
+                         capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
