@@ -5,10 +5,19 @@
     python benchmarks/bench_commands.py --only stop-sign --reps 5
 
 Each command first runs once untimed on each side (as a student's second run: the bytecode
-written, numba's cache and the simulator's rasters on disk). Each timed run is a fresh
-``python -m qcarlab ARGS --json`` with the defaults (``--json`` only to read
-the simulated duration from the results; the table it replaces costs nothing measurable), timed
-by the wall clock from the start of the process to its end, imports and all. The real-time
+written, numba's cache and the simulator's rasters on disk). Each timed run is a fresh process
+with the defaults and ``--json`` (only to read the simulated duration from the results; the
+table it replaces costs nothing measurable), timed by the wall clock from the start of the
+process to its end, imports and all. Three sides:
+
+- ``ours``: the ``qcarlab`` command as a student at a terminal runs it after their first lab
+  command (:mod:`qcarlab.warm`: the console script's code, ``QCARLAB_WARM=1`` standing in for the
+  terminal; the warm server is started once before the timing, and its start is printed);
+- ``cold``: ours without the warm server (``python -m qcarlab``): a student's first command,
+  and scripts, pipes and CI, which run cold unless they ask;
+- ``before``: ``python -m qcarlab`` of the checkout in ``--against DIR``.
+
+The targets are judged on ``ours``; ``cold`` is printed beside it. The real-time
 factor is the simulated seconds over those wall seconds. ``serve`` is the time from starting
 ``qcarlab serve --port 0`` until a client's first readout comes back. With ``--against DIR`` the
 same runs of the checkout in DIR (``PYTHONPATH=DIR``, the same interpreter and packages)
@@ -49,21 +58,32 @@ COMMANDS = {
 }
 
 
-def env_for(against: str | None) -> dict[str, str]:
+#: the console script's code (``qcarlab`` as installed: pip writes these lines into bin/qcarlab)
+CLIENT = "import sys; sys.argv[0] = 'qcarlab'; from qcarlab.warm import main; sys.exit(main())"
+WARM_DIR = tempfile.mkdtemp(prefix="qw")  # this run's own warm server, stopped at the end
+
+
+def env_for(against: str | None, how: str = "cold") -> dict[str, str]:
     env = dict(os.environ)
     env.pop("PYTHONPATH", None)
     env.pop("PYTHONDONTWRITEBYTECODE", None)  # a student's Python keeps its bytecode (0.3 s a run otherwise)
     # this checkout or the one in DIR (an editable install may point at another checkout)
     env["PYTHONPATH"] = against or str(ROOT)
+    env["QCARLAB_WARM"] = "1" if how == "warm" else "0"
+    env["QCARLAB_WARM_DIR"] = WARM_DIR
     return env
 
 
-def run_command(words: list[str], against: str | None, cwd: Path) -> tuple[float, float | None]:
+def argv_for(how: str) -> list[str]:
+    return [sys.executable, "-c", CLIENT] if how == "warm" else [sys.executable, "-m", "qcarlab"]
+
+
+def run_command(words: list[str], against: str | None, cwd: Path, how: str = "cold") -> tuple[float, float | None]:
     """(wall seconds, simulated seconds or None) of one fresh ``qcarlab WORDS``."""
     json_words = [] if words == ["--help"] else ["--json"]
     t0 = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "qcarlab", *words, *json_words], capture_output=True, text=True,
-                          env=env_for(against), cwd=cwd)
+    done = subprocess.run([*argv_for(how), *words, *json_words], capture_output=True, text=True,
+                          env=env_for(against, how), cwd=cwd)
     wall = time.perf_counter() - t0
     if done.returncode not in (0, 1):
         raise SystemExit(f"qcarlab {' '.join(words)} failed ({done.returncode}): {done.stderr[-400:]}")
@@ -113,7 +133,7 @@ def main() -> None:
     ap.add_argument("--against", metavar="DIR", help="also the checkout in DIR, alternating")
     a = ap.parse_args()
     chosen = {k: v for k, v in COMMANDS.items() if not a.only or k in a.only or k.split()[0] in a.only}
-    sides = [("ours", None)] + ([("before", a.against)] if a.against else [])
+    sides = [("ours", None, "warm"), ("cold", None, "cold")] + ([("before", a.against, "before")] if a.against else [])
     print(machine())
     print(load_note(), flush=True)
     if importlib.util.find_spec("scipy") is not None:
@@ -122,33 +142,47 @@ def main() -> None:
     # a folder that holds no qcarlab: ``python -m`` puts the working folder first on the path, so
     # run from a checkout it would import that checkout's qcarlab whatever PYTHONPATH says
     cwd = Path(tempfile.mkdtemp(prefix="bench-commands-"))
-    walls: dict[tuple[str, str], list[float]] = {}
-    sims: dict[tuple[str, str], float] = {}
     # as on a student's machine after the first run: the bytecode written, numba's cache and the
     # simulator's rasters on disk (one untimed run of each command on each side)
-    for label, where in sides:
+    for label, where, how in sides:
         src = Path(where or ROOT) / "qcarlab"
         subprocess.run([sys.executable, "-m", "compileall", "-q", str(src)], check=False, capture_output=True)
+        if how == "warm":
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "qcarlab", "warm"], env=env_for(where, how), cwd=cwd, check=True,
+                           capture_output=True)
+            print(f"the warm server (qcarlab warm): ready in {time.perf_counter() - t0:.2f} s, once "
+                  "(a student's first lab command at a terminal starts it; it stays 20 idle minutes)", flush=True)
         for name, (words, _) in chosen.items():
-            serve_ready(where, cwd) if words is None else run_command(words, where, cwd)
+            serve_ready(where, cwd) if words is None else run_command(words, where, cwd, how)
     print("warm: bytecode written, numba's cache and the rasters on disk (one untimed run of each)", flush=True)
+    try:
+        measure(a, chosen, sides, cwd)
+    finally:
+        subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--stop"], env=env_for(None, "warm"), cwd=cwd,
+                       capture_output=True)
+
+
+def measure(a, chosen, sides, cwd) -> None:
+    walls: dict[tuple[str, str], list[float]] = {}
+    sims: dict[tuple[str, str], float] = {}
     for rep in range(a.reps):
-        for label, where in sides if rep % 2 == 0 else sides[::-1]:
+        for label, where, how in sides if rep % 2 == 0 else sides[::-1]:
             for name, (words, _) in chosen.items():
-                if words is None:
+                if words is None:  # serve is no lab command: cold on every side
                     wall, sim = serve_ready(where, cwd), None
                 else:
-                    wall, sim = run_command(words, where, cwd)
+                    wall, sim = run_command(words, where, cwd, how)
                 walls.setdefault((name, label), []).append(wall)
                 if sim is not None:
                     sims[(name, label)] = sim
                 rtf = f", {sim / wall:6.1f}x real time" if sim else ""
                 print(f"  {label:6s} {name:38s} {wall:6.2f} s{rtf}   ({load_note()})", flush=True)
     print(f"\nmedians of {a.reps} ({load_note()}):")
-    print(f"  {'command':38s} " + " | ".join(f"{label:>22s}" for label, _ in sides) + " | target")
+    print(f"  {'command':38s} " + " | ".join(f"{label:>22s}" for label, _, _ in sides) + " | target")
     for name, (_, (kind, target)) in chosen.items():
         cells, verdict = [], "not measured"
-        for label, _ in sides:
+        for label, _, _ in sides:
             got = walls.get((name, label))
             if not got:
                 cells.append(f"{'not measured':>22s}")

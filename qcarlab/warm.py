@@ -156,7 +156,8 @@ def _folder() -> str | None:
 
 
 def install_key() -> str:
-    """``LINEAGE-CONTENT``. The lineage names a server: the interpreter, qcarlab's folder and the
+    """``LINEAGE-CONTENT``. The lineage names a server: the interpreter and its environment (venv),
+    qcarlab's folder and the
     import-time environment (:data:`IMPORT_ENV`, which a server must share with its clients), so
     two terminals with different colours get a server each. The content hashes qcarlab's files
     (path, size, modification time): a server whose content differs from a client's is stale."""
@@ -165,7 +166,8 @@ def install_key() -> str:
     root = os.path.dirname(os.path.abspath(__file__))
     env = "".join(f"{name}={os.environ[name]}\0" for name in sorted(os.environ)
                   if name not in _NOT_KEYED and (name in IMPORT_ENV or name.startswith(IMPORT_PREFIXES)))
-    lineage = hashlib.sha256(f"{sys.executable}\0{root}\0{sys.version}\0{env}".encode()).hexdigest()[:16]
+    python = f"{os.path.realpath(sys.executable)}\0{sys.prefix}\0{sys.version}"  # bin/python = bin/python3
+    lineage = hashlib.sha256(f"{python}\0{root}\0{env}".encode()).hexdigest()[:16]
     h = hashlib.sha256()
     for folder, dirs, files in os.walk(root):
         dirs[:] = sorted(d for d in dirs if d != "__pycache__")
