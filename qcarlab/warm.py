@@ -293,6 +293,17 @@ def run(argv: list[str]) -> int | None:
     return None if code == "stale" else code
 
 
+#: the resource limits a shell's ``ulimit`` sets that a command must keep (the server's may differ)
+LIMITS = ("RLIMIT_AS", "RLIMIT_CPU", "RLIMIT_DATA", "RLIMIT_FSIZE", "RLIMIT_NOFILE", "RLIMIT_CORE", "RLIMIT_STACK",
+          "RLIMIT_NPROC")
+
+
+def _limits() -> dict[str, list[int]]:
+    import resource
+
+    return {name: list(resource.getrlimit(getattr(resource, name))) for name in LIMITS if hasattr(resource, name)}
+
+
 def _streams() -> list[list]:
     out = []
     for stream in (sys.stdin, sys.stdout, sys.stderr):
@@ -312,7 +323,8 @@ def _run_on(conn: socket.socket, argv: list[str], where: Place) -> int | str | N
     umask = os.umask(0o022)
     os.umask(umask)
     request = {"kind": "run", "key": where.key, "argv": argv, "argv0": sys.argv[0] if sys.argv else "qcarlab",
-               "cwd": cwd, "env": dict(os.environ), "path": list(sys.path), "umask": umask, "streams": _streams()}
+               "cwd": cwd, "env": dict(os.environ), "path": list(sys.path), "umask": umask, "streams": _streams(),
+               "limits": _limits()}
     child: list[int] = []
     pending: list[int] = []
 
@@ -349,12 +361,28 @@ def _run_on(conn: socket.socket, argv: list[str], where: Place) -> int | str | N
             last = ""
         if last.startswith("exit "):
             return int(last.split()[1])
-        sys.stderr.write("qcarlab: the warm server stopped under the command; its exit status is lost\n")
+        _wait_gone(child[0])  # the server died (killed): the command may still run; its status is lost
+        sys.stderr.write("qcarlab: the warm server was killed under the command; its exit status is lost\n")
         return 1
     finally:
         conn.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
+
+
+def _wait_gone(pid: int) -> None:
+    """Until process ``pid`` (not ours: no status) has ended."""
+    import select
+
+    try:
+        fd = os.pidfd_open(pid)
+    except OSError:
+        return
+    try:
+        while not select.select([fd], [], [], None)[0]:
+            pass
+    finally:
+        os.close(fd)
 
 
 def _signal_group(pid: int, signum: int) -> None:
@@ -478,6 +506,7 @@ class _Server:
         import time
 
         self.where, self.listener, self.lock, self.consoles, self.ready = where, listener, lock, consoles, ready
+        self.bound = os.stat(where.socket).st_ino  # the socket file this server made
         self.started = time.time()
         self.sel = selectors.DefaultSelector()
         self.sel.register(listener, selectors.EVENT_READ, ("accept", None))
@@ -493,6 +522,14 @@ class _Server:
 
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGHUP, signal.SIG_IGN)
+        # SIGTERM (a logout, ``kill``): no new commands; those running finish and report as before
+        wake_r, wake_w = socket.socketpair()
+        wake_r.setblocking(False)
+        wake_w.setblocking(False)
+        self.wake = (wake_r, wake_w)
+        signal.set_wakeup_fd(wake_w.fileno())
+        signal.signal(signal.SIGTERM, lambda signum, frame: None)
+        self.sel.register(wake_r, selectors.EVENT_READ, ("signal", None))
         last = time.monotonic()
         while self.accepting or self.commands:
             wait = None if self.commands else max(0.0, self.idle - (time.monotonic() - last))
@@ -518,6 +555,13 @@ class _Server:
                             _signal_group(data, signal.SIGTERM)
                 elif what == "exit":
                     self._reap(data)
+                elif what == "signal":
+                    try:
+                        got = key.fileobj.recv(64)
+                    except OSError:
+                        got = b""
+                    if signal.SIGTERM in got:
+                        self._stop_taking()
             last = time.monotonic()
         self._leave()
         return 0
@@ -566,7 +610,7 @@ class _Server:
     def _fork(self, conn: socket.socket, request: dict, fds: list[int]) -> None:
         import selectors
 
-        keep = [self.listener.fileno(), self.sel.fileno(), self.lock, conn.fileno()]
+        keep = [self.listener.fileno(), self.sel.fileno(), self.lock, conn.fileno()] + [w.fileno() for w in self.wake]
         keep += [c["pidfd"] for c in self.commands.values()] + [c["conn"].fileno() for c in self.commands.values()]
         sys.stdout.flush()
         sys.stderr.flush()
@@ -620,7 +664,7 @@ class _Server:
             return
         self.accepting = False
         try:
-            if os.stat(self.where.socket).st_ino == os.fstat(self.listener.fileno()).st_ino:
+            if os.stat(self.where.socket).st_ino == self.bound:  # ours, not a newer server's
                 os.unlink(self.where.socket)
         except OSError:
             pass
@@ -660,6 +704,7 @@ def _command(request: dict, fds: list[int], inherited: list[int], consoles: _Con
             os.close(fd)
         os.chdir(request["cwd"])
         os.umask(int(request["umask"]))
+        _limits_on(request.get("limits", {}))
         os.environ.clear()
         os.environ.update(request["env"])
         sys.argv = [request["argv0"], *request["argv"]]
@@ -670,6 +715,23 @@ def _command(request: dict, fds: list[int], inherited: list[int], consoles: _Con
     except BaseException:  # noqa: BLE001
         os._exit(1)
     run_as_interpreter(lambda: main(list(request["argv"])))
+
+
+def _limits_on(limits: dict[str, list[int]]) -> None:
+    """The client's resource limits (a limit above what the server may have stays the server's)."""
+    import resource
+
+    for name, (soft, hard) in limits.items():
+        which = getattr(resource, name, None)
+        if which is None:
+            continue
+        try:
+            resource.setrlimit(which, (soft, hard))
+        except (ValueError, OSError):
+            try:
+                resource.setrlimit(which, (soft, resource.getrlimit(which)[1]))
+            except (ValueError, OSError):
+                pass
 
 
 def _streams_on(settings: list[list]) -> None:

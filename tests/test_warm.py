@@ -224,3 +224,24 @@ def test_the_client_imports_nothing_heavy():
                           "print(sorted(m for m in ('numpy', 'typer', 'rich', 'cv2', 'numba') if m in sys.modules))"],
                          capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_a_terminated_server_finishes_the_commands_it_runs(env):
+    info = json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--json"], env=env, cwd=REPO,
+                                     capture_output=True, text=True, timeout=120, check=True).stdout)
+    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "60", "--json"], env=env, cwd=REPO,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while served(env) == info["served"] and time.monotonic() < deadline:  # until it runs
+            time.sleep(0.05)
+        os.kill(info["pid"], signal.SIGTERM)
+        out, err = p.communicate(timeout=120)
+    finally:
+        p.kill()
+    assert p.returncode == 0, err
+    assert json.loads(out)["duration_s"] == pytest.approx(60.0)
+    deadline = time.monotonic() + 10
+    while _alive(info["pid"]) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(info["pid"]) and not os.path.exists(info["socket"])
