@@ -76,11 +76,16 @@ def main() -> None:
     """The ``qcarlab`` command: a lab command through the warm server when :func:`wanted` (and a
     server answers), else the CLI in this process as always."""
     argv = sys.argv[1:]
-    code = run(argv) if wanted(argv) else None
+    later: list[Place] = []  # a server to start once this command has run cold
+    code = run(argv, later) if wanted(argv) else None
     if code is None:
         from qcarlab.cli import main as cold
 
-        cold(argv)
+        try:
+            cold(argv)
+        finally:
+            for where in later:  # after the command, so its warm-up does not slow this one down
+                start_server(where)
         return
     _exit_as(code)
 
@@ -269,28 +274,33 @@ def ask(conn: socket.socket, request: dict, fds: list[int] | None = None) -> Non
     conn.sendall(payload)
 
 
-def run(argv: list[str]) -> int | None:
+def run(argv: list[str], later: list[Place] | None = None) -> int | None:
     """Run ``qcarlab ARGV`` in a process forked by the warm server: its exit status (negative: the
-    signal that ended it), or None when it was not run there (the caller runs it cold)."""
+    signal that ended it), or None when it was not run there (the caller runs it cold). With no
+    server up, ``QCARLAB_WARM=1`` starts one and waits for it; at a terminal (the default) the
+    command runs cold and the place goes to ``later`` (the caller starts the server after it; with
+    ``later`` None, at once)."""
     mode = _mode()
     where = place()
     if where is None:
         return None
-    conn = connect(where)
-    if conn is None:
-        start_server(where)  # unless one runs or is starting
-        if mode != "on":
-            return None  # this one cold; the next finds the server warm
-        conn = wait_ready(where)
+    for attempt in range(2):  # the second after a stale server gave way
+        conn = connect(where)
         if conn is None:
-            return None
-    code = _run_on(conn, argv, where)
-    if code == "stale":  # qcarlab changed since that server started: it is leaving; a new one comes
-        start_server(where)
-        if mode != "on" or (conn := wait_ready(where)) is None:
-            return None
+            if mode != "on":
+                if later is None:
+                    start_server(where)
+                else:
+                    later.append(where)
+                return None  # this one cold; the next finds the server warm
+            start_server(where)  # unless one runs or is starting
+            conn = wait_ready(where)
+            if conn is None:
+                return None
         code = _run_on(conn, argv, where)
-    return None if code == "stale" else code
+        if code != "stale":
+            return code
+    return None
 
 
 #: the resource limits a shell's ``ulimit`` sets that a command must keep (the server's may differ)

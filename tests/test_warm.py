@@ -135,21 +135,15 @@ def test_a_killed_client_s_command_is_stopped(env):
     assert status["commands_running"] == 0
 
 
-def test_at_a_terminal_the_output_keeps_its_colours(env):
-    served(env)
-    auto = {k: v for k, v in env.items() if k != "QCARLAB_WARM"}  # the default: warm at a terminal
-    n = served(env)
-    texts = []
-    for e in (auto, {**auto, "QCARLAB_WARM": "0"}):
-        master, slave = os.openpty()
-        p = subprocess.Popen([sys.executable, "-c", CLIENT, "path-gen", "butterfly", "--size", "2"], env=e, cwd=REPO,
-                             stdin=slave, stdout=slave, stderr=slave, start_new_session=True)
-        os.close(slave)
-        out = bytearray()
-        while True:
-            ready, _, _ = select.select([master], [], [], 60)
-            if not ready:
-                break
+def on_pty(env: dict, *args: str) -> str:
+    """``qcarlab ARGS`` (the console script's code) on a fresh pseudo-terminal: what it printed."""
+    master, slave = os.openpty()
+    p = subprocess.Popen([sys.executable, "-c", CLIENT, *args], env=env, cwd=REPO, stdin=slave, stdout=slave,
+                         stderr=slave, start_new_session=True)
+    os.close(slave)
+    out = bytearray()
+    try:
+        while select.select([master], [], [], 60)[0]:
             try:
                 chunk = os.read(master, 65536)
             except OSError:
@@ -157,14 +151,38 @@ def test_at_a_terminal_the_output_keeps_its_colours(env):
             if not chunk:
                 break
             out += chunk
+    finally:
         os.close(master)
-        assert p.wait(timeout=60) == 0, out.decode(errors="replace")
-        texts.append(out.decode(errors="replace"))
-    assert served(env) == n + 1  # the first went to the server
+    assert p.wait(timeout=60) == 0, out.decode(errors="replace")
+    return out.decode(errors="replace")
+
+
+def test_at_a_terminal_the_output_keeps_its_colours(env):
+    auto = {k: v for k, v in env.items() if k != "QCARLAB_WARM"}  # the default: warm at a terminal
+    n = served(env)
+    warm_text = on_pty(auto, "path-gen", "butterfly", "--size", "2")
+    assert served(env) == n + 1  # it went to the server
+    cold_text = on_pty({**auto, "QCARLAB_WARM": "0"}, "path-gen", "butterfly", "--size", "2")
     # the console saw a terminal (the title in italics) in both; a warm server has imported numba,
     # whose colorama resets the terminal at exit ("\x1b[0m", invisible), as a cold lab run does
-    assert "\x1b[3mpath-gen butterfly" in texts[0] and "\x1b[3mpath-gen butterfly" in texts[1]
-    assert texts[0].removesuffix("\x1b[0m") == texts[1]
+    assert "\x1b[3mpath-gen butterfly" in warm_text and "\x1b[3mpath-gen butterfly" in cold_text
+    assert warm_text.removesuffix("\x1b[0m") == cold_text
+
+
+def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server():
+    folder = tempfile.mkdtemp(prefix="qw")
+    try:
+        e = {k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"}
+        e.update(QCARLAB_WARM_DIR=folder, TERM="xterm-256color")
+        assert "path-gen line" in on_pty(e, "path-gen", "line")
+        deadline = time.monotonic() + 60
+        while not list(Path(folder).glob("*.sock")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert served(e) == 0  # up and warm, the first command not among its own
+    finally:
+        for pid in _pids(folder):
+            os.kill(pid, signal.SIGKILL)
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def test_a_server_of_a_changed_install_gives_way(env):
