@@ -49,6 +49,9 @@ DIR_ENV = "QCARLAB_WARM_DIR"
 IDLE_ENV = "QCARLAB_WARM_IDLE"
 IDLE = 1200.0  # s without a command before the server leaves
 START_TIMEOUT = 120.0  # s to wait for a server that is starting (a cold numba cache compiles first)
+REQUEST_TIMEOUT = 10.0  # s for a connection to send its request
+MAX_REQUEST = 16 << 20  # bytes of JSON (the environment and sys.path are most of it)
+KILL_AFTER = 20.0  # s after SIGTERM before a command whose client died is killed
 
 #: The commands the warm server runs: the labs and their tools, whose start-up is most of a run.
 #: (Not ``serve``/``onboard``, long-lived servers of their own; not ``grade``, which keeps student
@@ -63,9 +66,9 @@ IMPORT_ENV = ("TERM", "COLORTERM", "NO_COLOR", "FORCE_COLOR", "PY_COLORS", "CLIC
               "TTY_COMPATIBLE", "TTY_INTERACTIVE", "GITHUB_ACTIONS", "CI", "COLUMNS", "LINES", "JUPYTER_COLUMNS",
               "JUPYTER_LINES", "HOME", "TMPDIR", "LANG", "LANGUAGE", "TZ", "MPLBACKEND", "MPLCONFIGDIR", "DISPLAY",
               "WAYLAND_DISPLAY", "XDG_CACHE_HOME", "XDG_CONFIG_HOME", "XDG_DATA_HOME")
-IMPORT_PREFIXES = ("LC_", "PYTHON", "NUMBA_", "OPENCV_", "QCARLAB_", "OMP_", "OPENBLAS_", "GOTO_", "MKL_",
-                   "NUMEXPR_", "TYPER_", "_TYPER", "RICH_")
-_NOT_KEYED = (ENV, DIR_ENV, IDLE_ENV, "QCARLAB_DEBUG")
+IMPORT_PREFIXES = ("LC_", "PYTHON", "NUMBA_", "OPENCV_", "OMP_", "OPENBLAS_", "GOTO_", "MKL_", "NUMEXPR_",
+                   "TYPER_", "_TYPER", "RICH_")  # (qcarlab reads no QCARLAB_ variable at import)
+_NOT_KEYED = (ENV, DIR_ENV, IDLE_ENV)
 _MAGIC = b"QWRM"
 
 
@@ -77,7 +80,11 @@ def main() -> None:
     server answers), else the CLI in this process as always."""
     argv = sys.argv[1:]
     later: list[Place] = []  # a server to start once this command has run cold
-    code = run(argv, later) if wanted(argv) else None
+    try:
+        code = run(argv, later) if wanted(argv) else None
+    except KeyboardInterrupt:  # while waiting for a server to start: nothing ran
+        sys.stderr.write(f"{argv[0]}: interrupted\n")
+        sys.exit(130)
     if code is None:
         from qcarlab.cli import main as cold
 
@@ -105,9 +112,20 @@ def wanted(argv: list[str]) -> bool:
         return False
     if not hasattr(socket, "send_fds") or not hasattr(os, "pidfd_open"):
         return False
-    if any(k.endswith("_COMPLETE") for k in os.environ):
+    if any(k.endswith("_COMPLETE") for k in os.environ) or not _streams_open():
         return False
     return mode == "on" or _at_terminal()
+
+
+def _streams_open() -> bool:
+    """Whether fds 0, 1 and 2 are open (``qcarlab ... <&-`` closes one: the client's own socket
+    would then take its number and be handed to the command as its stdin)."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            return False
+    return True
 
 
 def _at_terminal() -> bool:
@@ -183,6 +201,13 @@ def install_key() -> str:
                 except OSError:
                     continue
                 h.update(f"{folder}/{name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    for entry in sys.path:  # a package installed, upgraded or removed changes its folder's entries
+        if not entry.endswith(("site-packages", "dist-packages")):
+            continue  # (not the working folder: the files a command writes would change the key)
+        try:
+            h.update(f"{entry}\0{os.stat(entry or '.').st_mtime_ns}\n".encode())
+        except OSError:
+            continue
     return f"{lineage}-{h.hexdigest()[:24]}"
 
 
@@ -226,6 +251,9 @@ def start_server(where: Place) -> bool:
         lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
     except OSError:
         return False
+    if lock < 3:  # a standard stream was closed: Popen would put /dev/null over the lock's fd
+        lock, low = fcntl.fcntl(lock, fcntl.F_DUPFD_CLOEXEC, 3), lock
+        os.close(low)
     try:
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
@@ -342,12 +370,16 @@ def _run_on(conn: socket.socket, argv: list[str], where: Place) -> int | str | N
         if not child:
             pending.append(signum)
             return
-        _signal_group(child[0], signum)
-        if signum == signal.SIGTSTP:  # Ctrl-Z: the command stops (above), then this process
+        if signum == signal.SIGTSTP:  # Ctrl-Z: the command stops, then this process
+            # SIGSTOP: the command's group has no parent in its session (an orphaned group), and
+            # the kernel drops a SIGTSTP sent to one
+            _signal_group(child[0], signal.SIGSTOP)
             signal.signal(signal.SIGTSTP, signal.SIG_DFL)
             os.kill(os.getpid(), signal.SIGTSTP)
             signal.signal(signal.SIGTSTP, forward)
             _signal_group(child[0], signal.SIGCONT)  # here again after fg/bg: so is the command
+            return
+        _signal_group(child[0], signum)
 
     forwarded = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP, signal.SIGWINCH)
     previous = {s: signal.signal(s, forward) for s in forwarded}
@@ -524,6 +556,8 @@ class _Server:
         self.served = 0
         self.accepting = True
         self.idle = float(os.environ.get(IDLE_ENV) or IDLE)
+        self.pending: dict[socket.socket, dict] = {}  # connections whose request is still coming
+        self.kill_at: dict[int, float] = {}  # commands told to stop (their client died): when to kill them
 
     def loop(self) -> int:
         import selectors
@@ -540,20 +574,22 @@ class _Server:
         signal.set_wakeup_fd(wake_w.fileno())
         signal.signal(signal.SIGTERM, lambda signum, frame: None)
         self.sel.register(wake_r, selectors.EVENT_READ, ("signal", None))
-        last = time.monotonic()
+        self.last = time.monotonic()  # the last command's start or end: the idle time counts from it
         while self.accepting or self.commands:
-            wait = None if self.commands else max(0.0, self.idle - (time.monotonic() - last))
-            events = self.sel.select(wait)
-            if not events and not self.commands and time.monotonic() - last >= self.idle:
+            now = time.monotonic()
+            deadlines = [t for t in self.kill_at.values()] + [r["until"] for r in self.pending.values()]
+            if not self.commands:
+                deadlines.append(self.last + self.idle)
+            events = self.sel.select(max(0.0, min(deadlines) - now) if deadlines else None)
+            now = time.monotonic()
+            if not events and not self.commands and not self.pending and now - self.last >= self.idle:
                 break
             for key, _ in events:
                 what, data = key.data
                 if what == "accept":
-                    try:
-                        conn, _ = self.listener.accept()
-                    except OSError:
-                        continue
-                    self._request(conn)
+                    self._accept()
+                elif what == "request":
+                    self._read(key.fileobj, data)
                 elif what == "hangup":  # the client went away (killed): stop its command as Ctrl-C would
                     try:
                         gone = not key.fileobj.recv(64)
@@ -563,6 +599,7 @@ class _Server:
                         self.sel.unregister(key.fileobj)
                         if data in self.commands:
                             _signal_group(data, signal.SIGTERM)
+                            self.kill_at[data] = now + KILL_AFTER
                 elif what == "exit":
                     self._reap(data)
                 elif what == "signal":
@@ -572,56 +609,122 @@ class _Server:
                         got = b""
                     if signal.SIGTERM in got:
                         self._stop_taking()
-            last = time.monotonic()
+            for pid, t in list(self.kill_at.items()):
+                if now >= t and pid in self.commands:  # it did not stop: as ``kill -9``
+                    _signal_group(pid, signal.SIGKILL)
+                    del self.kill_at[pid]
+            for conn, r in list(self.pending.items()):
+                if now >= r["until"]:  # a connection that sends no request in time holds nothing up
+                    self._drop(conn)
         self._leave()
         return 0
 
-    def _request(self, conn: socket.socket) -> None:
-        import json
+    def _accept(self) -> None:
+        import selectors
         import struct
+        import time
 
-        fds: list[int] = []
         try:
-            conn.settimeout(10.0)
+            conn, _ = self.listener.accept()
+        except OSError:
+            return
+        try:
             creds = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-            _, uid, _ = struct.unpack("3i", creds)
-            head, fds, _, _ = socket.recv_fds(conn, 8, 3)
-            if uid != os.getuid() or len(head) != 8 or head[:4] != _MAGIC:
-                raise ValueError("not a client of ours")
-            size = int.from_bytes(head[4:], "big")
-            payload = b""
-            while len(payload) < size:
-                chunk = conn.recv(min(1 << 20, size - len(payload)))
-                if not chunk:
-                    raise ValueError("short request")
-                payload += chunk
-            request = json.loads(payload)
-            kind = request.get("kind")
-            if kind == "status":
-                conn.sendall((json.dumps(self.status()) + "\n").encode())
-                raise ValueError("answered")
-            if kind == "stop":
-                self._stop_taking()  # first: the lock is free when the client hears it
-                conn.sendall(b"stopping\n")
-                raise ValueError("answered")
-            if not self.accepting or request.get("key") != self.where.key:
-                self._stop_taking()
-                conn.sendall(b"stale\n")
-                raise ValueError("stale")
-            if kind != "run" or len(fds) != 3:
-                raise ValueError("not a command")
-        except (OSError, ValueError, TypeError, KeyError):
-            for fd in fds:
-                os.close(fd)
+            if struct.unpack("3i", creds)[1] != os.getuid():
+                raise ValueError("another user")
+            conn.setblocking(False)
+        except (OSError, ValueError):
             conn.close()
             return
+        state = {"until": time.monotonic() + REQUEST_TIMEOUT, "size": None, "fds": [], "payload": bytearray()}
+        self.pending[conn] = state
+        self.sel.register(conn, selectors.EVENT_READ, ("request", state))
+
+    def _drop(self, conn: socket.socket) -> None:
+        state = self.pending.pop(conn, None)
+        if state is not None:
+            for fd in state["fds"]:
+                os.close(fd)
+            state["fds"] = []
+        try:
+            self.sel.unregister(conn)
+        except (KeyError, ValueError):
+            pass
+        conn.close()
+
+    def _read(self, conn: socket.socket, state: dict) -> None:
+        """Read what has come of a request (never waiting): the head (magic, size, the fds), then
+        the JSON; a whole request is answered or forked. Anything malformed closes the connection."""
+        import json
+
+        try:
+            if state["size"] is None:
+                head, fds, _, _ = socket.recv_fds(conn, 8, 3)
+                state["fds"] = list(fds)
+                if len(head) != 8 or head[:4] != _MAGIC:
+                    raise ValueError("not a client of ours")
+                state["size"] = int.from_bytes(head[4:], "big")
+                if state["size"] > MAX_REQUEST:
+                    raise ValueError("too large")
+            want = state["size"] - len(state["payload"])
+            if want > 0:
+                chunk = conn.recv(min(1 << 20, want))
+                if not chunk:
+                    raise ValueError("short request")
+                state["payload"] += chunk
+                if len(chunk) < want:
+                    return
+            request = json.loads(bytes(state["payload"]))
+            if not isinstance(request, dict):
+                raise ValueError("not a request")
+        except BlockingIOError:
+            return
+        except Exception:  # noqa: BLE001 - whatever a peer sends, the server goes on
+            self._drop(conn)
+            return
+        fds = state["fds"]
+        state["fds"] = []
+        self.pending.pop(conn, None)
+        self.sel.unregister(conn)
+        try:
+            conn.setblocking(True)
+            conn.settimeout(5.0)
+            self._answer(conn, request, fds)
+        except Exception:  # noqa: BLE001
+            for fd in fds:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+            conn.close()
+
+    def _answer(self, conn: socket.socket, request: dict, fds: list[int]) -> None:
+        import json
+
+        kind = request.get("kind")
+        if kind == "status":
+            conn.sendall((json.dumps(self.status()) + "\n").encode())
+            raise ValueError("answered")
+        if kind == "stop":
+            self._stop_taking()  # first: the lock is free when the client hears it
+            conn.sendall(b"stopping\n")
+            raise ValueError("answered")
+        fields = ("key", "argv", "argv0", "cwd", "env", "path", "umask", "streams")
+        if kind != "run" or len(fds) != 3 or any(f not in request for f in fields):
+            raise ValueError("not a command")
+        if not self.accepting or request["key"] != self.where.key:  # a client of a changed install
+            self._stop_taking()
+            conn.sendall(b"stale\n")
+            raise ValueError("stale")
         self._fork(conn, request, fds)
 
     def _fork(self, conn: socket.socket, request: dict, fds: list[int]) -> None:
         import selectors
+        import time
 
         keep = [self.listener.fileno(), self.sel.fileno(), self.lock, conn.fileno()] + [w.fileno() for w in self.wake]
         keep += [c["pidfd"] for c in self.commands.values()] + [c["conn"].fileno() for c in self.commands.values()]
+        keep += [c.fileno() for c in self.pending] + [fd for r in self.pending.values() for fd in r["fds"]]
         sys.stdout.flush()
         sys.stderr.flush()
         pid = os.fork()
@@ -630,6 +733,7 @@ class _Server:
         for fd in fds:
             os.close(fd)
         self.served += 1
+        self.last = time.monotonic()
         pidfd = os.pidfd_open(pid)
         self.commands[pid] = {"conn": conn, "pidfd": pidfd}
         try:
@@ -640,7 +744,11 @@ class _Server:
         self.sel.register(conn, selectors.EVENT_READ, ("hangup", pid))
 
     def _reap(self, pid: int) -> None:
+        import time
+
         command = self.commands.pop(pid)
+        self.kill_at.pop(pid, None)
+        self.last = time.monotonic()
         _, status = os.waitpid(pid, 0)
         self.sel.unregister(command["pidfd"])
         os.close(command["pidfd"])
@@ -695,10 +803,11 @@ def _command(request: dict, fds: list[int], inherited: list[int], consoles: _Con
     interpreter. Never returns."""
     import signal
 
-    from qcarlab.zygote import run_as_interpreter
+    from qcarlab.zygote import after_fork, run_as_interpreter
 
     try:
         os.setsid()
+        after_fork()
         signal.set_wakeup_fd(-1)
         for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP, signal.SIGCHLD):
             signal.signal(s, signal.SIG_DFL)
@@ -750,8 +859,10 @@ def _streams_on(settings: list[list]) -> None:
 
     made = []
     for fd, (encoding, errors, line_buffering, write_through) in enumerate(settings):
-        raw = io.open(fd, "rb" if fd == 0 else "wb", closefd=False)  # noqa: SIM115 - the process's own stream
-        made.append(io.TextIOWrapper(raw, encoding=encoding, errors=errors, newline="\n" if fd else None,
+        raw = io.FileIO(fd, "rb" if fd == 0 else "wb", closefd=False)
+        raw.name = ("<stdin>", "<stdout>", "<stderr>")[fd]
+        buffered = io.BufferedReader(raw) if fd == 0 else io.BufferedWriter(raw)
+        made.append(io.TextIOWrapper(buffered, encoding=encoding, errors=errors, newline="\n",
                                      line_buffering=line_buffering, write_through=write_through))
     sys.stdin, sys.stdout, sys.stderr = made
     sys.__stdin__, sys.__stdout__, sys.__stderr__ = made

@@ -121,6 +121,16 @@ def load_cached_kernels() -> int:
     return loaded
 
 
+def after_fork() -> None:
+    """In a forked process, first: what it must not share with the zygote and its siblings.
+    matplotlib's fonts are open files read through a shared file offset: two processes drawing
+    text at once would read each other's bytes; the process opens its own."""
+    font_manager = sys.modules.get("matplotlib.font_manager")
+    get_font = getattr(font_manager, "_get_font", None)
+    if get_font is not None and hasattr(get_font, "cache_clear"):
+        get_font.cache_clear()
+
+
 def exit_code_of(exc: SystemExit) -> int:
     """The status the interpreter exits with for ``SystemExit(exc.code)`` (a text is printed, 1)."""
     if exc.code is None:
@@ -135,13 +145,19 @@ def run_as_interpreter(body: Callable[[], object]) -> None:
     """In a forked process: run ``body`` and end as ``python`` would after it (its ``SystemExit``'s
     status, or the traceback and 1; the non-daemon threads joined, the atexit handlers run), then
     leave at once (``os._exit``: nothing of the zygote's runs again). Never returns."""
+    import signal
+
     code = 1
+    interrupted = False
     try:
         try:
             body()
             code = 0
         except SystemExit as exc:
             code = exit_code_of(exc)
+        except KeyboardInterrupt:  # as the interpreter: the traceback, then ended by SIGINT
+            sys.excepthook(*sys.exc_info())
+            interrupted = True
         except BaseException:  # noqa: BLE001 - as the interpreter: the traceback, exit 1
             sys.excepthook(*sys.exc_info())
             code = 1
@@ -157,9 +173,12 @@ def run_as_interpreter(body: Callable[[], object]) -> None:
         for stream in (sys.stdout, sys.stderr):
             try:
                 stream.flush()
-            except Exception:  # noqa: BLE001
-                pass
+            except Exception:  # noqa: BLE001 - as the interpreter: a failed flush at exit is status 120
+                code = code or 120
+        if interrupted:
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGINT)
         os._exit(code & 0xFF)
 
 
-__all__ = ["MODULES", "exit_code_of", "lab_modules", "load_cached_kernels", "run_as_interpreter", "warm_up"]
+__all__ = ["MODULES", "after_fork", "exit_code_of", "lab_modules", "load_cached_kernels", "run_as_interpreter", "warm_up"]

@@ -263,3 +263,83 @@ def test_a_terminated_server_finishes_the_commands_it_runs(env):
     while _alive(info["pid"]) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not _alive(info["pid"]) and not os.path.exists(info["socket"])
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                fields = (d / "stat").read_text().rsplit(") ", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                out.append(int(d.name))
+    return out
+
+
+def _state(pid: int) -> str:
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(") ", 1)[1][0]
+
+
+def test_garbage_and_silent_connections_do_not_hold_the_server_up(env):
+    info = json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--json"], env=env, cwd=REPO,
+                                     capture_output=True, text=True, timeout=120, check=True).stdout)
+    import socket
+
+    silent = socket.socket(socket.AF_UNIX)
+    silent.connect(info["socket"])  # says nothing
+    for junk in (b"QWRM" + (2).to_bytes(4, "big") + b"[]", b"QWRM" + (4).to_bytes(4, "big") + b"null",
+                 b"QWRM" + (2).to_bytes(4, "big") + b"{}", b"GET / HTTP/1.0\r\n\r\n", b"QWRM\xff\xff\xff\xff"):
+        with socket.socket(socket.AF_UNIX) as s:
+            s.connect(info["socket"])
+            s.sendall(junk)
+            s.settimeout(10)
+            try:
+                s.recv(64)
+            except OSError:
+                pass
+    try:
+        t0 = time.monotonic()
+        done = qcarlab(env, "path-gen", "line", "--json")
+        assert done.returncode == 0 and json.loads(done.stdout)
+        assert time.monotonic() - t0 < 5  # not held up by the silent connection (10 s before it is dropped)
+        assert _alive(info["pid"]) and served(env) == info["served"] + 1
+    finally:
+        silent.close()
+
+
+def test_a_closed_stdin_runs_cold(env):
+    n = served(env)
+    done = subprocess.run(["bash", "-c", 'exec 0<&-; exec "$0" -c "$1" path-gen line --json', sys.executable, CLIENT],
+                          env=env, cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and json.loads(done.stdout)
+    assert served(env) == n  # not sent: its socket would have been the command's stdin
+
+
+def test_ctrl_z_stops_the_command_and_fg_resumes_it(env):
+    info = json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--json"], env=env, cwd=REPO,
+                                     capture_output=True, text=True, timeout=120, check=True).stdout)
+    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=REPO,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not _children(info["pid"]) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        (command,) = _children(info["pid"])
+        time.sleep(0.5)
+        p.send_signal(signal.SIGTSTP)
+        deadline = time.monotonic() + 10
+        while (_state(command) != "T" or _state(p.pid) != "T") and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _state(command) == "T" and _state(p.pid) == "T"
+        p.send_signal(signal.SIGCONT)
+        deadline = time.monotonic() + 10
+        while _state(command) == "T" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _state(command) in "RS"
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == 130 and "interrupted; the car was stopped" in err
+    finally:
+        p.kill()

@@ -40,7 +40,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from qcarlab.zygote import run_as_interpreter, warm_up
+from qcarlab.zygote import after_fork, run_as_interpreter, warm_up
 
 READY = "ready"
 COLD_ENV = "QCARLAB_GRADE_COLD"
@@ -262,6 +262,7 @@ def _task(request: dict[str, Any], inherited: list[int]) -> None:
     the task as ``python -m qcarlab.grading.child SPEC`` would run it; exits like the interpreter."""
     try:
         os.setsid()
+        after_fork()
         signal.signal(signal.SIGINT, signal.default_int_handler)
         for fd in inherited:
             try:
