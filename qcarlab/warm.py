@@ -374,9 +374,7 @@ def _run_on(conn: socket.socket, argv: list[str], where: Place) -> int | str | N
             # SIGSTOP: the command's group has no parent in its session (an orphaned group), and
             # the kernel drops a SIGTSTP sent to one
             _signal_group(child[0], signal.SIGSTOP)
-            signal.signal(signal.SIGTSTP, signal.SIG_DFL)
-            os.kill(os.getpid(), signal.SIGTSTP)
-            signal.signal(signal.SIGTSTP, forward)
+            os.kill(os.getpid(), signal.SIGSTOP)  # (this one too: never dropped, the shell sees a stop)
             _signal_group(child[0], signal.SIGCONT)  # here again after fg/bg: so is the command
             return
         _signal_group(child[0], signum)
