@@ -70,6 +70,12 @@ def cold(env: dict, *args: str, cwd: Path = REPO) -> subprocess.CompletedProcess
     return qcarlab({**env, "QCARLAB_WARM": "0"}, *args, cwd=cwd)
 
 
+def up(env: dict) -> dict:
+    """The server of ``env``, started (``qcarlab warm``) if it is not up: its status."""
+    return json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--json"], env=env, cwd=REPO,
+                                     capture_output=True, text=True, timeout=120, check=True).stdout)
+
+
 def served(env: dict) -> int:
     out = subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--status", "--json"], env=env, cwd=REPO,
                          capture_output=True, text=True, timeout=60)
@@ -106,7 +112,7 @@ def test_a_missed_goal_and_bad_input_exit_as_cold(env):
 
 
 def test_ctrl_c_reaches_the_command_and_the_car_is_stopped(env):
-    served(env)  # up and warm
+    up(env)
     p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=REPO,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -119,7 +125,7 @@ def test_ctrl_c_reaches_the_command_and_the_car_is_stopped(env):
 
 
 def test_a_killed_client_s_command_is_stopped(env):
-    served(env)
+    up(env)
     p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=REPO,
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     time.sleep(2.0)
@@ -159,7 +165,7 @@ def on_pty(env: dict, *args: str) -> str:
 
 def test_at_a_terminal_the_output_keeps_its_colours(env):
     auto = {k: v for k, v in env.items() if k != "QCARLAB_WARM"}  # the default: warm at a terminal
-    n = served(env)
+    n = up(env)["served"]
     warm_text = on_pty(auto, "path-gen", "butterfly", "--size", "2")
     assert served(env) == n + 1  # it went to the server
     cold_text = on_pty({**auto, "QCARLAB_WARM": "0"}, "path-gen", "butterfly", "--size", "2")
@@ -245,8 +251,7 @@ def test_the_client_imports_nothing_heavy():
 
 
 def test_a_terminated_server_finishes_the_commands_it_runs(env):
-    info = json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--json"], env=env, cwd=REPO,
-                                     capture_output=True, text=True, timeout=120, check=True).stdout)
+    info = up(env)
     p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "60", "--json"], env=env, cwd=REPO,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -283,8 +288,7 @@ def _state(pid: int) -> str:
 
 
 def test_garbage_and_silent_connections_do_not_hold_the_server_up(env):
-    info = json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--json"], env=env, cwd=REPO,
-                                     capture_output=True, text=True, timeout=120, check=True).stdout)
+    info = up(env)
     import socket
 
     silent = socket.socket(socket.AF_UNIX)
@@ -310,7 +314,7 @@ def test_garbage_and_silent_connections_do_not_hold_the_server_up(env):
 
 
 def test_a_closed_stdin_runs_cold(env):
-    n = served(env)
+    n = up(env)["served"]
     done = subprocess.run(["bash", "-c", 'exec 0<&-; exec "$0" -c "$1" path-gen line --json', sys.executable, CLIENT],
                           env=env, cwd=REPO, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and json.loads(done.stdout)
@@ -318,8 +322,7 @@ def test_a_closed_stdin_runs_cold(env):
 
 
 def test_ctrl_z_stops_the_command_and_fg_resumes_it(env):
-    info = json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--json"], env=env, cwd=REPO,
-                                     capture_output=True, text=True, timeout=120, check=True).stdout)
+    info = up(env)
     p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=REPO,
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
