@@ -44,6 +44,8 @@ import os
 import socket
 import sys
 
+from qcarlab.zygote import Lines, reap
+
 ENV = "QCARLAB_WARM"
 DIR_ENV = "QCARLAB_WARM_DIR"
 IDLE_ENV = "QCARLAB_WARM_IDLE"
@@ -381,7 +383,7 @@ def _run_on(conn: socket.socket, argv: list[str], where: Place) -> int | str | N
 
     forwarded = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP, signal.SIGWINCH)
     previous = {s: signal.signal(s, forward) for s in forwarded}
-    lines = _Lines(conn)
+    lines = Lines(conn)
     try:
         try:
             ask(conn, request, [0, 1, 2])
@@ -445,22 +447,6 @@ def _exit_as(code: int) -> None:
         os.kill(os.getpid(), -code)
         code = 128 - code
     sys.exit(code)
-
-
-class _Lines:
-    """The lines the server sends on one connection."""
-
-    def __init__(self, conn: socket.socket):
-        self.conn, self.buf = conn, b""
-
-    def next(self) -> str:
-        while b"\n" not in self.buf:
-            chunk = self.conn.recv(4096)
-            if not chunk:
-                return ""
-            self.buf += chunk
-        line, self.buf = self.buf.split(b"\n", 1)
-        return line.decode(errors="replace")
 
 
 # --------------------------------------------------------------------------------------------
@@ -747,19 +733,7 @@ class _Server:
         command = self.commands.pop(pid)
         self.kill_at.pop(pid, None)
         self.last = time.monotonic()
-        _, status = os.waitpid(pid, 0)
-        self.sel.unregister(command["pidfd"])
-        os.close(command["pidfd"])
-        conn = command["conn"]
-        try:
-            self.sel.unregister(conn)
-        except (KeyError, ValueError):
-            pass
-        try:
-            conn.sendall(f"exit {os.waitstatus_to_exitcode(status)}\n".encode())
-        except OSError:
-            pass
-        conn.close()
+        reap(self.sel, pid, command["pidfd"], command["conn"])
         if not self.commands:  # between commands: what a command compiled since is loaded for the next ones
             from qcarlab.zygote import load_cached_kernels
 
@@ -873,31 +847,29 @@ def status(where: Place) -> dict | None:
     """The server's own account (pid, socket, how long its warm-up took, commands served), or None."""
     import json
 
-    conn = connect(where)
-    if conn is None:
-        return None
+    line = _ask_line(where, {"kind": "status"})
     try:
-        conn.settimeout(5.0)
-        ask(conn, {"kind": "status"})
-        line = _Lines(conn).next()
         return json.loads(line) if line else None
-    except (OSError, ValueError):
+    except ValueError:
         return None
-    finally:
-        conn.close()
 
 
 def stop(where: Place) -> bool:
     """Ask the server to leave (it finishes the commands it runs); False when none answered."""
+    return _ask_line(where, {"kind": "stop"}) == "stopping"
+
+
+def _ask_line(where: Place, request: dict) -> str | None:
+    """The server's one-line answer to ``request``, or None (none listens, or it did not answer)."""
     conn = connect(where)
     if conn is None:
-        return False
+        return None
     try:
         conn.settimeout(5.0)
-        ask(conn, {"kind": "stop"})
-        return _Lines(conn).next() == "stopping"
+        ask(conn, request)
+        return Lines(conn).next()
     except OSError:
-        return False
+        return None
     finally:
         conn.close()
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import os
 import sys
-import threading
 from collections.abc import Callable
 
 #: What a lab's process imports besides its command's module (measured: some 0.7 s a process).
@@ -131,6 +130,41 @@ def after_fork() -> None:
         get_font.cache_clear()
 
 
+class Lines:
+    """The lines a zygote sends on one connection (its replies: ``pid N``, ``exit RC``, ...)."""
+
+    def __init__(self, conn):
+        self.conn, self.buf = conn, b""
+
+    def next(self) -> str:
+        """The next line, without its newline; "" when the connection closed first."""
+        while b"\n" not in self.buf:
+            chunk = self.conn.recv(4096)
+            if not chunk:
+                return ""
+            self.buf += chunk
+        line, self.buf = self.buf.split(b"\n", 1)
+        return line.decode(errors="replace")
+
+
+def reap(sel, pid: int, pidfd: int, conn) -> None:
+    """A forked process has ended (its ``pidfd`` is readable): collect it, take its pidfd and its
+    connection off the selector ``sel``, tell the connection ``exit RC`` (negative: the signal)
+    and close both."""
+    _, status = os.waitpid(pid, 0)
+    sel.unregister(pidfd)
+    os.close(pidfd)
+    try:
+        sel.unregister(conn)
+    except (KeyError, ValueError):
+        pass
+    try:
+        conn.sendall(f"exit {os.waitstatus_to_exitcode(status)}\n".encode())
+    except OSError:
+        pass
+    conn.close()
+
+
 def exit_code_of(exc: SystemExit) -> int:
     """The status the interpreter exits with for ``SystemExit(exc.code)`` (a text is printed, 1)."""
     if exc.code is None:
@@ -161,6 +195,8 @@ def run_as_interpreter(body: Callable[[], object]) -> None:
         except BaseException:  # noqa: BLE001 - as the interpreter: the traceback, exit 1
             sys.excepthook(*sys.exc_info())
             code = 1
+        import threading
+
         shutdown = getattr(threading, "_shutdown", None)
         if shutdown is not None:
             shutdown()  # wait for the process's non-daemon threads, as the interpreter does
@@ -181,4 +217,4 @@ def run_as_interpreter(body: Callable[[], object]) -> None:
         os._exit(code & 0xFF)
 
 
-__all__ = ["MODULES", "after_fork", "exit_code_of", "lab_modules", "load_cached_kernels", "run_as_interpreter", "warm_up"]
+__all__ = ["Lines", "MODULES", "after_fork", "exit_code_of", "reap", "lab_modules", "load_cached_kernels", "run_as_interpreter", "warm_up"]

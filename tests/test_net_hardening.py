@@ -560,6 +560,9 @@ def test_a_served_simulator_draws_its_frames_in_a_process_of_its_own(served, net
     server, _ = served(car=car, render_process=True)
     assert server.worker is not None and server.worker.proc.is_alive()
     with TcpCar(*server.address, role="monitor", timeout=10.0) as mon:
+        # the render process's first frame compiles numba's camera kernels in a fresh clone (some
+        # 30 s on a slow 2-core host, beside the other workers): this bound catches a hang only
+        mon.frame_timeout = 180.0
         scan, rgbd = mon.read_lidar(), mon.read_rgbd()
         assert not car._sensors  # the server's own process never built a sensor
         ref = SimCar(seed=5)

@@ -44,12 +44,19 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def with_checkout(env: dict) -> dict:
+    """``env`` with this checkout's qcarlab first on the path: every process of a test, whatever its
+    folder, imports the same qcarlab (with ``pip install .`` the venv has another copy, and a
+    server is one install's: a client of the other copy would not find it)."""
+    return {**env, "PYTHONPATH": os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)}
+
+
 @pytest.fixture(scope="module")
 def env():
     """A private server folder (short: a socket's path has at most 107 bytes); every server
     started in it is killed at the end, whatever happened."""
     folder = tempfile.mkdtemp(prefix="qw")
-    e = {k: v for k, v in os.environ.items() if k not in ("QCARLAB_WARM", "COLUMNS", "LINES")}
+    e = with_checkout({k: v for k, v in os.environ.items() if k not in ("QCARLAB_WARM", "COLUMNS", "LINES")})
     e.update(QCARLAB_WARM="1", QCARLAB_WARM_DIR=folder, TERM="xterm-256color", QCARLAB_WARM_IDLE="300")
     yield e
     for pid in _pids(folder):
@@ -178,7 +185,7 @@ def test_at_a_terminal_the_output_keeps_its_colours(env):
 def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server():
     folder = tempfile.mkdtemp(prefix="qw")
     try:
-        e = {k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"}
+        e = with_checkout({k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"})
         e.update(QCARLAB_WARM_DIR=folder, TERM="xterm-256color")
         assert "path-gen line" in on_pty(e, "path-gen", "line")
         deadline = time.monotonic() + 60
@@ -215,7 +222,7 @@ def test_a_server_of_a_changed_install_gives_way(env):
 def test_off_a_terminal_nothing_starts_unless_asked(tmp_path):
     folder = tempfile.mkdtemp(prefix="qw")
     try:
-        e = {k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"}
+        e = with_checkout({k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"})
         e["QCARLAB_WARM_DIR"] = folder
         out = qcarlab(e, "path-gen", "line", "--json")
         assert out.returncode == 0 and json.loads(out.stdout)

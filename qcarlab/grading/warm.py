@@ -40,7 +40,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from qcarlab.zygote import after_fork, run_as_interpreter, warm_up
+from qcarlab.zygote import Lines, after_fork, reap, run_as_interpreter, warm_up
 
 READY = "ready"
 COLD_ENV = "QCARLAB_GRADE_COLD"
@@ -98,7 +98,7 @@ class WarmStart:
             conn.settimeout(30.0)
             conn.connect(self.address)
             conn.sendall(json.dumps(request).encode() + b"\n")
-            reply = _Lines(conn)
+            reply = Lines(conn)
             started = reply.next()
         except OSError:
             self.broken = True
@@ -139,22 +139,6 @@ class WarmStart:
             _remove(self.folder)
 
 
-class _Lines:
-    """The lines the zygote sends on one connection."""
-
-    def __init__(self, conn: socket.socket):
-        self.conn, self.buf = conn, b""
-
-    def next(self) -> str:
-        while b"\n" not in self.buf:
-            chunk = self.conn.recv(4096)
-            if not chunk:
-                return ""
-            self.buf += chunk
-        line, self.buf = self.buf.split(b"\n", 1)
-        return line.decode(errors="replace")
-
-
 def _remove(folder: Path) -> None:
     import shutil
 
@@ -190,7 +174,7 @@ def serve(address: str) -> None:
             what, data = key.data
             if what == "accept":
                 conn, _ = listener.accept()
-                sel.register(conn, selectors.EVENT_READ, ("request", _Lines(conn)))
+                sel.register(conn, selectors.EVENT_READ, ("request", Lines(conn)))
             elif what == "request":
                 conn = key.fileobj
                 sel.unregister(conn)
@@ -227,19 +211,7 @@ def serve(address: str) -> None:
                 pid = data
                 task = tasks.pop(pid)
                 _kill_group(pid)  # anything the task left running (its zombie keeps the pid)
-                _, status = os.waitpid(pid, 0)
-                sel.unregister(task["pidfd"])
-                os.close(task["pidfd"])
-                conn = task["conn"]
-                try:
-                    sel.unregister(conn)
-                except (KeyError, ValueError):
-                    pass
-                try:
-                    conn.sendall(f"exit {os.waitstatus_to_exitcode(status)}\n".encode())
-                except OSError:
-                    pass
-                conn.close()
+                reap(sel, pid, task["pidfd"], task["conn"])
             elif what == "grader" and not os.read(sys.stdin.fileno(), 4096):  # EOF: the grader is done (or gone)
                 for pid in list(tasks):
                     _kill_group(pid)
