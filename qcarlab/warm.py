@@ -780,6 +780,7 @@ def _command(request: dict, fds: list[int], inherited: list[int], consoles: _Con
     try:
         os.setsid()
         after_fork()
+        _name(f"qcarlab {request['argv'][0] if request['argv'] else ''}")
         signal.set_wakeup_fd(-1)
         for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP, signal.SIGCHLD):
             signal.signal(s, signal.SIG_DFL)
@@ -806,6 +807,17 @@ def _command(request: dict, fds: list[int], inherited: list[int], consoles: _Con
     except BaseException:  # noqa: BLE001
         os._exit(1)
     run_as_interpreter(lambda: main(list(request["argv"])))
+
+
+def _name(text: str) -> None:
+    """The process's name as ``ps -e``, ``top`` and ``pkill`` show it (15 bytes: "qcarlab stop-si"),
+    instead of the server's "python3"."""
+    try:
+        from qcarlab.sandbox.jail import libc
+
+        libc().prctl(15, text.encode()[:15], 0, 0, 0)  # PR_SET_NAME
+    except Exception:  # noqa: BLE001 - a name only
+        pass
 
 
 def _limits_on(limits: dict[str, list[int]]) -> None:

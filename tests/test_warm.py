@@ -338,6 +338,7 @@ def test_ctrl_z_stops_the_command_and_fg_resumes_it(env):
             time.sleep(0.05)
         (command,) = _children(info["pid"])
         time.sleep(0.5)
+        assert Path(f"/proc/{command}/comm").read_text().strip() == "qcarlab lane-fo"  # as ps -e and top show it
         p.send_signal(signal.SIGTSTP)
         deadline = time.monotonic() + 10
         while (_state(command) != "T" or _state(p.pid) != "T") and time.monotonic() < deadline:
