@@ -67,24 +67,26 @@ def env():
     shutil.rmtree(folder, ignore_errors=True)
 
 
-def qcarlab(env: dict, *args: str, cwd: Path = REPO, timeout: float = 180) -> subprocess.CompletedProcess:
-    """``qcarlab ARGS`` as the console script runs it (qcarlab.warm.main)."""
-    return subprocess.run([sys.executable, "-c", CLIENT, *args], env=env, cwd=cwd, capture_output=True, text=True,
+def qcarlab(env: dict, *args: str, cwd: Path | None = None, timeout: float = 180) -> subprocess.CompletedProcess:
+    """``qcarlab ARGS`` as the console script runs it (qcarlab.warm.main), by default in the test's
+    server folder (what a command writes there goes with it; never into the checkout)."""
+    return subprocess.run([sys.executable, "-c", CLIENT, *args], env=env, cwd=cwd or env["QCARLAB_WARM_DIR"],
+                          capture_output=True, text=True,
                           timeout=timeout)
 
 
-def cold(env: dict, *args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
+def cold(env: dict, *args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return qcarlab({**env, "QCARLAB_WARM": "0"}, *args, cwd=cwd)
 
 
 def up(env: dict) -> dict:
     """The server of ``env``, started (``qcarlab warm``) if it is not up: its status."""
-    return json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--json"], env=env, cwd=REPO,
+    return json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--json"], env=env, cwd=env["QCARLAB_WARM_DIR"],
                                      capture_output=True, text=True, timeout=120, check=True).stdout)
 
 
 def served(env: dict) -> int:
-    out = subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--status", "--json"], env=env, cwd=REPO,
+    out = subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--status", "--json"], env=env, cwd=env["QCARLAB_WARM_DIR"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stdout + out.stderr
     return json.loads(out.stdout)["served"]
@@ -120,7 +122,7 @@ def test_a_missed_goal_and_bad_input_exit_as_cold(env):
 
 def test_ctrl_c_reaches_the_command_and_the_car_is_stopped(env):
     up(env)
-    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=REPO,
+    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=env["QCARLAB_WARM_DIR"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         time.sleep(2.0)
@@ -133,7 +135,7 @@ def test_ctrl_c_reaches_the_command_and_the_car_is_stopped(env):
 
 def test_a_killed_client_s_command_is_stopped(env):
     up(env)
-    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=REPO,
+    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=env["QCARLAB_WARM_DIR"],
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     time.sleep(2.0)
     p.kill()
@@ -141,7 +143,7 @@ def test_a_killed_client_s_command_is_stopped(env):
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
         status = json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--status", "--json"], env=env,
-                                           cwd=REPO, capture_output=True, text=True, timeout=60).stdout)
+                                           cwd=env["QCARLAB_WARM_DIR"], capture_output=True, text=True, timeout=60).stdout)
         if status["commands_running"] == 0:
             break
         time.sleep(0.2)
@@ -151,7 +153,7 @@ def test_a_killed_client_s_command_is_stopped(env):
 def on_pty(env: dict, *args: str) -> str:
     """``qcarlab ARGS`` (the console script's code) on a fresh pseudo-terminal: what it printed."""
     master, slave = os.openpty()
-    p = subprocess.Popen([sys.executable, "-c", CLIENT, *args], env=env, cwd=REPO, stdin=slave, stdout=slave,
+    p = subprocess.Popen([sys.executable, "-c", CLIENT, *args], env=env, cwd=env["QCARLAB_WARM_DIR"], stdin=slave, stdout=slave,
                          stderr=slave, start_new_session=True)
     os.close(slave)
     out = bytearray()
@@ -200,9 +202,9 @@ def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server():
 
 def test_a_server_of_a_changed_install_gives_way(env):
     key = subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"], env=env,
-                         cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
+                         cwd=env["QCARLAB_WARM_DIR"], capture_output=True, text=True, check=True).stdout.strip()
     where = warm.Place(env["QCARLAB_WARM_DIR"], key)
-    assert subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--stop"], env=env, cwd=REPO,
+    assert subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--stop"], env=env, cwd=env["QCARLAB_WARM_DIR"],
                           capture_output=True, timeout=60).returncode == 0
     deadline = time.monotonic() + 10
     while os.path.exists(where.socket) and time.monotonic() < deadline:
@@ -259,7 +261,7 @@ def test_the_client_imports_nothing_heavy():
 
 def test_a_terminated_server_finishes_the_commands_it_runs(env):
     info = up(env)
-    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "60", "--json"], env=env, cwd=REPO,
+    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "60", "--json"], env=env, cwd=env["QCARLAB_WARM_DIR"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 30
@@ -323,14 +325,14 @@ def test_garbage_and_silent_connections_do_not_hold_the_server_up(env):
 def test_a_closed_stdin_runs_cold(env):
     n = up(env)["served"]
     done = subprocess.run(["bash", "-c", 'exec 0<&-; exec "$0" -c "$1" path-gen line --json', sys.executable, CLIENT],
-                          env=env, cwd=REPO, capture_output=True, text=True, timeout=120)
+                          env=env, cwd=env["QCARLAB_WARM_DIR"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and json.loads(done.stdout)
     assert served(env) == n  # not sent: its socket would have been the command's stdin
 
 
 def test_ctrl_z_stops_the_command_and_fg_resumes_it(env):
     info = up(env)
-    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=REPO,
+    p = subprocess.Popen([sys.executable, "-c", CLIENT, "lane-follow", "--duration", "600"], env=env, cwd=env["QCARLAB_WARM_DIR"],
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 30
