@@ -182,9 +182,8 @@ def _folder() -> str | None:
 
 def install_key() -> str:
     """``LINEAGE-CONTENT``. The lineage names a server: the interpreter and its environment (venv),
-    qcarlab's folder and the
-    import-time environment (:data:`IMPORT_ENV`, which a server must share with its clients), so
-    two terminals with different colours get a server each. The content hashes qcarlab's files
+    qcarlab's folder and the import-time environment (:data:`IMPORT_ENV`, which a server must
+    share with its clients), so two terminals with different colours get a server each. The content hashes qcarlab's files
     (path, size, modification time): a server whose content differs from a client's is stale."""
     import hashlib
 
@@ -207,7 +206,7 @@ def install_key() -> str:
         if not entry.endswith(("site-packages", "dist-packages")):
             continue  # (not the working folder: the files a command writes would change the key)
         try:
-            h.update(f"{entry}\0{os.stat(entry or '.').st_mtime_ns}\n".encode())
+            h.update(f"{entry}\0{os.stat(entry).st_mtime_ns}\n".encode())
         except OSError:
             continue
     return f"{lineage}-{h.hexdigest()[:24]}"
@@ -304,12 +303,11 @@ def ask(conn: socket.socket, request: dict, fds: list[int] | None = None) -> Non
     conn.sendall(payload)
 
 
-def run(argv: list[str], later: list[Place] | None = None) -> int | None:
+def run(argv: list[str], later: list[Place]) -> int | None:
     """Run ``qcarlab ARGV`` in a process forked by the warm server: its exit status (negative: the
     signal that ended it), or None when it was not run there (the caller runs it cold). With no
     server up, ``QCARLAB_WARM=1`` starts one and waits for it; at a terminal (the default) the
-    command runs cold and the place goes to ``later`` (the caller starts the server after it; with
-    ``later`` None, at once)."""
+    command runs cold and the place goes to ``later`` (the caller starts the server after it)."""
     mode = _mode()
     where = place()
     if where is None:
@@ -318,10 +316,7 @@ def run(argv: list[str], later: list[Place] | None = None) -> int | None:
         conn = connect(where)
         if conn is None:
             if mode != "on":
-                if later is None:
-                    start_server(where)
-                else:
-                    later.append(where)
+                later.append(where)
                 return None  # this one cold; the next finds the server warm
             start_server(where)  # unless one runs or is starting
             conn = wait_ready(where)
@@ -473,7 +468,7 @@ def serve(folder: str, key: str, lock: int | None = None) -> int:
             return 0  # another server has this install
     os.set_inheritable(lock, False)
     started = time.monotonic()
-    consoles = _record_consoles()
+    consoles = _Consoles()
     from qcarlab.zygote import MODULES, lab_modules, warm_up
 
     warm_up(MODULES + lab_modules())
@@ -520,10 +515,6 @@ class _Consoles:
     def remake(self) -> None:
         for console, args, kwargs in self.made:
             self.original(console, *args, **kwargs)
-
-
-def _record_consoles() -> _Consoles:
-    return _Consoles()
 
 
 class _Server:
@@ -600,7 +591,7 @@ class _Server:
             for conn, r in list(self.pending.items()):
                 if now >= r["until"]:  # a connection that sends no request in time holds nothing up
                     self._drop(conn)
-        self._leave()
+        self._stop_taking()
         return 0
 
     def _accept(self) -> None:
@@ -764,9 +755,6 @@ class _Server:
             pass
         self.listener.close()
         os.close(self.lock)
-
-    def _leave(self) -> None:
-        self._stop_taking()
 
 
 def _command(request: dict, fds: list[int], inherited: list[int], consoles: _Consoles) -> None:

@@ -52,13 +52,10 @@ def warm_up(modules: tuple[str, ...] = MODULES) -> None:
         except ImportError:
             pass
     try:
-        from qcarlab.cli import load_commands
-        from qcarlab.cli.app import click_group
         from qcarlab.cli.invocation import parse_command
 
-        load_commands()
-        click_group()  # every command's click parser, built once
-        parse_command(["path-follow", "line", "--speed", "0.5"])  # typer's runtime parameters
+        # every command loaded and its click parser built (cli.app.click_group), typer's runtime parameters
+        parse_command(["path-follow", "line", "--speed", "0.5"])
     except Exception:  # noqa: BLE001 - a forked process then loads them itself
         pass
     try:
@@ -165,7 +162,7 @@ def reap(sel, pid: int, pidfd: int, conn) -> None:
     conn.close()
 
 
-def exit_code_of(exc: SystemExit) -> int:
+def _exit_code_of(exc: SystemExit) -> int:
     """The status the interpreter exits with for ``SystemExit(exc.code)`` (a text is printed, 1)."""
     if exc.code is None:
         return 0
@@ -188,7 +185,7 @@ def run_as_interpreter(body: Callable[[], object]) -> None:
             body()
             code = 0
         except SystemExit as exc:
-            code = exit_code_of(exc)
+            code = _exit_code_of(exc)
         except KeyboardInterrupt:  # as the interpreter: the traceback, then ended by SIGINT
             sys.excepthook(*sys.exc_info())
             interrupted = True
@@ -217,4 +214,4 @@ def run_as_interpreter(body: Callable[[], object]) -> None:
         os._exit(code & 0xFF)
 
 
-__all__ = ["Lines", "MODULES", "after_fork", "exit_code_of", "reap", "lab_modules", "load_cached_kernels", "run_as_interpreter", "warm_up"]
+__all__ = ["Lines", "MODULES", "after_fork", "lab_modules", "load_cached_kernels", "reap", "run_as_interpreter", "warm_up"]
