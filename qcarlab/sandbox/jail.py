@@ -17,7 +17,8 @@ task (see :mod:`qcarlab.sandbox.client`), before any student code is loaded. In 
 3. **a cgroup** (v1 or v2; joined by the caller): one memory limit for every process it starts
    together (its tmpfs files count too), and a cap on their number;
 4. **rlimits**: open files, processes (per user id: one per task), file size (the output cap), CPU
-   time, no core files; the address space too when there is no cgroup;
+   time, no core files; the address space (the memory limit without a cgroup, with one that
+   limit plus ``ADDRESS_HEADROOM``: an allocation mapped and never touched fails at once);
 5. **another user**: a user and group id of its own per task (``BASE_UID`` + the task's PID), no
    supplementary groups, no capabilities, ``no_new_privs`` (no set-uid program can give any back),
    and the parent-death signal (SIGKILL when the trusted side goes).
@@ -93,13 +94,16 @@ class Plan:
     root: str  # an empty folder: the jail's root is mounted over it (inside its mount namespace only)
     submission: str  # the submission's folder, seen read-only at the same path
     uid: int
-    memory_bytes: int  # the tmpfs's size; the address space too when there is no cgroup
+    memory_bytes: int  # the tmpfs's size; the address space too (plus ADDRESS_HEADROOM with a cgroup)
     output_bytes: int
     cpu_s: int
     cgroup: bool  # the caller put the process in a cgroup with the memory and process limits
     processes: int = 64
     files: int = 256
     visible: list[str] = field(default_factory=list)  # read-only, at the same paths
+
+
+ADDRESS_HEADROOM = 2 * 2**30  # beyond the memory limit, for what a process maps and never touches (B: ~0.3 GB)
 
 
 def python_paths() -> list[str]:
@@ -192,6 +196,9 @@ def _limits(plan: Plan) -> None:
     set_limit(resource.RLIMIT_CPU, plan.cpu_s)
     if not plan.cgroup:  # the next best thing: each process's address space
         set_limit(resource.RLIMIT_AS, plan.memory_bytes)
+    else:  # memory is the cgroup's; the address space only stops mapping without touching (np.empty
+        # in a loop maps terabytes, charged nothing, until the kernel's map count runs out seconds later)
+        set_limit(resource.RLIMIT_AS, plan.memory_bytes + ADDRESS_HEADROOM)
 
 
 # --------------------------------------------------------------------------------------------
