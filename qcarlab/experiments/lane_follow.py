@@ -608,11 +608,6 @@ def frame_figure(color: np.ndarray, det, box) -> Any:
 
 
 
-def _imwrite(file, image: np.ndarray) -> None:
-    if not cv2.imwrite(str(file), image):
-        raise InputError(f"cannot write {file}")
-
-
 def _log_columns(cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     keep = ["t", "line", "lateral_deviation", "obstacle_distance", "armed", "v_ref", "v_meas", "true_speed",
             "throttle", "steering", "lamps", "true_x", "true_y", "true_yaw"]
