@@ -41,7 +41,8 @@ def lab_modules() -> tuple[str, ...]:
 def warm_up(modules: tuple[str, ...] = MODULES) -> None:
     """Load once what every lab process loads: ``modules`` and every command of the CLI with its
     click group (every command's parser), numba and the compiled physics, every kernel numba has
-    compiled code for in its cache (:func:`load_cached_kernels`), the sandbox's libc and its probe
+    compiled code for in its cache (:func:`load_cached_kernels`), the avoidance controller's kernels
+    (compiled if they never were: :func:`qcarlab.control._kernels.warm`), the sandbox's libc and its probe
     (:func:`qcarlab.sandbox.jail.probe`), matplotlib's Agg canvas with its fonts. No OpenCV call,
     no sensor frame, no thread. What fails here is left for the forked process to load itself."""
     import importlib
@@ -65,6 +66,12 @@ def warm_up(modules: tuple[str, ...] = MODULES) -> None:
     except Exception:  # noqa: BLE001
         pass
     load_cached_kernels()
+    try:
+        from qcarlab.control import _kernels
+
+        _kernels.warm()  # compiled here if never before: a student's process (no cache it can write) calls them
+    except Exception:  # noqa: BLE001
+        pass
     try:
         from qcarlab.sandbox import jail
 

@@ -144,18 +144,99 @@ def test_the_combined_strategy_dodges_a_ball_rolled_at_it_which_the_windows_alon
     assert ok["distance_m"] > 1.0  # and it drove on
 
 
-def test_the_icp_solve_is_numpys_and_a_singular_system_raises_without_a_warning():
-    """``_solve`` calls numpy's LAPACK gufunc directly (the ICP's 3 x 3 step): the same numbers as
-    ``np.linalg.solve``, and a singular system raises LinAlgError as it did, printing nothing."""
-    import warnings
+def _numpy_scan_motion(old, new, guess, iterations=12, prior=(2.0, 2.0, 0.5)):
+    """scan_motion as numpy arrays of every return, one iteration at a time (the formulation the
+    compiled kernel replaced): the oracle of the kernel's numbers."""
+    Q = new.points[::2] if len(new.points) > 400 else new.points
+    g = np.asarray(guess, dtype=float)
+    pa, Px, Py, Nx, Ny, ok_n = old.table()
+    x = g.copy()
+    lam = np.diag(np.asarray(prior, dtype=float))
+    matched = 0
+    for it in range(iterations):
+        c, s = math.cos(x[2]), math.sin(x[2])
+        px = c * Q[:, 0] - s * Q[:, 1] + x[0]
+        py = s * Q[:, 0] + c * Q[:, 1] + x[1]
+        k = np.searchsorted(pa, np.arctan2(py, px))
+        d1, d0 = np.hypot(px - Px[k], py - Py[k]), np.hypot(px - Px[k - 1], py - Py[k - 1])
+        nearer = d0 < d1
+        idx = k - nearer
+        gate = max(0.08, 0.3 * 0.7 ** it)
+        use = ok_n[idx] & (np.where(nearer, d0, d1) < gate)
+        matched = int(use.sum())
+        if matched < 20:
+            return (*g, 0)
+        iu = idx[use]
+        nx, ny, ux, uy = Nx[iu], Ny[iu], px[use], py[use]
+        e = nx * (ux - Px[iu]) + ny * (uy - Py[iu])
+        w = np.minimum(1.0, 0.02 / np.maximum(np.abs(e), 1e-9))
+        J = np.column_stack((nx, ny, ny * (ux - x[0]) - nx * (uy - x[1])))
+        step = np.linalg.solve(J.T @ (J * w[:, None]) + lam, -(J.T @ (w * e) + lam @ (x - g)))
+        x += step
+        if abs(step[0]) + abs(step[1]) < 2e-4 and abs(step[2]) < 2e-4 and gate <= 0.1:
+            break
+    return (*x, matched)
 
-    from qcarlab.control.moving_obstacles import _solve
 
-    rng = np.random.default_rng(0)
-    for _ in range(20):
-        H, b = rng.normal(size=(3, 3)), rng.normal(size=3)
-        assert np.array_equal(_solve(H, b), np.linalg.solve(H, b))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        with pytest.raises(np.linalg.LinAlgError):
-            _solve(np.zeros((3, 3)), np.ones(3))
+def test_the_compiled_scan_matching_gives_the_numpy_formulations_numbers():
+    """scan_motion's kernel (loops over the returns, a Cholesky 3 x 3 solve) against the same
+    equations in numpy arrays: the motion to 1e-9 and the same count of matched returns, over
+    scans of a room taken from poses a LIDAR period apart, with and without odometry."""
+    from qcarlab.control.moving_obstacles import prepare_scan
+
+    world = world_from_dict(ROOM, "room")
+    lidar = Lidar(world, rng=np.random.default_rng(4))
+    rng = np.random.default_rng(5)
+    for _ in range(12):
+        a = (rng.uniform(-1.5, 1.5), rng.uniform(-1.0, 1.0), rng.uniform(-math.pi, math.pi))
+        true = (rng.uniform(0.0, 0.1), rng.uniform(-0.02, 0.02), rng.uniform(-0.1, 0.1))
+        sa, sb = lidar.scan(a), lidar.scan(compose(a, true))
+        old, new = prepare_scan(sa.ranges, sa.angles), prepare_scan(sb.ranges, sb.angles)
+        for guess in ((0.0, 0.0, 0.0), true):
+            m = scan_motion(old, new, guess)
+            want = _numpy_scan_motion(old, new, guess)
+            assert m.matched == want[3] > 100
+            assert np.allclose((m.dx, m.dy, m.dyaw), want[:3], rtol=0.0, atol=1e-9)
+
+
+def test_the_compiled_model_drive_gives_the_numpy_formulations_paths():
+    """rollout's model drive (a kernel: one manoeuvre at a time, scalars) against the bicycle model
+    stepped for every manoeuvre at once in numpy arrays: the positions to 1e-9."""
+    from qcarlab.constants import DEFAULT_PARAMS as P
+    from qcarlab.control import dodge
+    from qcarlab.control._kernels import drive_paths
+
+    def steer(y, psi, v, offset):
+        sgn = np.where(v < 0.0, -1.0, 1.0)
+        look = np.maximum(dodge.LOOK_MIN, dodge.LOOK_TIME * np.abs(v))
+        psi_d = sgn * np.clip(np.arctan((offset - y) / look), -dodge.PSI_MAX, dodge.PSI_MAX)
+        err = np.remainder(psi_d - psi + math.pi, 2.0 * math.pi) - math.pi
+        return np.clip(np.arctan(P.wheelbase * dodge.K_PSI * err / (sgn * np.maximum(np.abs(v), 0.15))),
+                       -P.max_steering, P.max_steering)
+
+    ball = Obstacle(2.0, 0.3, -0.8, -0.2, 0.12)
+    frame = line_frame(ball)
+    vref = np.array([0.5, 0.5, 0.5, -0.3, 0.8])
+    off = np.array([0.0, 0.3, -0.45, 0.2, -0.6])
+    free = np.array([True, False, False, False, False])
+    dt, tau, steps, hold = 0.05, P.steering_tau + 0.04, 80, 2
+    xs, ys, yaws = drive_paths(0.4, 0.1, vref, off, free, frame.ox, frame.oy, frame.ex, frame.ey, frame.heading,
+                               P.wheelbase, P.max_steering, tau, steps, dt, 2.0, hold, dodge.LOOK_MIN,
+                               dodge.LOOK_TIME, dodge.PSI_MAX, dodge.K_PSI)
+    x, y, yaw, v, d, cmd = (np.zeros(5), np.zeros(5), np.zeros(5), np.full(5, 0.4), np.full(5, 0.1), np.zeros(5))
+    for i in range(steps):
+        if i % hold == 0:
+            cmd = np.where(free, 0.0, steer(frame.lateral(x, y), yaw - frame.heading, np.where(np.abs(v) > 0.05, v, vref),
+                                           off))
+        d += (cmd - d) * (1.0 - math.exp(-dt / tau))
+        v += np.clip(vref - v, -2.0 * dt, 2.0 * dt)
+        beta = np.arctan(0.5 * np.tan(d))
+        x, y = x + v * np.cos(yaw + beta) * dt, y + v * np.sin(yaw + beta) * dt
+        yaw = yaw + v * np.cos(beta) * np.tan(d) / P.wheelbase * dt
+        assert np.allclose(xs[i], x, atol=1e-9) and np.allclose(ys[i], y, atol=1e-9)
+        assert np.allclose(yaws[i], yaw, atol=1e-9)
+    assert abs(ys[-1, 2] - ys[-1, 1]) > 0.3  # (the manoeuvres went apart: the law steered)
+    # and offset_steering, on scalars and on arrays, is that law
+    args = (np.array([0.1, -0.2, 0.3]), np.array([0.05, 0.0, -0.4]), np.array([0.5, -0.3, 0.02]), 0.25)
+    assert np.allclose(dodge.offset_steering(*args), steer(*args), atol=1e-12)
+    assert dodge.offset_steering(0.1, 0.05, 0.5, 0.25) == pytest.approx(float(steer(0.1, 0.05, 0.5, 0.25)), abs=1e-12)

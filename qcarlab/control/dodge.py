@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
+from qcarlab.control._kernels import drive_paths, offset_steer
 
 __all__ = ["Manoeuvre", "Obstacle", "LineFrame", "choose", "line_frame", "offset_steering", "rollout"]
 
@@ -93,14 +94,15 @@ def line_frame(ob: Obstacle) -> LineFrame:
 def offset_steering(y, psi, v, offset: float, params: QCarParams = DEFAULT_PARAMS):
     """The steering (rad) that takes a car at lateral position ``y`` (m) with heading ``psi`` (rad,
     both in the line's frame) at speed ``v`` (m/s, signed) to the line at ``offset``; see the module
-    docstring. Works on arrays."""
-    v = np.asarray(v, dtype=float)
-    sgn = np.where(v < 0.0, -1.0, 1.0)
-    look = np.maximum(LOOK_MIN, LOOK_TIME * np.abs(v))
-    psi_d = sgn * _clip(np.arctan((offset - np.asarray(y, dtype=float)) / look), -PSI_MAX, PSI_MAX)
-    err = np.remainder(psi_d - np.asarray(psi, dtype=float) + math.pi, 2.0 * math.pi) - math.pi
-    v_eff = sgn * np.maximum(np.abs(v), 0.15)
-    return _clip(np.arctan(params.wheelbase * K_PSI * err / v_eff), -params.max_steering, params.max_steering)
+    docstring. Works on arrays (broadcast), compiled (:func:`qcarlab.control._kernels.offset_steer`)."""
+    law = (float(params.wheelbase), float(params.max_steering), LOOK_MIN, LOOK_TIME, PSI_MAX, K_PSI)
+    if all(np.ndim(a) == 0 for a in (y, psi, v, offset)):
+        return offset_steer(float(y), float(psi), float(v), float(offset), *law)
+    y, psi, v, offset = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (y, psi, v, offset)))
+    out = np.empty(y.shape)
+    for i in np.ndindex(y.shape):
+        out[i] = offset_steer(float(y[i]), float(psi[i]), float(v[i]), float(offset[i]), *law)
+    return out
 
 
 def _clip(a, lo: float, hi: float):
@@ -133,34 +135,16 @@ def rollout(manoeuvres: list[Manoeuvre], obstacles: list[Obstacle], frame: LineF
     nearer are measured: those within ``wall_cap`` plus the footprint's half diagonal of the
     box round a manoeuvre's positions); below it, the same number."""
     k = len(manoeuvres)
-    x, y, yaw = np.zeros(k), np.zeros(k), np.zeros(k)
-    v = np.full(k, float(v0))
-    d = np.full(k, float(delta0))
     vref = np.array([m.speed for m in manoeuvres], dtype=float)
     off = np.array([0.0 if m.offset is None else m.offset for m in manoeuvres], dtype=float)
     free = np.array([m.offset is None for m in manoeuvres])
-    tau = params.steering_tau + delay
-    L = params.wheelbase
     steps = int(round(horizon / dt))
-    xs, ys, yaws = np.empty((steps, k)), np.empty((steps, k)), np.empty((steps, k))
-    h = frame.heading
-    hold = max(1, int(round(period / dt)))
-    cmd = np.zeros(k)
-    servo = 1.0 - math.exp(-dt / tau)
-    dv = accel * dt
-    for i in range(steps):
-        if i % hold == 0:  # a new command on each scan, held between them as the car does
-            cmd = offset_steering(frame.lateral(x, y), yaw - h, np.where(np.abs(v) > 0.05, v, vref), off, params)
-            cmd = np.where(free, 0.0, cmd)
-        d += (cmd - d) * servo
-        v += _clip(vref - v, -dv, dv)
-        tan_d = np.tan(d)
-        beta = np.arctan(0.5 * tan_d)
-        heading = yaw + beta
-        x += v * np.cos(heading) * dt
-        y += v * np.sin(heading) * dt
-        yaw += v * np.cos(beta) * tan_d / L * dt
-        xs[i], ys[i], yaws[i] = x, y, yaw
+    hold = max(1, int(round(period / dt)))  # a new command on each scan, held between them as the car does
+    xs, ys, yaws = drive_paths(float(v0), float(delta0), vref, off, free, float(frame.ox), float(frame.oy),
+                               float(frame.ex), float(frame.ey), float(frame.heading), float(params.wheelbase),
+                               float(params.max_steering), float(params.steering_tau + delay), steps, float(dt),
+                               float(accel), hold, LOOK_MIN, LOOK_TIME, PSI_MAX, K_PSI)
+    x, y, yaw = (a[-1] if steps else np.zeros(k) for a in (xs, ys, yaws))  # where each manoeuvre got to
     hl, hw = params.length / 2.0, params.width / 2.0
     t = (np.arange(steps) + 1) * dt
     ball = np.full(k, np.inf)

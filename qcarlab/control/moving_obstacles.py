@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from qcarlab.beams import derived
+from qcarlab.control._kernels import match_scans
 
 __all__ = ["Cluster", "Motion", "PreparedScan", "Track", "Tracker", "prepare_scan", "scan_clusters", "scan_motion"]
 
@@ -141,78 +142,22 @@ def scan_motion(prev, scan, guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
     and pairs farther apart than a shrinking gate (0.3 m down to 8 cm) dropped; the weak prior
     ``P`` (``prior``, per m^2 / rad^2) towards ``guess`` only matters along a direction the walls
     leave open (down a long corridor with nothing at its end). Returns the ``guess``
-    (``matched`` 0) when fewer than 20 returns pair up.
+    (``matched`` 0) when fewer than 20 returns pair up. Compiled
+    (:func:`qcarlab.control._kernels.match_scans`: the 3 x 3 normal equations by Cholesky).
     """
     old, new = _prepared(prev), _prepared(scan)
     Q = new.points
     if len(Q) > 400:  # a few hundred returns are plenty for three unknowns
         Q = Q[::2]
-    g = np.asarray(guess, dtype=float)
+    g = [float(v) for v in guess]
     if len(old.points) < 20 or len(Q) < 20:
-        return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
+        return Motion(g[0], g[1], g[2], 0)
     # the older scan's returns, wrapped round (PreparedScan.table): k + 1 is return k, k the one before
     pa, Px, Py, Nx, Ny, ok_n = old.table()
-    Qx, Qy = Q[:, 0].copy(), Q[:, 1].copy()
-    x = g.copy()
-    x0, x1, x2 = x.tolist()
-    lam = np.diag(np.asarray(prior, dtype=float))
-    matched = 0
-    for it in range(iterations):
-        c, s = math.cos(x2), math.sin(x2)
-        px = c * Qx - s * Qy + x0
-        py = s * Qx + c * Qy + x1
-        k = np.searchsorted(pa, np.arctan2(py, px))  # the return at or after p's bearing, + 1
-        k0 = k - 1  # the one before it (0: the last return)
-        d1 = _hypot(px - Px[k], py - Py[k])
-        d0 = _hypot(px - Px[k0], py - Py[k0])
-        nearer = d0 < d1
-        idx = k - nearer
-        gate = max(0.08, 0.3 * 0.7 ** it)
-        use = ok_n[idx] & (np.where(nearer, d0, d1) < gate)
-        matched = int(np.count_nonzero(use))
-        if matched < 20:
-            return Motion(float(g[0]), float(g[1]), float(g[2]), 0)
-        iu = idx[use]
-        nx, ny = Nx[iu], Ny[iu]
-        ux, uy = px[use], py[use]
-        e = nx * (ux - Px[iu]) + ny * (uy - Py[iu])
-        w = np.minimum(1.0, 0.02 / np.maximum(np.abs(e), 1e-9))
-        J = np.empty((matched, 3))  # (the columns nx, ny, dyaw's: as np.column_stack makes it)
-        J[:, 0] = nx
-        J[:, 1] = ny
-        J[:, 2] = ny * (ux - x0) - nx * (uy - x1)
-        H = J.T @ (J * w[:, None]) + lam
-        grad = J.T @ (w * e) + lam @ (x - g)
-        step = _solve(H, -grad)
-        x += step
-        x0, x1, x2 = x.tolist()
-        s0, s1, s2 = step.tolist()
-        if abs(s0) + abs(s1) < 2e-4 and abs(s2) < 2e-4 and gate <= 0.1:
-            break
-    return Motion(x0, x1, x2, matched)
-
-
-_hypot = np.hypot
-
-
-def _solve(H: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``np.linalg.solve(H, b)`` for a 3 x 3 ``H`` and a vector ``b``: the same LAPACK call (its
-    gufunc, without the wrapper's checks, a third of an ICP iteration); a singular ``H`` (a NaN
-    result, with no RuntimeWarning printed on the way) goes through ``np.linalg.solve``, which
-    raises as before."""
-    if _SOLVE1 is None:
-        return np.linalg.solve(H, b)
-    with np.errstate(invalid="ignore"):
-        x = _SOLVE1(H, b, signature="dd->d")
-    if not np.isfinite(x).all():
-        return np.linalg.solve(H, b)
-    return x
-
-
-try:  # numpy's own solver, as np.linalg.solve calls it for a vector
-    from numpy.linalg._umath_linalg import solve1 as _SOLVE1
-except ImportError:  # pragma: no cover (another numpy's layout)
-    _SOLVE1 = None
+    p = [float(v) for v in prior]
+    x0, x1, x2, matched = match_scans(pa, Px, Py, Nx, Ny, ok_n, np.ascontiguousarray(Q[:, 0]),
+                                      np.ascontiguousarray(Q[:, 1]), g[0], g[1], g[2], int(iterations), p[0], p[1], p[2])
+    return Motion(float(x0), float(x1), float(x2), int(matched))
 
 
 @dataclass(frozen=True)

@@ -19,57 +19,9 @@ import sys
 
 import numpy as np
 
+from qcarlab.jit import COMPILE_NOTICE, HAVE_NUMBA, njit  # noqa: F401  (COMPILE_NOTICE: read by tests)
+from qcarlab.jit import JIT as _JIT
 from qcarlab.sim.edge_scan import edge_table  # noqa: F401  (the camera's and the LIDAR's edge rows)
-
-try:  # pragma: no cover - which branch runs depends on the install
-    from numba import njit
-
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover
-    HAVE_NUMBA = False
-
-    def njit(*args, **kwargs):  # type: ignore[no-redef]
-        if args and callable(args[0]):
-            return args[0]
-        return lambda f: f
-
-
-_JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
-
-
-def _say_when_compiling() -> object | None:
-    """On the first run after an install or an upgrade numba's cache is empty and the first
-    kernels compile for some 10-30 s. A person waiting at a terminal is told why, once a process,
-    as numba starts its first compilation (its ``numba:compile`` event: a kernel loaded from the
-    cache raises none). Captured or redirected stderr (tests, CI logs, the grader) gets nothing.
-    Returns the listener (None without numba)."""
-    if not HAVE_NUMBA:  # pragma: no cover
-        return None
-    import logging
-
-    from numba.core import event
-
-    class FirstCompile(event.Listener):
-        said = False
-
-        def on_start(self, ev: object) -> None:
-            if self.said:
-                return
-            self.said = True
-            if sys.stderr is not None and sys.stderr.isatty():
-                logging.getLogger("qcarlab.sim").info(
-                    "compiling the simulator's kernels for this machine (once after an install; "
-                    "about 10-30 s, later runs load them from the cache)")
-
-        def on_end(self, ev: object) -> None:
-            pass
-
-    listener = FirstCompile()
-    event.register("numba:compile", listener)
-    return listener
-
-
-COMPILE_NOTICE = _say_when_compiling()
 
 KMAX = 8  # hits kept per camera column
 
