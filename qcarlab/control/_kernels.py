@@ -1,7 +1,7 @@
 """The obstacle-avoidance controller's inner loops, compiled (:mod:`qcarlab.jit`): the scan
 matching of :func:`~qcarlab.control.moving_obstacles.scan_motion` and the model drive of
 :func:`~qcarlab.control.dodge.rollout`, with the steering law they share
-(:func:`offset_steer`). Scalars and float64 arrays in, numbers out; the equations are those of the
+(:func:`offset_steer`). Scalars and float64 (and bool) arrays in, numbers out; the equations are those of the
 functions' docstrings. Each runs a few hundred small steps per LIDAR scan: written as loops over
 scalars they cost microseconds where a numpy call per step cost a millisecond.
 """
@@ -36,7 +36,7 @@ def drive_paths(v0, delta0, vref, off, free, ox, oy, ex, ey, heading, wheelbase,
     k manoeuvres (speed ``vref[j]``, target line ``off[j]`` m left of the line through (ox, oy)
     along (ex, ey) at ``heading``; ``free[j]``: wheels straight): the steering law every ``hold``
     steps and held, the servo's first-order lag ``tau`` s, the speed ramp ``accel`` m/s^2.
-    Returns the positions ``xs, ys, yaws`` (steps, k)."""
+    Returns the poses ``xs, ys, yaws`` (steps, k): m, m, rad."""
     k = vref.shape[0]
     xs = np.empty((horizon_steps, k))
     ys = np.empty((horizon_steps, k))

@@ -137,7 +137,7 @@ def rollout(manoeuvres: list[Manoeuvre], obstacles: list[Obstacle], frame: LineF
     k = len(manoeuvres)
     vref = np.array([m.speed for m in manoeuvres], dtype=float)
     off = np.array([0.0 if m.offset is None else m.offset for m in manoeuvres], dtype=float)
-    free = np.array([m.offset is None for m in manoeuvres])
+    free = np.array([m.offset is None for m in manoeuvres], dtype=bool)
     steps = int(round(horizon / dt))
     hold = max(1, int(round(period / dt)))  # a new command on each scan, held between them as the car does
     xs, ys, yaws = drive_paths(float(v0), float(delta0), vref, off, free, float(frame.ox), float(frame.oy),

@@ -142,7 +142,8 @@ def scan_motion(prev, scan, guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
     and pairs farther apart than a shrinking gate (0.3 m down to 8 cm) dropped; the weak prior
     ``P`` (``prior``, per m^2 / rad^2) towards ``guess`` only matters along a direction the walls
     leave open (down a long corridor with nothing at its end). Returns the ``guess``
-    (``matched`` 0) when fewer than 20 returns pair up. Compiled
+    (``matched`` 0) when fewer than 20 returns pair up, or when a step is not finite (a singular
+    system: only with a zero prior). Compiled
     (:func:`qcarlab.control._kernels.match_scans`: the 3 x 3 normal equations by Cholesky).
     """
     old, new = _prepared(prev), _prepared(scan)

@@ -103,7 +103,9 @@ class Plan:
     visible: list[str] = field(default_factory=list)  # read-only, at the same paths
 
 
-ADDRESS_HEADROOM = 2 * 2**30  # beyond the memory limit, for what a process maps and never touches (B: ~0.3 GB)
+#: Address space beyond the memory limit, for what a process maps and never touches (numpy, numba,
+#: OpenCV and matplotlib imported: some 0.7 GB; thread stacks and malloc arenas)
+ADDRESS_HEADROOM = 2 * 2**30
 
 
 def python_paths() -> list[str]:
@@ -187,6 +189,8 @@ def _show(root: str, path: str, read_only: bool) -> None:
 
 def _limits(plan: Plan) -> None:
     def set_limit(which: int, value: int) -> None:
+        _, hard = resource.getrlimit(which)  # (never above what the grader itself runs under)
+        value = value if hard == resource.RLIM_INFINITY else min(value, hard)
         resource.setrlimit(which, (value, value))  # soft = hard: the student cannot raise it again
 
     set_limit(resource.RLIMIT_NOFILE, plan.files)
