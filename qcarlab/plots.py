@@ -21,13 +21,22 @@ __all__ = ["camera_figure", "drive_figure", "lane_figure", "plot_cloud", "plot_d
            "plot_polar_scan", "plot_speed", "plot_step_response", "plot_sweep", "save_figure", "trials_figure"]
 
 
-def _figure(width: float = 7.6, height: float = 6.0) -> Any:
+def _figure(width: float = 7.6, height: float = 6.0, legend_room: float = 0.0) -> Any:
+    """A Figure on an Agg canvas, ``width`` x ``height`` inches; ``legend_room`` inches more on the
+    right for a legend outside the axes (the axes keep the place they would have had without it),
+    so that everything lies inside the canvas and :func:`_save` crops it in one draw."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(width, height), dpi=100)
+    fig = Figure(figsize=(width + legend_room, height), dpi=100)
     FigureCanvasAgg(fig)
+    if legend_room:
+        sp = fig.subplotpars
+        fig.subplots_adjust(left=sp.left * width / (width + legend_room), right=sp.right * width / (width + legend_room))
     return fig
+
+
+LEGEND_ROOM = 2.6  #: in: the room on the right of a figure whose legend is outside its axes
 
 
 PNG_COMPRESS_LEVEL = 1  # zlib level of the PNGs: 2-4x faster to write than matplotlib's 6, some 1.1-1.25x the bytes
@@ -36,11 +45,13 @@ PNG_COMPRESS_LEVEL = 1  # zlib level of the PNGs: 2-4x faster to write than matp
 def _save(fig: Any, file: str | Path) -> Path:
     """Write ``fig`` to a PNG cropped as ``savefig(bbox_inches="tight")`` crops it, drawn once.
 
-    ``bbox_inches="tight"`` (and an inert layout engine a finished ``fig.tight_layout()`` leaves)
-    makes savefig draw the whole figure twice: a layout pass (which resamples every image) and the
-    real one. The tight box (``fig.get_tightbbox`` padded by ``savefig.pad_inches``) needs no draw,
-    so it is measured first and handed over; the RGBA buffer drawn in it is encoded by
-    :func:`_png`. The pixels are those of ``savefig(bbox_inches="tight")`` (tests/test_plots_save.py).
+    ``bbox_inches="tight"`` measures every artist's extent first (``fig.get_tightbbox``: the tick
+    labels laid out twice, some 40 % of a draw; with a finished ``fig.tight_layout()``'s inert
+    engine, a whole second draw). Here the figure is drawn once on its own canvas and cropped to
+    its ink (the pixels not of the face colour) padded by ``savefig.pad_inches``: the same box as
+    the artists' up to their blank margins. A figure whose ink reaches the canvas's edge (a legend
+    outside it, say) may reach beyond it and is saved as before: the tight box measured, the
+    figure drawn in it. The RGBA buffer is encoded by :func:`_png` (tests/test_plots_save.py).
     """
     import matplotlib as mpl
     from matplotlib.layout_engine import PlaceHolderLayoutEngine
@@ -52,15 +63,27 @@ def _save(fig: Any, file: str | Path) -> Path:
         mpl.rcParams["figure.autolayout"] or mpl.rcParams["figure.constrained_layout.use"])
     pad, dpi = mpl.rcParams["savefig.pad_inches"], mpl.rcParams["savefig.dpi"]
     agg = hasattr(fig.canvas, "get_renderer") and hasattr(fig.canvas, "buffer_rgba")  # (a bare Figure() has none)
-    if not agg or (engine is not None and not inert) or not isinstance(pad, float) or dpi not in ("figure", fig.dpi):
+    plain = not mpl.rcParams["savefig.transparent"] and all(
+        mpl.rcParams[f"savefig.{k}"] == "auto" for k in ("facecolor", "edgecolor"))  # the canvas's own colours
+    if not agg or not plain or (engine is not None and not inert) or not isinstance(pad, float) \
+            or dpi not in ("figure", fig.dpi):
         # a live layout engine lays out in savefig's first pass; a savefig dpi of its own measures there
         fig.savefig(out, format="png", bbox_inches="tight", pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
         return out
-    bbox = fig.get_tightbbox(fig.canvas.get_renderer()).padded(pad)
-    raw = io.BytesIO()
     if inert:
         fig.set_layout_engine(None)  # its execute() does nothing; without it savefig skips the layout pass
     try:
+        fig.canvas.draw()
+        rgba = np.asarray(fig.canvas.buffer_rgba())
+        box = _ink_box(rgba, fig.get_facecolor())
+        if box is not None:  # everything drawn lies inside the canvas: crop it to the ink, padded
+            y0, y1, x0, x1 = box
+            margin = int(round(pad * fig.dpi))
+            crop = rgba[max(y0 - margin, 0):y1 + margin, max(x0 - margin, 0):x1 + margin]
+            out.write_bytes(_png(np.ascontiguousarray(crop), fig.dpi))
+            return out
+        bbox = fig.get_tightbbox(fig.canvas.get_renderer()).padded(pad)
+        raw = io.BytesIO()
         fig.savefig(raw, format="rgba", bbox_inches=bbox)
     finally:
         if inert:
@@ -69,6 +92,26 @@ def _save(fig: Any, file: str | Path) -> Path:
     rgba = np.frombuffer(raw.getbuffer(), np.uint8).reshape(shape)
     out.write_bytes(_png(rgba, fig.dpi))
     return out
+
+
+def _ink_box(rgba: np.ndarray, face: Sequence[float]) -> tuple[int, int, int, int] | None:
+    """The rows ``y0..y1`` and columns ``x0..x1`` (ends exclusive) of the pixels of an (H, W, 4)
+    RGBA canvas that differ from the figure's face colour; None when some of them lie on the
+    canvas's edge (something may reach beyond it) or the canvas is not the face colour where it
+    is empty (its corners)."""
+    face_px = np.array([int(round(255 * min(max(float(c), 0.0), 1.0))) for c in face], np.uint8)
+    words = rgba.view(np.uint32).reshape(rgba.shape[:2])
+    bg = face_px.view(np.uint32)[0]
+    if words[0, 0] != bg or words[-1, -1] != bg:
+        return None
+    ink = words != bg
+    rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
+    if not len(rows):
+        return None
+    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    if y0 == 0 or x0 == 0 or y1 == words.shape[0] or x1 == words.shape[1]:
+        return None
+    return y0, y1, x0, x1
 
 
 def _png(rgba: np.ndarray, dpi: float) -> bytes:
@@ -112,7 +155,7 @@ def plot_path(
     ``radius_m``) are circled in red and labelled with their radius.
     """
     p = np.asarray(path, dtype=float).reshape(-1, 2)
-    fig = _figure()
+    fig = _figure(legend_room=LEGEND_ROOM)
     ax = fig.add_subplot(1, 1, 1)
     ax.plot(p[:, 0], p[:, 1], "-", color="tab:blue", lw=1.5, label="path")
     if len(p):
@@ -194,7 +237,10 @@ def plot_speed(log: Mapping[str, Any], file: str | Path) -> Path:
     ax2.set_ylabel("throttle (duty)")
     ax2.set_xlabel("time (s)")
     ax2.grid(True, alpha=0.4)
-    fig.tight_layout()
+    # margins in inches, room for the labels (what tight_layout would measure, at twice the cost of the draw;
+    # _save crops the rest)
+    fig.subplots_adjust(left=0.85 / 7.0, right=1 - 0.15 / 7.0, bottom=0.55 / 4.5, top=1 - 0.12 / 4.5,
+                        hspace=0.28)
     return _save(fig, file)
 
 
@@ -343,7 +389,7 @@ def lane_figure(background: np.ndarray | None, extent: Sequence[float] | None, p
     if rms is not None:
         title += (f"\nRMS lateral deviation {rms * 100:.1f} cm, max {m['max_lateral_deviation_m'] * 100:.1f} cm, "
                   f"{m.get('time_out_of_lane_s', 0.0):.2f} s out of the lane")
-    fig = _figure()
+    fig = _figure(legend_room=LEGEND_ROOM)
     ax = _map_axes(fig, background, extent, title)
     q = np.asarray(poses, dtype=float).reshape(-1, 3)
     if centre is not None and len(centre) >= 2:
@@ -366,7 +412,7 @@ def drive_figure(background: np.ndarray | None, extent: Sequence[float] | None, 
     clear = "n/a" if m.get("min_clearance_m") is None else f"{m['min_clearance_m'] * 100:.1f} cm"
     title = (f"avoid ({m.get('strategy', '')}): {m.get('duration_s', 0.0):.1f} s, {m.get('distance_m', 0.0):.2f} m "
              f"driven, {m.get('collisions', 0)} collision(s), min clearance {clear}")
-    fig = _figure(8.4, 6.0)
+    fig = _figure(8.4, 6.0, LEGEND_ROOM)
     ax = _map_axes(fig, background, extent, title)
     scans = [np.asarray(s, dtype=float).reshape(-1, 2) for s in scans]
     if len(scans) > 1:
@@ -395,7 +441,7 @@ def trials_figure(background: np.ndarray | None, extent: Sequence[float] | None,
     m = metrics
     title = (f"{m['experiment']}: {m['successes']} of {m['trials']} trials succeeded "
              f"({100.0 * m['success_rate']:.0f} %), {m['collisions']} collision(s)")
-    fig = _figure(8.4, 6.0)
+    fig = _figure(8.4, 6.0, LEGEND_ROOM)
     ax = _map_axes(fig, background, extent, title)
     runs = m.get("runs", [])
     labelled: set[str] = set()
@@ -483,7 +529,10 @@ def camera_grid(rows: Sequence[Sequence[tuple[np.ndarray, str]]], legend: Sequen
         else:
             handles.append(Line2D([], [], color=color, lw=2, label=label))
     if handles:
-        fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 3), fontsize=9, frameon=False)
+        leg = fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 3), fontsize=9, frameon=False)
+        wide = leg.get_window_extent(fig.canvas.get_renderer()).width / fig.dpi + 0.3
+        if wide > fig.get_figwidth():  # (one panel, three long entries) the legend inside the canvas
+            fig.set_figwidth(wide)
     if title:
         fig.suptitle(title, fontsize=11)
     top_margin, bottom_margin = (0.85 if title else 0.35), (0.45 if handles else 0.1)

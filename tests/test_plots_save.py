@@ -1,6 +1,7 @@
-"""plots._save draws a figure once (the tight box measured without a layout pass) and writes the PNG
-at a low zlib level: the image must decode to the same pixels, and size, as matplotlib's own
-``savefig(bbox_inches="tight")`` of the same figure (one built twice: neither save sees the other's draw)."""
+"""plots._save draws a figure once and crops it to its ink (the tight box without measuring every
+artist first), and writes the PNG at a low zlib level: the image must show what matplotlib's own
+``savefig(bbox_inches="tight")`` of the same figure shows (one built twice: neither save sees the
+other's draw), and a figure that reaches beyond its canvas must be saved exactly as savefig does."""
 
 from __future__ import annotations
 
@@ -71,20 +72,64 @@ def _polar():
     return plots.plot_polar_scan(a, 1.0 + 0.3 * np.cos(3 * a), "unused.png")
 
 
+def _ink(img: np.ndarray) -> np.ndarray:
+    """The image cropped to its pixels that are not white (the figures' face)."""
+    ink = np.any(img[:, :, :3] != 255, axis=2)
+    rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
+    return img[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+
+
+def _draws(monkeypatch) -> list:
+    from matplotlib.figure import Figure
+
+    calls: list = []
+    draw = Figure.draw
+    monkeypatch.setattr(Figure, "draw", lambda self, renderer: calls.append(1) or draw(self, renderer))
+    return calls
+
+
 @pytest.mark.parametrize("make", [_camera, _speed, _path, _drive, _depth, _polar],
                          ids=["camera", "speed", "path", "drive", "depth", "polar"])
-def test_a_saved_png_has_the_pixels_of_savefig_bbox_inches_tight(make, monkeypatch, tmp_path):
+def test_a_saved_png_shows_what_savefig_bbox_inches_tight_shows_in_one_draw(make, monkeypatch, tmp_path):
     reference = io.BytesIO()
     _built(make, monkeypatch).savefig(reference, format="png", bbox_inches="tight")
-    out = plots.save_figure(_built(make, monkeypatch), tmp_path / "fig.png")
+    fig = _built(make, monkeypatch)
+    draws = _draws(monkeypatch)
+    out = plots.save_figure(fig, tmp_path / "fig.png")
+    assert len(draws) == 1  # every lab figure lies inside its canvas: no measuring pass, no second draw
     mine, theirs = _decoded(out.read_bytes()), _decoded(reference.getvalue())
-    assert mine.shape == theirs.shape
-    assert np.array_equal(mine, theirs)
+    # the same ink (drawn at a sub-pixel offset of its own in savefig's box: edges may differ a little) ...
+    a, b = _ink(mine), _ink(theirs)
+    h, w = min(a.shape[0], b.shape[0]), min(a.shape[1], b.shape[1])
+    assert abs(a.shape[0] - b.shape[0]) <= 5 and abs(a.shape[1] - b.shape[1]) <= 5  # (savefig's box moves a
+    assert np.mean(np.abs(a[:h, :w].astype(int) - b[:h, :w].astype(int))) < 6.0  # figure legend 3 px: matplotlib's)
+    # ... padded by savefig.pad_inches (0.1 in) where the tight box has the artists' blank margins too
+    pad = [mine.shape[k] - a.shape[k] for k in (0, 1)]
+    assert all(18 <= p <= 22 for p in pad), pad
+    assert all(abs(theirs.shape[k] - mine.shape[k]) <= 10 for k in (0, 1)), (mine.shape, theirs.shape)
     assert out.stat().st_size <= 1.5 * len(reference.getvalue())
+
+
+def test_a_figure_reaching_beyond_its_canvas_saves_as_savefig_would(tmp_path):
+    """A legend outside the axes with no room kept for it: the tight box, measured, holds all of it."""
+    def make():
+        fig = plots._figure(4.0, 3.0)
+        ax = fig.add_subplot(1, 1, 1)
+        ax.plot([0, 1], [0, 1], label="a legend entry far wider than the room on the right")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0))
+        return fig
+
+    reference = io.BytesIO()
+    make().savefig(reference, format="png", bbox_inches="tight")
+    out = plots.save_figure(make(), tmp_path / "wide.png")
+    mine, theirs = _decoded(out.read_bytes()), _decoded(reference.getvalue())
+    assert mine.shape == theirs.shape and mine.shape[1] > 4.0 * 100  # wider than the canvas: nothing cut off
+    assert np.array_equal(mine, theirs)
 
 
 def test_a_figure_saves_the_same_twice_and_keeps_its_layout_engine(tmp_path):
     fig = _built(_speed, pytest.MonkeyPatch())
+    fig.tight_layout()  # (it leaves an inert layout engine behind)
     engine = fig.get_layout_engine()
     first = plots.save_figure(fig, tmp_path / "a.png").read_bytes()
     assert fig.get_layout_engine() is engine
