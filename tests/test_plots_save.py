@@ -27,7 +27,7 @@ def _built(make, monkeypatch):
 def _decoded(png: bytes) -> np.ndarray:
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
     assert img is not None
-    return img
+    return cv2.cvtColor(img, cv2.COLOR_BGR2BGRA) if img.shape[2] == 3 else img  # (ours are RGB: opaque)
 
 
 def _camera():
@@ -136,21 +136,24 @@ def test_a_figure_saves_the_same_twice_and_keeps_its_layout_engine(tmp_path):
     assert plots.save_figure(fig, tmp_path / "b.png").read_bytes() == first
 
 
-def test_both_encoders_write_the_same_pixels_and_resolution(monkeypatch):
-    """OpenCV's encoder when a lab has loaded cv2, else Pillow's: the same image either way."""
+@pytest.mark.parametrize("opaque", [False, True], ids=["rgba", "opaque"])
+def test_both_encoders_write_the_same_pixels_and_resolution(monkeypatch, opaque):
+    """OpenCV's encoder when a lab has loaded cv2, else Pillow's: the same image either way (RGB
+    for a figure over an opaque face, else RGBA)."""
     import sys
 
     from PIL import Image
 
     rgba = np.dstack([np.random.default_rng(2).integers(0, 256, (37, 53, 3), dtype=np.uint8),
                       np.full((37, 53), 255, np.uint8)])
-    with_cv2 = plots._png(rgba, 100.0)
+    rgba[0, 0, 3] = 255 if opaque else 128
+    with_cv2 = plots._png(rgba, 100.0, opaque)
     monkeypatch.delitem(sys.modules, "cv2")
-    with_pillow = plots._png(rgba, 100.0)
+    with_pillow = plots._png(rgba, 100.0, opaque)
     for png in (with_cv2, with_pillow):
         im = Image.open(io.BytesIO(png))
-        assert im.mode == "RGBA" and im.info["dpi"] == pytest.approx((100.0, 100.0), abs=0.01)
-        assert np.array_equal(np.asarray(im), rgba)
+        assert im.mode == ("RGB" if opaque else "RGBA") and im.info["dpi"] == pytest.approx((100.0, 100.0), abs=0.01)
+        assert np.array_equal(np.asarray(im), rgba[:, :, :3] if opaque else rgba)
 
 
 def test_a_figure_without_an_agg_canvas_saves_as_savefig_would(tmp_path):
