@@ -515,6 +515,8 @@ def camera_grid(rows: Sequence[Sequence[tuple[np.ndarray, str]]], legend: Sequen
         for k, (img, name) in enumerate(row):
             ax = fig.add_subplot(n_rows, n, i * n + k + 1)
             im = np.asarray(img)
+            if im.ndim == 2 and im.dtype == np.uint8 and im.min() == 0 and im.max() == 255:
+                im = np.repeat(im[:, :, None], 3, axis=2)  # a mask: the grey levels the grey map would give, no map
             ax.imshow(_rgba(im) if im.ndim == 3 else im, cmap=None if im.ndim == 3 else "gray",
                       interpolation="nearest")
             ax.set_title(name, fontsize=10)
