@@ -70,18 +70,14 @@ def _save(fig: Any, file: str | Path) -> Path:
         # a live layout engine lays out in savefig's first pass; a savefig dpi of its own measures there
         fig.savefig(out, format="png", bbox_inches="tight", pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
         return out
-    opaque = fig.get_facecolor()[3] == 1.0  # (what is drawn over it is opaque too)
     if inert:
         fig.set_layout_engine(None)  # its execute() does nothing; without it savefig skips the layout pass
     try:
         fig.canvas.draw()
         rgba = np.asarray(fig.canvas.buffer_rgba())
-        box = _ink_box(rgba, fig.get_facecolor())
+        box = _ink_box(rgba, fig.get_facecolor()) if _drawn_as_saved(fig) else None
         if box is not None:  # everything drawn lies inside the canvas: crop it to the ink, padded
-            y0, y1, x0, x1 = box
-            margin = int(round(pad * fig.dpi))
-            crop = rgba[max(y0 - margin, 0):y1 + margin, max(x0 - margin, 0):x1 + margin]
-            out.write_bytes(_png(np.ascontiguousarray(crop), fig.dpi, opaque))
+            out.write_bytes(_png(_padded(rgba, box, int(round(pad * fig.dpi))), fig.dpi))
             return out
         bbox = fig.get_tightbbox(fig.canvas.get_renderer()).padded(pad)
         raw = io.BytesIO()
@@ -91,16 +87,37 @@ def _save(fig: Any, file: str | Path) -> Path:
             fig.set_layout_engine(engine)
     shape = np.asarray(fig.canvas.buffer_rgba()).shape  # the canvas savefig drew last: (H, W, 4)
     rgba = np.frombuffer(raw.getbuffer(), np.uint8).reshape(shape)
-    out.write_bytes(_png(rgba, fig.dpi, opaque))
+    out.write_bytes(_png(rgba, fig.dpi))
     return out
+
+
+def _drawn_as_saved(fig: Any) -> bool:
+    """Whether ``fig``'s canvas, drawn, is what savefig draws, all of it inside the canvas: no
+    animated artist (savefig draws them, a canvas's draw leaves them out), no screen's
+    device-pixel ratio (a doubled dpi), and no legend or text (of the figure or its axes, where
+    things are put outside the axes) beyond the canvas's edge: one wholly outside leaves no ink
+    at the edge to tell."""
+    if getattr(fig, "_original_dpi", fig.dpi) != fig.dpi or fig.findobj(lambda a: a.get_animated(), include_self=False):
+        return False
+    renderer = fig.canvas.get_renderer()
+    w, h = fig.bbox.width, fig.bbox.height
+    outside = [*fig.legends, *fig.texts]
+    for ax in fig.axes:
+        outside += [*ax.texts, *([ax.get_legend()] if ax.get_legend() is not None else [])]
+    for artist in outside:
+        if artist.get_visible():
+            b = artist.get_window_extent(renderer)
+            if b.x0 < 0 or b.y0 < 0 or b.x1 > w or b.y1 > h:
+                return False
+    return True
 
 
 def _ink_box(rgba: np.ndarray, face: Sequence[float]) -> tuple[int, int, int, int] | None:
     """The rows ``y0..y1`` and columns ``x0..x1`` (ends exclusive) of the pixels of an (H, W, 4)
-    RGBA canvas that differ from the figure's face colour; None when some of them lie on the
-    canvas's edge (something may reach beyond it) or the canvas is not the face colour where it
-    is empty (its corners)."""
-    face_px = np.array([int(round(255 * min(max(float(c), 0.0), 1.0))) for c in face], np.uint8)
+    RGBA canvas that differ from the figure's face colour (as Agg rounds it: half up); None when
+    some of them lie on the canvas's edge (something may reach beyond it) or the canvas is not
+    the face colour where it is empty (its corners: a hidden face, say)."""
+    face_px = np.array([int(255 * min(max(float(c), 0.0), 1.0) + 0.5) for c in face], np.uint8)
     words = rgba.view(np.uint32).reshape(rgba.shape[:2])
     bg = face_px.view(np.uint32)[0]
     if words[0, 0] != bg or words[-1, -1] != bg:
@@ -115,20 +132,34 @@ def _ink_box(rgba: np.ndarray, face: Sequence[float]) -> tuple[int, int, int, in
     return y0, y1, x0, x1
 
 
-def _png(rgba: np.ndarray, dpi: float, opaque: bool = False) -> bytes:
+def _padded(rgba: np.ndarray, box: tuple[int, int, int, int], margin: int) -> np.ndarray:
+    """The canvas ``rgba`` cut to ``box`` (y0, y1, x0, x1) and ``margin`` pixels around it; where
+    the canvas ends first, the margin is the face colour (its corner pixel)."""
+    y0, y1, x0, x1 = box
+    H, W = rgba.shape[:2]
+    out = np.empty((y1 - y0 + 2 * margin, x1 - x0 + 2 * margin, 4), np.uint8)
+    out[:] = rgba[0, 0]
+    a, b, c, d = max(y0 - margin, 0), min(y1 + margin, H), max(x0 - margin, 0), min(x1 + margin, W)
+    out[a - (y0 - margin):b - (y0 - margin), c - (x0 - margin):d - (x0 - margin)] = rgba[a:b, c:d]
+    return out
+
+
+def _png(rgba: np.ndarray, dpi: float) -> bytes:
     """An (H, W, 4) uint8 RGBA image as PNG bytes at :data:`PNG_COMPRESS_LEVEL`, with the
-    resolution (``dpi``, a pHYs chunk) matplotlib's PNGs carry: RGB when ``opaque`` (a figure
-    drawn over an opaque face: its alpha is 255 everywhere), else RGBA, 8 bits. OpenCV's encoder
-    when a camera lab has loaded it (the Up filter on every row: 2x faster than the encoder's own
-    choice for a figure, for as many bytes; RGB a further 1.2-1.5x faster than RGBA), else Pillow's, which matplotlib has loaded (importing OpenCV would cost more
-    than it saves)."""
+    resolution (``dpi``, a pHYs chunk) matplotlib's PNGs carry: RGB when it is opaque (alpha 255
+    everywhere, as a figure drawn over an opaque face), else RGBA, 8 bits. OpenCV's encoder when a
+    camera lab has loaded it (the Up filter on every row: 2x faster than the encoder's own choice
+    for a figure, for as many bytes; RGB a further 1.2-1.5x), else Pillow's, which matplotlib has
+    loaded (importing OpenCV would cost more than it saves)."""
+    opaque = bool(rgba[:, :, 3].min() == 255)
     cv2 = sys.modules.get("cv2")
     if cv2 is None:
         from PIL import Image
 
         buf = io.BytesIO()
         im = Image.frombuffer("RGBA", (rgba.shape[1], rgba.shape[0]), rgba, "raw", "RGBA", 0, 1)
-        (im.convert("RGB") if opaque else im).save(buf, format="png", compress_level=PNG_COMPRESS_LEVEL, dpi=(dpi, dpi))
+        (im.convert("RGB") if opaque else im).save(buf, format="png", compress_level=PNG_COMPRESS_LEVEL,
+                                                   dpi=(dpi, dpi))
         return buf.getvalue()
     params = [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESS_LEVEL]
     if hasattr(cv2, "IMWRITE_PNG_FILTER"):  # (OpenCV >= 4.11) the Up filter on every row: half the
@@ -515,8 +546,9 @@ def camera_grid(rows: Sequence[Sequence[tuple[np.ndarray, str]]], legend: Sequen
         for k, (img, name) in enumerate(row):
             ax = fig.add_subplot(n_rows, n, i * n + k + 1)
             im = np.asarray(img)
-            if im.ndim == 2 and im.dtype == np.uint8 and im.min() == 0 and im.max() == 255:
-                im = np.repeat(im[:, :, None], 3, axis=2)  # a mask: the grey levels the grey map would give, no map
+            if im.ndim == 2 and im.dtype == np.uint8 and im.min() == 0 and im.max() == 255 \
+                    and ((im == 0) | (im == 255)).all():  # a mask: black and white as the grey map shows it, unmapped
+                im = np.repeat(im[:, :, None], 3, axis=2)
             ax.imshow(_rgba(im) if im.ndim == 3 else im, cmap=None if im.ndim == 3 else "gray",
                       interpolation="nearest")
             ax.set_title(name, fontsize=10)

@@ -139,7 +139,7 @@ def test_a_figure_saves_the_same_twice_and_keeps_its_layout_engine(tmp_path):
 @pytest.mark.parametrize("opaque", [False, True], ids=["rgba", "opaque"])
 def test_both_encoders_write_the_same_pixels_and_resolution(monkeypatch, opaque):
     """OpenCV's encoder when a lab has loaded cv2, else Pillow's: the same image either way (RGB
-    for a figure over an opaque face, else RGBA)."""
+    when every pixel is opaque, else RGBA)."""
     import sys
 
     from PIL import Image
@@ -147,13 +147,93 @@ def test_both_encoders_write_the_same_pixels_and_resolution(monkeypatch, opaque)
     rgba = np.dstack([np.random.default_rng(2).integers(0, 256, (37, 53, 3), dtype=np.uint8),
                       np.full((37, 53), 255, np.uint8)])
     rgba[0, 0, 3] = 255 if opaque else 128
-    with_cv2 = plots._png(rgba, 100.0, opaque)
+    with_cv2 = plots._png(rgba, 100.0)
     monkeypatch.delitem(sys.modules, "cv2")
-    with_pillow = plots._png(rgba, 100.0, opaque)
+    with_pillow = plots._png(rgba, 100.0)
     for png in (with_cv2, with_pillow):
         im = Image.open(io.BytesIO(png))
         assert im.mode == ("RGB" if opaque else "RGBA") and im.info["dpi"] == pytest.approx((100.0, 100.0), abs=0.01)
         assert np.array_equal(np.asarray(im), rgba[:, :, :3] if opaque else rgba)
+
+
+def _small(face="white"):
+    fig = plots._figure(4.0, 3.0)
+    fig.set_facecolor(face)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot([0, 1], [0, 1], label="a line")
+    ax.legend()
+    return fig
+
+
+def _saved_like_savefig(make, tmp_path, draws_expected=None, monkeypatch=None):
+    reference = io.BytesIO()
+    make().savefig(reference, format="png", bbox_inches="tight")
+    draws = _draws(monkeypatch) if monkeypatch else None
+    out = plots.save_figure(make(), tmp_path / "f.png")
+    if draws is not None:
+        assert len(draws) == draws_expected
+    return cv2.imdecode(np.frombuffer(out.read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED), \
+        cv2.imdecode(np.frombuffer(reference.getvalue(), np.uint8), cv2.IMREAD_UNCHANGED)
+
+
+def test_a_grey_face_is_cropped_in_one_draw(tmp_path, monkeypatch):
+    """The face as Agg rounds it (0.7 grey: 178.5 -> 179, half up): found, and no second draw."""
+    mine, theirs = _saved_like_savefig(lambda: _small("0.7"), tmp_path, 1, monkeypatch)
+    assert mine.shape[2] == 3 and tuple(mine[0, 0]) == (179, 179, 179)
+    assert abs(mine.shape[0] - theirs.shape[0]) <= 10 and abs(mine.shape[1] - theirs.shape[1]) <= 10
+
+
+def test_a_hidden_face_keeps_its_transparency(tmp_path):
+    """No face drawn: the canvas is transparent where nothing is, and the PNG keeps its alpha, as savefig's."""
+    def make():
+        fig = _small()
+        fig.patch.set_visible(False)
+        return fig
+
+    mine, theirs = _saved_like_savefig(make, tmp_path)
+    assert mine.shape == theirs.shape and mine.shape[2] == 4
+    assert np.array_equal(mine, theirs)
+    assert (mine[:, :, 3] == 0).mean() > 0.2
+
+
+@pytest.mark.parametrize("where", ["text", "animated"])
+def test_what_a_canvas_draw_would_miss_is_saved_as_savefig_saves_it(tmp_path, where):
+    """A text wholly beyond the canvas's edge (no ink at the edge tells), an animated artist (a
+    canvas's draw leaves it out): saved exactly as savefig(bbox_inches="tight") saves them."""
+    def make():
+        fig = _small()
+        if where == "text":
+            fig.text(1.05, 0.5, "beyond the right edge")
+        else:
+            fig.axes[0].plot([0, 1], [1, 0], lw=6, color="red", animated=True)
+        return fig
+
+    mine, theirs = (cv2.cvtColor(a, cv2.COLOR_BGR2BGRA) if a.shape[2] == 3 else a
+                    for a in _saved_like_savefig(make, tmp_path))
+    assert mine.shape == theirs.shape and np.array_equal(mine, theirs)
+    if where == "text":
+        assert mine.shape[1] > 4.0 * 100
+
+
+def test_a_mask_panel_shows_as_the_grey_map_shows_it_and_a_narrow_figure_widens_to_its_legend(tmp_path, monkeypatch):
+    mask = np.zeros((120, 160), np.uint8)
+    mask[40:80, 50:110] = 255
+    legend = [("the pixels the HSV range keeps, a long label", "white", "pixels"),
+              ("the line fitted to them, another long label", "lime", "line")]
+
+    def grid(m):
+        return plots.camera_grid([[(m, "mask")]], legend, "one narrow panel")
+
+    draws = _draws(monkeypatch)
+    a = _decoded(plots.save_figure(grid(mask), tmp_path / "a.png").read_bytes())
+    assert len(draws) == 1  # the legend, wider than one panel, fits: no second draw
+    monkeypatch.undo()
+    fig = grid(mask)
+    fig.axes[0].images[0].remove()
+    fig.axes[0].imshow(mask, cmap="gray", interpolation="nearest")  # what the grey map shows
+    b = _decoded(plots.save_figure(fig, tmp_path / "b.png").read_bytes())
+    assert a.shape == b.shape and np.array_equal(a, b)
+    assert a.shape[1] > 0.5 * fig.get_figwidth() * 100
 
 
 def test_a_figure_without_an_agg_canvas_saves_as_savefig_would(tmp_path):
