@@ -240,3 +240,16 @@ def test_the_compiled_model_drive_gives_the_numpy_formulations_paths():
     args = (np.array([0.1, -0.2, 0.3]), np.array([0.05, 0.0, -0.4]), np.array([0.5, -0.3, 0.02]), 0.25)
     assert np.allclose(dodge.offset_steering(*args), steer(*args), atol=1e-12)
     assert dodge.offset_steering(0.1, 0.05, 0.5, 0.25) == pytest.approx(float(steer(0.1, 0.05, 0.5, 0.25)), abs=1e-12)
+
+
+def test_listing_the_labs_blocks_loads_no_numba():
+    """The grader reads every lab's blocks and tunables (its sheets' ``uses``) and never runs a lab:
+    numba (some 0.2 s to import) loads with the avoidance controller's first kernel call instead."""
+    import subprocess
+    import sys
+
+    probe = ("import sys\nfrom qcarlab.experiments.labs import find_lab\n"
+             "print(sorted(b.name for b in find_lab('avoid').blocks)[:1], 'numba' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split()[-1] == "False", done.stdout

@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from qcarlab.beams import derived
-from qcarlab.control._kernels import match_scans
+
+# (the compiled kernels, qcarlab.control._kernels, are imported where first called: see dodge.py)
 
 __all__ = ["Cluster", "Motion", "PreparedScan", "Track", "Tracker", "prepare_scan", "scan_clusters", "scan_motion"]
 
@@ -146,6 +147,8 @@ def scan_motion(prev, scan, guess: tuple[float, float, float] = (0.0, 0.0, 0.0),
     system: only with a zero prior). Compiled
     (:func:`qcarlab.control._kernels.match_scans`: the 3 x 3 normal equations by Cholesky).
     """
+    from qcarlab.control._kernels import match_scans
+
     old, new = _prepared(prev), _prepared(scan)
     Q = new.points
     if len(Q) > 400:  # a few hundred returns are plenty for three unknowns
