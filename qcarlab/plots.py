@@ -137,6 +137,8 @@ def _padded(rgba: np.ndarray, box: tuple[int, int, int, int], margin: int) -> np
     the canvas ends first, the margin is the face colour (its corner pixel)."""
     y0, y1, x0, x1 = box
     H, W = rgba.shape[:2]
+    if y0 >= margin and x0 >= margin and y1 + margin <= H and x1 + margin <= W:
+        return rgba[y0 - margin:y1 + margin, x0 - margin:x1 + margin]  # (a view: the encoder reads it as it is)
     out = np.empty((y1 - y0 + 2 * margin, x1 - x0 + 2 * margin, 4), np.uint8)
     out[:] = rgba[0, 0]
     a, b, c, d = max(y0 - margin, 0), min(y1 + margin, H), max(x0 - margin, 0), min(x1 + margin, W)
@@ -157,7 +159,7 @@ def _png(rgba: np.ndarray, dpi: float) -> bytes:
         from PIL import Image
 
         buf = io.BytesIO()
-        im = Image.frombuffer("RGBA", (rgba.shape[1], rgba.shape[0]), rgba, "raw", "RGBA", 0, 1)
+        im = Image.frombuffer("RGBA", (rgba.shape[1], rgba.shape[0]), np.ascontiguousarray(rgba), "raw", "RGBA", 0, 1)
         (im.convert("RGB") if opaque else im).save(buf, format="png", compress_level=PNG_COMPRESS_LEVEL,
                                                    dpi=(dpi, dpi))
         return buf.getvalue()

@@ -147,6 +147,9 @@ def test_both_encoders_write_the_same_pixels_and_resolution(monkeypatch, opaque)
     rgba = np.dstack([np.random.default_rng(2).integers(0, 256, (37, 53, 3), dtype=np.uint8),
                       np.full((37, 53), 255, np.uint8)])
     rgba[0, 0, 3] = 255 if opaque else 128
+    big = np.zeros((41, 60, 4), np.uint8)
+    big[2:39, 3:56] = rgba
+    rgba = big[2:39, 3:56]  # a view into a canvas, as a cropped figure is
     with_cv2 = plots._png(rgba, 100.0)
     monkeypatch.delitem(sys.modules, "cv2")
     with_pillow = plots._png(rgba, 100.0)
