@@ -84,6 +84,43 @@ def test_free_distance_straight_and_along_an_arc():
     assert free_distance((pt * [1.0, -1.0])[None, :], -0.5) == pytest.approx(d_arc)  # mirrored
 
 
+def _free_distance_numpy(pts, steering, margin=0.05, horizon=3.0):
+    """free_distance's equations as numpy wrote them before they were compiled: the oracle."""
+    half_len, w, L = P.length / 2.0, P.width / 2.0 + margin, P.wheelbase
+    if not len(pts):
+        return horizon
+    if abs(steering) < 1e-3:
+        x, y = pts[:, 0], pts[:, 1]
+        sel = (np.abs(y) <= w) & (x >= half_len)
+        return float(min(horizon, (x[sel] - half_len).min())) if sel.any() else horizon
+    R = L / math.tan(abs(steering))
+    xr, yr = pts[:, 0] + L / 2.0, pts[:, 1] if steering > 0 else -pts[:, 1]
+    a, r_in = L / 2.0 + half_len, R - w
+    rho = np.hypot(xr, R - yr)
+    sel = (rho >= r_in) & (rho <= math.hypot(R + w, a))
+    if not sel.any():
+        return horizon
+    rho, xr, ry = rho[sel], xr[sel], (R - yr)[sel]
+    phi = np.arctan2(xr, ry)
+    lead = np.where(rho <= math.hypot(a, r_in), np.arccos(np.clip(r_in / rho, -1, 1)), np.arcsin(np.clip(a / rho, -1, 1)))
+    ahead = phi >= lead
+    if not ahead.any():
+        return horizon
+    return float(min(horizon, float((phi[ahead] - lead[ahead]).min()) * math.hypot(R, L / 2.0)))
+
+
+def test_the_compiled_free_distance_is_the_numpy_formulation():
+    rng = np.random.default_rng(7)
+    for trial in range(300):
+        pts = rng.uniform(-2.0, 3.0, (int(rng.integers(0, 400)), 2))
+        steering = float(rng.choice([0.0, 5e-4, -5e-4, *rng.uniform(-0.6, 0.6, 4)]))
+        margin = float(rng.choice([0.0, 0.05]))
+        got = free_distance(pts, steering, P, margin)
+        assert got == pytest.approx(_free_distance_numpy(pts, steering, margin), abs=1e-9), (trial, steering)
+    assert free_distance(np.zeros((0, 2)), 0.3) == 3.0
+    assert free_distance(np.array([[np.nan, 0.0], [1.0, 0.0]]), 0.0) == pytest.approx(1.0 - P.length / 2.0)
+
+
 def test_combined_goes_straight_stops_before_contact_then_backs_up():
     av = LidarAvoid(stop_distance=0.4)
     assert av.step(scan_with(), 0.3) == (0.3, 0.0) and av.state == "straight"

@@ -27,7 +27,7 @@ import numpy as np
 
 from qcarlab.beams import cos_sin
 from qcarlab.constants import DEFAULT_PARAMS, QCarParams
-from qcarlab.control.dodge import Manoeuvre, Obstacle, _clip, choose, line_frame, offset_steering, rollout
+from qcarlab.control.dodge import Manoeuvre, Obstacle, choose, line_frame, offset_steering, rollout
 from qcarlab.control.moving_obstacles import Motion, PreparedScan, Track, Tracker, prepare_scan, scan_clusters, scan_motion
 
 __all__ = ["LidarAvoid", "STATES", "forward_range", "free_distance", "lidar_steer", "lidar_stop",
@@ -145,38 +145,14 @@ def free_distance(
                  = asin(a / rho)      otherwise                 (the front bumper)
 
     and the centre then has driven ``(phi - phi_lead) * hypot(R, L/2)``. Points beside or behind
-    the leading edge (``phi < phi_lead``) are not in the way of forward motion.
+    the leading edge (``phi < phi_lead``) are not in the way of forward motion. Compiled
+    (:func:`qcarlab.control._kernels.free_distance`: one pass over the points).
     """
+    from qcarlab.control._kernels import free_distance as kernel
+
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
-    half_len, w = params.length / 2.0, params.width / 2.0 + margin
-    L = params.wheelbase
-    if not len(pts):
-        return float(horizon)
-    if abs(steering) < 1e-3:
-        x, y = pts[:, 0], pts[:, 1]
-        sel = (np.abs(y) <= w) & (x >= half_len)
-        return float(min(horizon, (x[sel] - half_len).min())) if sel.any() else float(horizon)
-    R = L / math.tan(abs(steering))
-    xr = pts[:, 0] + L / 2.0  # rear-axle frame
-    yr = pts[:, 1] if steering > 0 else -pts[:, 1]  # mirror right turns into left turns
-    a = L / 2.0 + half_len
-    r_in = R - w
-    r_out = math.hypot(R + w, a)
-    ry = R - yr
-    rho = np.hypot(xr, ry)
-    sel = (rho >= r_in) & (rho <= r_out)
-    if not sel.any():
-        return float(horizon)
-    rho, xr, ry = rho[sel], xr[sel], ry[sel]
-    phi = np.arctan2(xr, ry)  # 0 at the rear axle, + ahead
-    lead = np.where(rho <= math.hypot(a, r_in),
-                    np.arccos(_clip(r_in / rho, -1.0, 1.0)),
-                    np.arcsin(_clip(a / rho, -1.0, 1.0)))
-    ahead = phi >= lead
-    if not ahead.any():
-        return float(horizon)
-    d = float((phi[ahead] - lead[ahead]).min()) * math.hypot(R, L / 2.0)
-    return float(min(horizon, d))
+    return float(kernel(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]), float(steering),
+                        params.length / 2.0, params.width / 2.0 + margin, float(params.wheelbase), float(horizon)))
 
 
 def rear_free_distance(points: np.ndarray, params: QCarParams = DEFAULT_PARAMS, margin: float = 0.05,
