@@ -82,10 +82,12 @@ def match_scans(pa, px_old, py_old, nx_old, ny_old, ok_old, qx, qy, g0, g1, g2, 
     8 cm (see :func:`~qcarlab.control.moving_obstacles.scan_motion`). Returns (dx, dy, dyaw, matched);
     matched 0 (and the guess) when fewer than 20 returns pair up or a step is not finite."""
     n = qx.shape[0]
+    m = pa.shape[0]
     x0 = g0
     x1 = g1
     x2 = g2
     matched = 0
+    cur = 1  # where the last search ended: the returns come in bearing order, the next is a step or two on
     for it in range(iterations):
         c = math.cos(x2)
         s = math.sin(x2)
@@ -103,7 +105,17 @@ def match_scans(pa, px_old, py_old, nx_old, ny_old, ok_old, qx, qy, g0, g1, g2, 
         for i in range(n):
             px = c * qx[i] - s * qy[i] + x0
             py = s * qx[i] + c * qy[i] + x1
-            k = np.searchsorted(pa, math.atan2(py, px))  # the return at or after p's bearing, + 1
+            # the return at or after p's bearing, + 1: np.searchsorted(pa, bearing)'s index (the first
+            # pa[k] >= bearing; NaN after all), walked to from the last one instead of bisected
+            bearing = math.atan2(py, px)
+            if bearing != bearing:
+                cur = m
+            else:
+                while cur < m and pa[cur] < bearing:
+                    cur += 1
+                while cur > 0 and pa[cur - 1] >= bearing:
+                    cur -= 1
+            k = cur
             d1 = math.hypot(px - px_old[k], py - py_old[k])
             d0 = math.hypot(px - px_old[k - 1], py - py_old[k - 1])
             if d0 < d1:
