@@ -32,7 +32,8 @@ def _figure(width: float = 7.6, height: float = 6.0, legend_room: float = 0.0) -
     FigureCanvasAgg(fig)
     if legend_room:
         sp = fig.subplotpars
-        fig.subplots_adjust(left=sp.left * width / (width + legend_room), right=sp.right * width / (width + legend_room))
+        scale = width / (width + legend_room)
+        fig.subplots_adjust(left=sp.left * scale, right=sp.right * scale)
     return fig
 
 

@@ -102,7 +102,8 @@ def _free_distance_numpy(pts, steering, margin=0.05, horizon=3.0):
         return horizon
     rho, xr, ry = rho[sel], xr[sel], (R - yr)[sel]
     phi = np.arctan2(xr, ry)
-    lead = np.where(rho <= math.hypot(a, r_in), np.arccos(np.clip(r_in / rho, -1, 1)), np.arcsin(np.clip(a / rho, -1, 1)))
+    lead = np.where(rho <= math.hypot(a, r_in), np.arccos(np.clip(r_in / rho, -1, 1)),
+                    np.arcsin(np.clip(a / rho, -1, 1)))
     ahead = phi >= lead
     if not ahead.any():
         return horizon
