@@ -119,6 +119,14 @@ def test_the_compiled_free_distance_is_the_numpy_formulation():
         got = free_distance(pts, steering, P, margin)
         assert got == pytest.approx(_free_distance_numpy(pts, steering, margin), abs=1e-9), (trial, steering)
     assert free_distance(np.zeros((0, 2)), 0.3) == 3.0
+    from qcarlab.control._kernels import free_distance as kernel
+
+    compiled = len(kernel.signatures)
+    one = np.array([[0.9, 0.05]])
+    one.setflags(write=False)  # (read-only, one row: its columns are contiguous views)
+    assert free_distance(one, 0.0, P, np.float32(0.05)) == pytest.approx(0.9 - P.length / 2.0)
+    assert free_distance(np.array([[1, 0]], dtype=np.int32), 0.2) == free_distance(np.array([[1.0, 0.0]]), 0.2)
+    assert len(kernel.signatures) == compiled  # no new compilation: a sandboxed student's process could not cache it
     assert free_distance(np.array([[np.nan, 0.0], [1.0, 0.0]]), 0.0) == pytest.approx(1.0 - P.length / 2.0)
 
 

@@ -87,7 +87,7 @@ def match_scans(pa, px_old, py_old, nx_old, ny_old, ok_old, qx, qy, g0, g1, g2, 
     x1 = g1
     x2 = g2
     matched = 0
-    cur = 1  # where the last search ended: the returns come in bearing order, the next is a step or two on
+    cur = min(1, m)  # where the last search ended: the returns come in bearing order, the next is a step or two on
     for it in range(iterations):
         c = math.cos(x2)
         s = math.sin(x2)

@@ -151,8 +151,10 @@ def free_distance(
     from qcarlab.control._kernels import free_distance as kernel
 
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
-    return float(kernel(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]), float(steering),
-                        params.length / 2.0, params.width / 2.0 + margin, float(params.wheelbase), float(horizon)))
+    # (fresh writable float64 columns and Python floats: the one signature compiled, whatever came in; a
+    # student's sandboxed process cannot write numba's cache, so it must never need another)
+    return float(kernel(pts[:, 0].copy(), pts[:, 1].copy(), float(steering), float(params.length) / 2.0,
+                        float(params.width) / 2.0 + float(margin), float(params.wheelbase), float(horizon)))
 
 
 def rear_free_distance(points: np.ndarray, params: QCarParams = DEFAULT_PARAMS, margin: float = 0.05,
