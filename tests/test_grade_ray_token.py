@@ -110,7 +110,9 @@ def token_head():
         _stop_group(proc)
         log.close()
         text = (root / "head.log").read_text(errors="replace")
-        if attempt == 2 or "Failed to start the grpc server" not in text:
+        # (any failure is tried again: each of the seven ports picked free may be taken by a parallel test's
+        # Ray before this one binds it, and each says so in words of its own; seen once at load 4 in the suite)
+        if attempt == 2:
             shutil.rmtree(root, ignore_errors=True)
             pytest.fail(f"ray start --head did not start: {text[-1500:]}")
     try:
