@@ -142,6 +142,5 @@ def write_csv(path: Path, columns: Mapping[str, Any]) -> Path:
     with atomic_file(path, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(names)
-        for row in zip(*(a.tolist() for a in arrays)):
-            writer.writerow([repr(v) if isinstance(v, float) else v for v in row])
+        writer.writerows(zip(*(a.tolist() for a in arrays)))  # (csv writes a float as str(), its shortest repr)
     return path
