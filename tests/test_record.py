@@ -276,3 +276,21 @@ def test_images_go_to_the_encoder_thread_only_with_a_core_to_spare(cores, load, 
         assert (job.encoder is not None) is threaded and job.result() is not None
     finally:
         frames.close()
+
+
+def test_a_csv_log_keeps_every_float_to_the_last_bit(tmp_path):
+    """Logs are read back by students' scripts and by qcarlab replay: each float is its shortest
+    repr, so it reads back as the same float (nan, inf, -0.0 and subnormals too)."""
+    import csv
+
+    from qcarlab.record import write_csv
+
+    rng = np.random.default_rng(3)
+    a = np.concatenate((rng.normal(size=500) * 10.0 ** rng.integers(-30, 30, 500),
+                        [np.nan, np.inf, -np.inf, -0.0, 5e-324, 0.1]))
+    path = write_csv(tmp_path / "log.csv", {"t": a, "n": np.arange(len(a)), "label": ["a,b"] * len(a)})
+    rows = list(csv.reader(path.open(encoding="utf-8")))
+    assert rows[0] == ["t", "n", "label"]
+    back = np.array([float(r[0]) for r in rows[1:]])
+    assert np.array_equal(back, a, equal_nan=True) and np.signbit(back[-3]) and rows[-1][2] == "a,b"
+    assert [int(r[1]) for r in rows[1:]] == list(range(len(a)))
