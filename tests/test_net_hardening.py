@@ -89,7 +89,11 @@ def test_a_backend_without_its_own_sensor_path_is_read_under_the_lock(served):
 
 def test_the_simulators_first_lidar_read_does_not_delay_the_watchdog(served):
     """The issue's case: a monitor makes the simulator's first LIDAR read (it loads the world and
-    builds the sensor) while the controller is silent."""
+    builds the sensor) while the controller is silent. numba's kernels are made ready first, as
+    ``qcarlab serve`` has them (its render process draws the sensors): in a fresh clone (CI) their
+    first call compiles them, once per install, and LLVM holds the GIL for whole passes (a 0.33 s
+    trip was seen there); the world and the sensor stay this car's to build."""
+    SimCar(seed=0, on_stand=True).read_lidar()  # (another car, another world: only the kernels are shared)
     car = SimCar(seed=0, realtime=True, on_stand=True)
     server, _ = served(car=car, watchdog=0.1)
     with RawClient(server.address) as ctl, RawClient(server.address, timeout=15.0) as mon:
