@@ -8,6 +8,7 @@ import socket
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from qcarlab.car.sim import SimCar
@@ -111,6 +112,21 @@ def test_the_simulators_first_lidar_read_does_not_delay_the_watchdog(served):
         assert time.monotonic() - last < 0.1 + 0.3
         assert server.trip_delays[0] < 0.1 + 0.15  # as the server timed it (was: + 0.3-0.5 s, the physics
         assert mon.recv().type == M.LIDAR         # switching to its compiled kernel under the drive lock)
+
+
+def test_a_server_that_prepares_its_simulator_has_the_lidars_compiled_scan_ready(served):
+    """``prepare`` (as ``qcarlab serve`` has it) compiles or loads the LIDAR's kernels before the
+    server listens: a fresh install's first LIDAR read would compile them under the GIL the
+    watchdog needs."""
+    from qcarlab.sim import _kernels, lidar
+
+    car = SimCar(seed=0, on_stand=True)
+    served(car=car, watchdog=0.1, prepare=True)
+    if lidar.load_compiled() is not None:  # (numba installed)
+        assert _kernels.lidar_scan_edges.signatures
+    first = car.read_lidar()
+    again = SimCar(seed=0, on_stand=True).read_lidar()  # prepare drew no noise: the same first scan
+    assert np.array_equal(first.ranges, again.ranges)
 
 
 # --- 2. deadlines per handshake and per frame ----------------------------------------------------------

@@ -285,10 +285,15 @@ class SimCar(Car):
         return self._frame_job(kind, _RATES[kind](self.params), _DRAW[kind])
 
     def prepare_sensors(self) -> None:
-        """Load the world and build every sensor now (no frame is taken, no noise drawn)."""
+        """Load the world and build every sensor now (no frame is taken, no noise drawn), and the
+        LIDAR's compiled scan ready: its first call compiles it after an install (some 2.5 s, in
+        passes of LLVM's that hold the GIL 0.1-0.25 s each) or loads it from numba's cache, which
+        a server (whose watchdog needs the GIL) does here, before it listens, not in a client's
+        first LIDAR read."""
         for kind in ("lidar", "rgbd", "csi"):
             self._sensor(kind)
         _warm_physics(self.params)
+        self._sensors["lidar"].true_ranges((0.0, 0.0, 0.0))  # (exact ranges: no noise drawn, nothing kept)
 
     def warm_physics(self) -> None:
         """Load numba and switch this process to the compiled physics now, whose first call takes
