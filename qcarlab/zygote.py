@@ -20,9 +20,9 @@ MODULES = ("qcarlab.cli", "qcarlab.cli.invocation", "qcarlab.cli.recording", "qc
            "qcarlab.experiments.worlds", "qcarlab.grading.child", "qcarlab.plots", "qcarlab.car.replay",
            "qcarlab.recording.reader", "qcarlab.sim.world", "qcarlab.sim.raster", "qcarlab.sim.render",
            "qcarlab.sim.lidar", "qcarlab.sim.camera",
+           "qcarlab.control._kernels",  # (the labs import it where first called: its cached kernels loaded here)
            # a graded task's: the student's process and its channel, the run's progress line (and rich's
            # emoji table, which its markup loads), the trials and the HSV tuner (measured: some 10 ms a task)
-           "qcarlab.control._kernels",  # (the labs import it where first called: its cached kernels loaded here)
            "qcarlab.sandbox.client", "qcarlab.sandbox.codec", "qcarlab.sandbox.cgroup", "qcarlab.sandbox.host",
            "qcarlab.cli.progress", "qcarlab.wire.interrupts", "rich._emoji_codes", "mmap", "qcarlab.experiments.trials",
            "qcarlab.cli.hsv_tune", "qcarlab.perception.tuner")

@@ -24,10 +24,20 @@ def _built(make, monkeypatch):
     return caught[0] if caught else fig
 
 
-def _decoded(png: bytes) -> np.ndarray:
+def _raw(png: bytes) -> np.ndarray:
+    """The PNG's pixels as stored: BGR (ours, opaque) or BGRA."""
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
     assert img is not None
-    return cv2.cvtColor(img, cv2.COLOR_BGR2BGRA) if img.shape[2] == 3 else img  # (ours are RGB: opaque)
+    return img
+
+
+def _bgra(img: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(img, cv2.COLOR_BGR2BGRA) if img.shape[2] == 3 else img
+
+
+def _decoded(png: bytes) -> np.ndarray:
+    """The PNG's pixels as BGRA, whichever it stored."""
+    return _bgra(_raw(png))
 
 
 def _camera():
@@ -175,8 +185,7 @@ def _saved_like_savefig(make, tmp_path, draws_expected=None, monkeypatch=None):
     out = plots.save_figure(make(), tmp_path / "f.png")
     if draws is not None:
         assert len(draws) == draws_expected
-    return cv2.imdecode(np.frombuffer(out.read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED), \
-        cv2.imdecode(np.frombuffer(reference.getvalue(), np.uint8), cv2.IMREAD_UNCHANGED)
+    return _raw(out.read_bytes()), _raw(reference.getvalue())
 
 
 def test_a_grey_face_is_cropped_in_one_draw(tmp_path, monkeypatch):
@@ -211,8 +220,7 @@ def test_what_a_canvas_draw_would_miss_is_saved_as_savefig_saves_it(tmp_path, wh
             fig.axes[0].plot([0, 1], [1, 0], lw=6, color="red", animated=True)
         return fig
 
-    mine, theirs = (cv2.cvtColor(a, cv2.COLOR_BGR2BGRA) if a.shape[2] == 3 else a
-                    for a in _saved_like_savefig(make, tmp_path))
+    mine, theirs = (_bgra(a) for a in _saved_like_savefig(make, tmp_path))
     assert mine.shape == theirs.shape and np.array_equal(mine, theirs)
     if where == "text":
         assert mine.shape[1] > 4.0 * 100

@@ -109,14 +109,6 @@ def offset_steering(y, psi, v, offset: float, params: QCarParams = DEFAULT_PARAM
     return out
 
 
-def _clip(a, lo: float, hi: float):
-    """``np.clip(a, lo, hi)``'s numbers, through ``minimum(maximum())`` (cheaper to call) when
-    neither bound is 0 (for a 0 bound the two can differ in the sign of a zero: np.clip then)."""
-    if lo == 0.0 or hi == 0.0:
-        return np.clip(a, lo, hi)
-    return np.minimum(np.maximum(a, lo), hi)
-
-
 def _footprint_distance(px, py, cx, cy, cyaw, half_len, half_wid):
     """Distance (m) from points (px, py) to car rectangles at (cx, cy, cyaw); broadcasting."""
     c, s = np.cos(cyaw), np.sin(cyaw)
