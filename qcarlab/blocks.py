@@ -52,6 +52,8 @@ __all__ = [
     "load_block_file",
     "parse_block_option",
     "resolve_student_blocks",
+    "together",
+    "unwatch",
 ]
 
 
@@ -94,6 +96,8 @@ class _Watchdog:
         self.main = threading.main_thread().ident
         self.limit = BLOCK_TIMEOUT_S
         self.running: StudentBlock | None = None  # the block in a watched call
+        self.deadline = 0.0  # when its time is up (time.monotonic)
+        self.pending = False  # an alarm is set (for this call or an earlier one)
         self.handler = self._alarm  # one bound method, so that ``is`` recognises it
 
     def ready(self) -> bool:
@@ -109,24 +113,56 @@ class _Watchdog:
         return True
 
     def _alarm(self, signum: int, frame: Any) -> None:
-        if self.running is not None:
-            raise BlockTimeout()
+        self.pending = False
+        if self.running is None:  # set for a call that returned: it lapses (the next call sets another)
+            return
+        left = self.deadline - _monotonic()
+        self.pending = True
+        if left > 0.0:  # set for an earlier call: this one's time is not up yet
+            _setitimer(_REAL, left)
+            return
+        _setitimer(_REAL, 0.5)  # and again every half second, should the student's code swallow it
+        raise BlockTimeout()
 
     def arm(self, block: StudentBlock) -> bool:
-        """Start the alarm for ``block``'s call (the handler was installed by :meth:`ready`)."""
+        """Watch ``block``'s call (the handler was installed by :meth:`ready`): its deadline, and an
+        alarm if none is set. An alarm set for an earlier call is left to fire and set itself
+        again for this one's deadline, so that a call costs no system call here (two, before:
+        a block called every tick of a graded run through its student's process)."""
         if _get_ident() != self.main:
             return False
+        self.deadline = _monotonic() + self.limit
         self.running = block
-        _setitimer(_REAL, self.limit, 0.5)
+        if not self.pending:
+            self.pending = True
+            _setitimer(_REAL, self.limit)
         return True
 
     def disarm(self) -> None:
+        """The call returned (its alarm, if it fires, finds no call and lapses)."""
         self.running = None
+
+    def stop(self) -> None:
+        """No call watched and no alarm set (a run ends, a stuck block's process is ended)."""
+        self.running = None
+        self.pending = False
         _setitimer(_REAL, 0.0)
 
+    def _forked(self) -> None:
+        self.running, self.pending = None, False  # a fork's child has no alarm set
 
-_get_ident, _setitimer, _REAL = threading.get_ident, signal.setitimer, signal.ITIMER_REAL
+
+_get_ident, _setitimer, _REAL, _monotonic = threading.get_ident, signal.setitimer, signal.ITIMER_REAL, time.monotonic
 _watchdog = _Watchdog()
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_watchdog._forked)
+
+
+def unwatch() -> None:
+    """No watchdog alarm left set (a run's end: one set for its last calls would otherwise fire
+    into whatever handles SIGALRM next, up to the block time limit later)."""
+    if _watchdog.pending:
+        _watchdog.stop()
 
 
 class RaisedInBlock(Exception):
@@ -322,7 +358,7 @@ class StudentBlock:
             raise exc
         where = f"block {self.spec.name} ({self.source})"
         if isinstance(exc, BlockTimeout):
-            _watchdog.disarm()  # no second alarm while the run ends
+            _watchdog.stop()  # no second alarm while the run ends
             at = [f for f in traceback.extract_tb(exc.__traceback__)
                   if Path(f.filename).resolve() == Path(self.file).resolve()]
             line = f", at {self.file}:{at[-1].lineno}" if at else ""
@@ -353,7 +389,10 @@ class StudentBlock:
         finally:
             if armed:
                 _watchdog.disarm()
-        spent = _clock() - t0
+        return self._done(value, _clock() - t0, args)
+
+    def _done(self, value: Any, spent: float, args: tuple) -> Any:
+        """A call's bookkeeping (its time) and its checked value."""
         self.calls += 1
         self.total_s += spent
         if spent > self.worst_s:
@@ -371,6 +410,54 @@ class StudentBlock:
         return {"source": self.source, "calls": self.calls, "worst_s": self.worst_s,
                 "mean_s": self.total_s / self.calls if self.calls else 0.0, "over_budget": self.over_budget,
                 "budget_s": self.budget_s}
+
+
+def together(first: Any, first_args: tuple, second: Any, second_args: tuple) -> tuple[Any, Any]:
+    """``(first(*first_args), second(*second_args))``, called in that order, for two calls of a
+    tick where the second's arguments do not depend on the first's value (path following's
+    steering and speed controller without turn_speed_handling). Two student blocks in the same
+    student process (a graded run's :mod:`qcarlab.sandbox`) go there in one round trip instead of
+    two; each is checked as :meth:`StudentBlock.__call__` checks it, the second not when the first
+    fails. Anything else is called one after the other."""
+    if type(first) is StudentBlock and type(second) is StudentBlock:
+        client = sys.modules.get("qcarlab.sandbox.client")
+        a, b = first.fn, second.fn
+        if client is not None and type(a) in client.REMOTE and type(b) in client.REMOTE:
+            (host, key_a), (host_b, key_b) = a._remote(), b._remote()
+            if host is host_b:
+                return _together_remote(host, first, first_args, key_a, second, second_args, key_b)
+    return first(*first_args), second(*second_args)
+
+
+def _together_remote(host: Any, first: StudentBlock, first_args: tuple, key_a: int, second: StudentBlock,
+                     second_args: tuple, key_b: int) -> tuple[Any, Any]:
+    blocks = (first, second)
+    armed = first.watched and _watchdog.arm(first)
+    t0 = _clock()
+    try:
+        replies, seconds = host.calls([(key_a, first_args, None, None), (key_b, second_args, None, None)])
+    except BaseException as exc:  # noqa: BLE001 - the timeout, or the student's process died
+        blocks[min(host.running(), 1)]._failed(exc)
+    finally:
+        if armed:
+            _watchdog.disarm()
+    spent = _clock() - t0
+    told = sum(s for s in seconds if type(s) is float and 0.0 <= s < math.inf)
+    values = []
+    for block, args, reply, s in zip(blocks, (first_args, second_args), replies, seconds):
+        try:
+            value = host.value(reply)
+        except BaseException as exc:  # noqa: BLE001
+            block._failed(exc)
+        # the round trip's time, split as the student's process says its calls took
+        share = s / told if told > 0.0 and type(s) is float and 0.0 <= s < math.inf else 1.0 / len(replies)
+        values.append(block._done(value, spent * share, args))
+    if len(values) < 2:  # (the first returned, so the second ran: its reply is missing)
+        try:
+            host.value(None)
+        except BaseException as exc:  # noqa: BLE001
+            second._failed(exc)
+    return values[0], values[1]
 
 
 _NO_LINE = "  (no line of your file in the traceback: the error came from a call your block made)"

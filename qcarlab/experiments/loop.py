@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from qcarlab.blocks import unwatch
 from qcarlab.car.base import Car, Command, Readout
 from qcarlab.errors import CarError, InputError
 
@@ -231,6 +232,7 @@ def run_loop(
         raise
     finally:
         log.ticks = ticks
+        unwatch()  # (the student's blocks' watchdog)
         if tracker is not None:
             tracker.close()
     if log.interrupted:

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from qcarlab.blocks import BlockSpec, StudentBlock
+from qcarlab.blocks import BlockSpec, StudentBlock, together
 from qcarlab.car.base import Car, Command, Readout
 from qcarlab.car.lamps import ALL_OFF, parse_lamps
 from qcarlab.constants import QCarParams
@@ -211,21 +211,27 @@ class PathFollowingLab(LabModel):
         else:
             target = np.array((tx, ty)) if array_target else (tx, ty)
             if pursuit:
-                delta = self.pure_pursuit(axle, target, lookahead, wheelbase)
+                steering, steering_args = self.pure_pursuit, (axle, target, lookahead, wheelbase)
             elif self.cfg.controller == "carrot":
-                delta = self.follow_the_carrot(pose, target, self.cfg.k_carrot)
+                steering, steering_args = self.follow_the_carrot, (pose, target, self.cfg.k_carrot)
             else:
-                delta = self.stanley(pose, self.poly, index, v, self.cfg.k_stanley, wheelbase)
-            if -m > delta:  # delta = min(max(delta, -m), m), written out (the builtins cost more)
-                delta = -m
-            if m < delta:
-                delta = m
-            v_ref = self.turn_speed_handling(speed, delta) if turn_speed else speed
+                steering, steering_args = self.stanley, (pose, self.poly, index, v, self.cfg.k_stanley, wheelbase)
             room = remaining - stop_margin
             v_stop = math.sqrt(two_a_stop * (0.0 if 0.0 > room else room))
+            if turn_speed:  # the desired speed depends on the steering: one block after the other
+                delta = steering(*steering_args)
+                delta = -m if -m > delta else (m if m < delta else delta)
+                v_ref = self.turn_speed_handling(speed, delta)
+                throttle = self.speed_controller(v_stop if v_stop < v_ref else v_ref, v, dt)
+            else:  # the two blocks of the tick together (a student's two: one round trip to their process)
+                v_ref = v_stop if v_stop < speed else speed
+                delta, throttle = together(steering, steering_args, self.speed_controller, (v_ref, v, dt))
+                # delta = min(max(delta, -m), m), written out (the builtins cost more)
+                delta = -m if -m > delta else (m if m < delta else delta)
             if v_stop < v_ref:  # v_ref = min(v_ref, v_stop)
                 v_ref = v_stop
-        throttle = self.speed_controller(v_ref, v, dt)
+        if arrived:
+            throttle = self.speed_controller(v_ref, v, dt)
         self.steer = delta
         return Step(_new_tuple(Command, (throttle, delta, _BRAKE if arrived else ALL_OFF)),  # Command(...)
                     {"est_x": est[0], "est_y": est[1], "est_yaw": est[2], "v_ref": v_ref, "v_meas": v,

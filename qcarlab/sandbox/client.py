@@ -1,8 +1,8 @@
 """The trusted side's handle on the student's process: start it, load the student's files there, call their blocks.
 
     host = BlockHost.start(plan)                 # the student's process (confined when plan.sandbox)
-    with blocks.loading_with(host.load):         # --use/--block files load there, as remote blocks
-        main(argv)                               # the lab runs here; each student block call is a round trip
+    blocks.load_with(host.load)                  # --use/--block files load there, as remote blocks
+    main(argv)                                   # the lab runs here; each student block call is a round trip
     host.close()                                 # that process and everything it started are gone
 
 The lab, the simulator, the referee and the results stay in the trusted process; the student's
@@ -17,6 +17,7 @@ the new PID namespace, which confines itself (:func:`qcarlab.sandbox.jail.confin
 
 from __future__ import annotations
 
+import mmap
 import os
 import signal
 import socket
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
-from qcarlab.blocks import BlockTimeout, RaisedInBlock, check_block_file
+from qcarlab.blocks import BlockTimeout, RaisedInBlock, _watchdog, check_block_file
 from qcarlab.errors import GraderFault, InputError
 from qcarlab.sandbox import codec
 
@@ -62,8 +63,9 @@ def _student_env() -> dict[str, str]:
 class BlockHost:
     """The student's process, seen from the trusted side."""
 
-    def __init__(self, sock: socket.socket, pid: int, plan: HostPlan, cgroup: Any):
+    def __init__(self, sock: socket.socket, pid: int, plan: HostPlan, cgroup: Any, progress: Any = None):
         self.sock, self.pid, self.plan, self.cgroup = sock, pid, plan, cgroup
+        self.progress = progress if progress is not None else bytearray(1)
         self.channel = codec.Channel(sock, trusted_peer=False)
         self.status: int | None = None
         self.dead: str | None = None
@@ -90,15 +92,16 @@ class BlockHost:
         confinement = jail.Plan(str(root), str(plan.submission.resolve()), jail.BASE_UID + os.getpid(), memory,
                                 plan.output_bytes, plan.cpu_s, cgroup is not None, plan.processes,
                                 visible=jail.python_paths()) if plan.sandbox else None
+        progress = mmap.mmap(-1, 1)  # shared with the student's process (qcarlab.sandbox.host.progress)
         for stream in (sys.stdout, sys.stderr):
             stream.flush()
         pid = os.fork()
         if pid == 0:  # A
-            _student_side(theirs.fileno(), out_fd, err_fd, confinement, cgroup, plan)  # never returns
+            _student_side(theirs.fileno(), out_fd, err_fd, confinement, cgroup, plan, progress)  # never returns
         theirs.close()
         os.close(out_fd)
         os.close(err_fd)
-        return cls(ours, pid, plan, cgroup)
+        return cls(ours, pid, plan, cgroup, progress)
 
     # ---------------------------------------------------------------- requests
     def request(self, *msg: Any) -> Any:
@@ -110,7 +113,7 @@ class BlockHost:
             self.channel.send(msg)
             reply = self.channel.recv()
         except BlockTimeout:  # the block has not returned (qcarlab.blocks' watchdog): its process is ended
-            signal.setitimer(signal.ITIMER_REAL, 0.0)  # no second alarm while it is
+            _watchdog.stop()  # no second alarm while it is
             if self.cgroup is not None and self.cgroup.at_limit():
                 # at its memory limit, the kernel's reclaim before the kill can outlast the watchdog on
                 # a loaded machine: the block ran out of memory, whichever of the two came first
@@ -125,6 +128,10 @@ class BlockHost:
         except (EOFError, OSError):
             self.dead = self.death()
             raise RaisedInBlock("died", "", self.dead) from None
+        return self.value(reply)
+
+    def value(self, reply: Any) -> Any:
+        """The value of one reply (a request's, or one of a ``calls`` request's)."""
         if not isinstance(reply, tuple) or not reply:
             self._broken("replied with something that is not a reply")
         if reply[0] == "ok" and len(reply) == 2:
@@ -139,6 +146,22 @@ class BlockHost:
         if reply[0] == "value" and len(reply) == 2:
             raise RaisedInBlock("value", "", f"returned a value that cannot be passed back: {reply[1]}")
         self._broken("replied with something that is not a reply")
+
+    def calls(self, calls: list[tuple]) -> tuple[list[Any], list[float]]:
+        """Several calls ``(id, args, method, kwargs)`` in one round trip, run in order in the
+        student's process: their replies (for :meth:`value`; the list ends at the first that
+        raised) and the seconds each took there (as the student's process says: a split of the
+        round trip's time, not a measure of it). While they run, :meth:`running` says which."""
+        self.progress[0] = 0
+        got = self.request("calls", calls)
+        if not (type(got) is tuple and len(got) == 2 and type(got[0]) is list and type(got[1]) is list
+                and 1 <= len(got[0]) <= len(calls) and len(got[1]) == len(got[0])):
+            self._broken("replied with something that is not a reply")
+        return got
+
+    def running(self) -> int:
+        """The index of the call of the last ``calls`` request that was running (or ran last)."""
+        return self.progress[0]
 
     def _broken(self, why: str) -> NoReturn:
         """The student's process broke the protocol: it is ended, and every later call fails with ``why``."""
@@ -238,6 +261,10 @@ class RemoteFunction:
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         return self.host.request("call", self.key, args, None, kwargs or None)
 
+    def _remote(self) -> tuple[BlockHost, int]:
+        """Its process and its id there (for :meth:`BlockHost.calls`)."""
+        return self.host, self.key
+
     def __repr__(self) -> str:
         return f"<student function {self.name}>"
 
@@ -265,6 +292,10 @@ class RemoteInstance:
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         return self._host.request("call", self._key, args, None, kwargs or None)
 
+    def _remote(self) -> tuple[BlockHost, int]:
+        """Its process and its id there (for :meth:`BlockHost.calls`)."""
+        return self._host, self._key
+
     def __getattr__(self, name: str) -> Any:
         if name.startswith("_"):
             raise AttributeError(name)
@@ -281,7 +312,8 @@ class RemoteInstance:
 # --------------------------------------------------------------------------------------------
 # the student's side of the fork
 # --------------------------------------------------------------------------------------------
-def _student_side(fd: int, out_fd: int, err_fd: int, confinement: Any, cgroup: Any, plan: HostPlan) -> None:
+def _student_side(fd: int, out_fd: int, err_fd: int, confinement: Any, cgroup: Any, plan: HostPlan,
+                  progress: Any = None) -> None:
     """Process A (and B): never returns."""
     code = SETUP_FAILED
     try:
@@ -298,6 +330,7 @@ def _student_side(fd: int, out_fd: int, err_fd: int, confinement: Any, cgroup: A
         sys.path[:] = [p for p in sys.path if p and os.path.isabs(p) and not p.startswith(str(plan.folder))]
         from qcarlab.sandbox import host, jail
 
+        host.progress = progress
         if sys.platform.startswith("linux"):
             jail.prctl(jail.PR_SET_PDEATHSIG, signal.SIGKILL)
         if confinement is None:
@@ -365,4 +398,7 @@ def _rlimits(plan: HostPlan) -> None:
             pass
 
 
-__all__ = ["BlockHost", "HostPlan", "RemoteClass", "RemoteFunction", "RemoteInstance", "SandboxFailed"]
+#: the types whose calls run in the student's process (:func:`qcarlab.blocks.together` sends two at once)
+REMOTE = (RemoteFunction, RemoteInstance)
+
+__all__ = ["REMOTE", "BlockHost", "HostPlan", "RemoteClass", "RemoteFunction", "RemoteInstance", "SandboxFailed"]

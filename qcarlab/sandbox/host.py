@@ -8,6 +8,9 @@ It runs confined (:mod:`qcarlab.sandbox.jail`) and answers one request at a time
                                                                                 (or its method)
     ("new", id)                       -> ("ok", (instance id, callable, methods))  a class's instance
     ("get", instance, attribute)      -> ("ok", value)                          e.g. a controller's .state
+    ("calls", [(id, args, method, kwargs), ...])                               several calls, in order,
+                                      -> ("ok", ([reply, ...], [seconds, ...]))  one reply each (as "call"'s)
+                                                                                up to the first that raised
     any of them                       -> ("raised", kind, type, message, traceback)
                                          ("input", message)                     the file cannot be loaded
                                          ("value", message)                     a value that cannot be sent
@@ -22,10 +25,16 @@ import inspect
 import os
 import socket
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 from qcarlab.sandbox import codec
+
+
+#: A byte shared with the trusted side (:class:`qcarlab.sandbox.client.BlockHost`): the index of the
+#: call of a ``calls`` request now running, so that a block that does not return is named.
+progress: Any = None
 
 
 def _raised(exc: BaseException, file: str) -> tuple:
@@ -68,6 +77,8 @@ def serve(sock: socket.socket) -> None:
                 if msg[3]:
                     fn = getattr(fn, msg[3])
                 reply = ("ok", fn(*msg[2], **msg[4]) if msg[4] else fn(*msg[2]))
+            elif op == "calls":
+                reply = ("ok", _calls(targets, msg[1]))
             elif op == "new":
                 cls, file = targets[msg[1]]
                 obj = cls()
@@ -84,9 +95,43 @@ def serve(sock: socket.socket) -> None:
         try:
             channel.send(reply)
         except codec.CodecError as exc:
-            channel.send(("value", f"{exc}"))
+            channel.send(_sendable(reply) if op == "calls" else ("value", f"{exc}"))
         except OSError:
             return
+
+
+def _calls(targets: list[tuple[Any, str]], calls: list) -> tuple[list[tuple], list[float]]:
+    """A ``calls`` request: each call's reply (``("ok", value)`` or the exception's), in order,
+    stopping after the first that raised, and the seconds each took."""
+    replies, seconds = [], []
+    mark = progress
+    for i, (key, args, method, kwargs) in enumerate(calls):
+        if mark is not None:
+            mark[0] = i
+        fn, file = targets[key]
+        if method:
+            fn = getattr(fn, method)
+        t0 = time.perf_counter()
+        try:
+            replies.append(("ok", fn(*args, **kwargs) if kwargs else fn(*args)))
+        except BaseException as exc:  # noqa: BLE001 - the student's code may raise anything
+            replies.append(_raised(exc, file))
+        seconds.append(time.perf_counter() - t0)
+        if replies[-1][0] != "ok":
+            break
+    return replies, seconds
+
+
+def _sendable(reply: tuple) -> tuple:
+    """A ``calls`` reply that did not encode: its replies up to the first value that does not,
+    which becomes ``("value", why)``."""
+    replies, seconds = reply[1]
+    for i, one in enumerate(replies):
+        try:
+            codec.encode(one)
+        except codec.CodecError as exc:
+            return ("ok", (replies[:i] + [("value", f"{exc}")], seconds[:i + 1]))
+    return ("value", "a reply that cannot be sent")
 
 
 def main(fd: int) -> None:
