@@ -1,5 +1,10 @@
 """``python -m qcarlab`` is the ``qcarlab`` command."""
 
-from qcarlab.cli import main
+import os
+
+# as the qcarlab command sets it (qcarlab.warm.DEFAULT_ENV: one BLAS thread), before numpy's import
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from qcarlab.cli import main  # noqa: E402
 
 main()

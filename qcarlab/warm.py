@@ -71,6 +71,11 @@ IMPORT_ENV = ("TERM", "COLORTERM", "NO_COLOR", "FORCE_COLOR", "PY_COLORS", "CLIC
 IMPORT_PREFIXES = ("LC_", "PYTHON", "NUMBA_", "OPENCV_", "OMP_", "OPENBLAS_", "GOTO_", "MKL_", "NUMEXPR_",
                    "TYPER_", "_TYPER", "RICH_")  # (qcarlab reads no QCARLAB_ variable at import)
 _NOT_KEYED = (ENV, DIR_ENV, IDLE_ENV)
+#: What the command sets where the user has not (:func:`main`; ``python -m qcarlab`` too), keyed as
+#: set: one BLAS thread, as numpy's OpenBLAS otherwise starts one per core at import, each spinning
+#: some 0.1 s of CPU before it sleeps (``python -c "import numpy"``: 0.17-0.21 s of CPU against
+#: 0.07-0.09 s, 2-core VM), for matrices of 2x2 to 4x4 here.
+DEFAULT_ENV = {"OPENBLAS_NUM_THREADS": "1"}
 _MAGIC = b"QWRM"
 
 
@@ -80,6 +85,8 @@ _MAGIC = b"QWRM"
 def main() -> None:
     """The ``qcarlab`` command: a lab command through the warm server when :func:`wanted` (and a
     server answers), else the CLI in this process as always."""
+    for name, value in DEFAULT_ENV.items():  # before any import; a user's own setting wins
+        os.environ.setdefault(name, value)
     argv = sys.argv[1:]
     later: list[Place] = []  # a server to start once this command has run cold
     try:
@@ -188,7 +195,8 @@ def install_key() -> str:
     import hashlib
 
     root = os.path.dirname(os.path.abspath(__file__))
-    env = "".join(f"{name}={os.environ[name]}\0" for name in sorted(os.environ)
+    environ = {**DEFAULT_ENV, **os.environ}
+    env = "".join(f"{name}={environ[name]}\0" for name in sorted(environ)
                   if name not in _NOT_KEYED and (name in IMPORT_ENV or name.startswith(IMPORT_PREFIXES)))
     python = f"{os.path.realpath(sys.executable)}\0{sys.prefix}\0{sys.version}"  # bin/python = bin/python3
     lineage = hashlib.sha256(f"{python}\0{root}\0{env}".encode()).hexdigest()[:16]

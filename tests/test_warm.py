@@ -356,3 +356,29 @@ def test_ctrl_z_stops_the_command_and_fg_resumes_it(env):
         assert p.returncode == 130 and "interrupted; the car was stopped" in err
     finally:
         p.kill()
+
+
+@pytest.mark.parametrize("user", [None, "2"])
+def test_the_command_runs_numpy_with_one_blas_thread_unless_the_user_says(user, tmp_path):
+    """numpy's OpenBLAS starts a spinning thread per core at import (some 0.1 s of CPU each, for
+    2x2 matrices): the qcarlab command and ``python -m qcarlab`` set one where the user set none;
+    the warm server's key treats unset and the default alike (a server started by either serves both)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "QCARLAB_WARM")}
+    if user:
+        env["OPENBLAS_NUM_THREADS"] = user
+    probe = "import os, numpy; print(os.environ.get('OPENBLAS_NUM_THREADS'), len(os.listdir('/proc/self/task')))"
+    plain = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True)
+    via = "; ".join(["import os, sys", "sys.argv = ['qcarlab', 'path-gen', 'line', '--json']",  # (off a terminal: cold)
+                     "from qcarlab.warm import main",
+                     "import atexit; atexit.register(lambda: print(os.environ.get('OPENBLAS_NUM_THREADS'), "
+                     "len(os.listdir('/proc/self/task')), file=sys.stderr))", "main()"])
+    got = subprocess.run([sys.executable, "-c", via], env=env, capture_output=True, text=True, cwd=tmp_path)
+    assert got.returncode == 0, got.stderr
+    blas, threads = got.stderr.split()[-2:]
+    assert blas == (user or "1")
+    if not user and sys.platform.startswith("linux"):
+        assert int(threads) == 1 < int(plain.stdout.split()[1]) or os.cpu_count() == 1  # numpy's import made none
+    keys = [subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"],
+                           env={**env, **extra}, capture_output=True, text=True, check=True).stdout
+            for extra in ({}, {"OPENBLAS_NUM_THREADS": "1"})]
+    assert (keys[0] == keys[1]) == (user is None)
