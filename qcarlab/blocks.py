@@ -98,6 +98,8 @@ class _Watchdog:
         self.running: StudentBlock | None = None  # the block in a watched call
         self.deadline = 0.0  # when its time is up (time.monotonic)
         self.pending = False  # an alarm is set (for this call or an earlier one)
+        self.alarm_at = 0.0  # when it fires (time.monotonic)
+        self.later: Callable[[], int] | None = None  # a batch's: the index of its call now running
         self.handler = self._alarm  # one bound method, so that ``is`` recognises it
 
     def ready(self) -> bool:
@@ -109,6 +111,7 @@ class _Watchdog:
             if handler not in (signal.SIG_DFL, None):
                 return False
             signal.signal(signal.SIGALRM, self.handler)
+            self.pending = False  # an alarm set before went to another handler
         self.limit = block_timeout()
         return True
 
@@ -116,11 +119,20 @@ class _Watchdog:
         self.pending = False
         if self.running is None:  # set for a call that returned: it lapses (the next call sets another)
             return
-        left = self.deadline - _monotonic()
+        now = _monotonic()
+        left = self.deadline - now
+        if left <= 0.0 and self.later is not None and self.later() > 0:
+            # a batch (see together) whose first call returned in its time: the second call began
+            # before this deadline, so one more limit from it gives the second at least its own
+            self.later = None
+            self.deadline += self.limit
+            left = self.deadline - now
         self.pending = True
         if left > 0.0:  # set for an earlier call: this one's time is not up yet
+            self.alarm_at = now + left
             _setitimer(_REAL, left)
             return
+        self.alarm_at = now + 0.5
         _setitimer(_REAL, 0.5)  # and again every half second, should the student's code swallow it
         raise BlockTimeout()
 
@@ -131,10 +143,11 @@ class _Watchdog:
         a block called every tick of a graded run through its student's process)."""
         if _get_ident() != self.main:
             return False
-        self.deadline = _monotonic() + self.limit
+        self.deadline = deadline = _monotonic() + self.limit
         self.running = block
-        if not self.pending:
+        if not self.pending or deadline < self.alarm_at:  # (the limit was lowered since it was set)
             self.pending = True
+            self.alarm_at = deadline
             _setitimer(_REAL, self.limit)
         return True
 
@@ -144,12 +157,12 @@ class _Watchdog:
 
     def stop(self) -> None:
         """No call watched and no alarm set (a run ends, a stuck block's process is ended)."""
-        self.running = None
+        self.running, self.later = None, None
         self.pending = False
         _setitimer(_REAL, 0.0)
 
     def _forked(self) -> None:
-        self.running, self.pending = None, False  # a fork's child has no alarm set
+        self.running, self.later, self.pending = None, None, False  # a fork's child has no alarm set
 
 
 _get_ident, _setitimer, _REAL, _monotonic = threading.get_ident, signal.setitimer, signal.ITIMER_REAL, time.monotonic
@@ -417,8 +430,10 @@ def together(first: Any, first_args: tuple, second: Any, second_args: tuple) -> 
     tick where the second's arguments do not depend on the first's value (path following's
     steering and speed controller without turn_speed_handling). Two student blocks in the same
     student process (a graded run's :mod:`qcarlab.sandbox`) go there in one round trip instead of
-    two; each is checked as :meth:`StudentBlock.__call__` checks it, the second not when the first
-    fails. Anything else is called one after the other."""
+    two; each is checked as :meth:`StudentBlock.__call__` checks it (a first block that raises or
+    returns what cannot be passed back is the one named; the second is not called after a first
+    that raised) and each has the watchdog's whole limit. Anything else is called one after the
+    other."""
     if type(first) is StudentBlock and type(second) is StudentBlock:
         client = sys.modules.get("qcarlab.sandbox.client")
         a, b = first.fn, second.fn
@@ -433,6 +448,8 @@ def _together_remote(host: Any, first: StudentBlock, first_args: tuple, key_a: i
                      second_args: tuple, key_b: int) -> tuple[Any, Any]:
     blocks = (first, second)
     armed = first.watched and _watchdog.arm(first)
+    if armed:
+        _watchdog.later = host.running  # the second call has a limit of its own (see _Watchdog._alarm)
     t0 = _clock()
     try:
         replies, seconds = host.calls([(key_a, first_args, None, None), (key_b, second_args, None, None)])
@@ -440,17 +457,20 @@ def _together_remote(host: Any, first: StudentBlock, first_args: tuple, key_a: i
         blocks[min(host.running(), 1)]._failed(exc)
     finally:
         if armed:
+            _watchdog.later = None
             _watchdog.disarm()
     spent = _clock() - t0
-    told = sum(s for s in seconds if type(s) is float and 0.0 <= s < math.inf)
+    # the round trip's time, split as the student's process says its calls took (evenly, should it
+    # say something that is not a time): a split of what was measured here, never more than it
+    told = [s if type(s) is float and 0.0 <= s < math.inf else math.nan for s in seconds]
+    total = sum(told)
+    shares = [s / total for s in told] if total > 0.0 else [1.0 / len(told)] * len(told)
     values = []
-    for block, args, reply, s in zip(blocks, (first_args, second_args), replies, seconds):
+    for block, args, reply, share in zip(blocks, (first_args, second_args), replies, shares):
         try:
             value = host.value(reply)
         except BaseException as exc:  # noqa: BLE001
             block._failed(exc)
-        # the round trip's time, split as the student's process says its calls took
-        share = s / told if told > 0.0 and type(s) is float and 0.0 <= s < math.inf else 1.0 / len(replies)
         values.append(block._done(value, spent * share, args))
     if len(values) < 2:  # (the first returned, so the second ran: its reply is missing)
         try:

@@ -19,6 +19,7 @@ import pytest
 
 from qcarlab import blocks
 from qcarlab.blocks import BlockSpec, StudentBlock, StudentBlockError, together
+from qcarlab.errors import InputError
 from qcarlab.sandbox.client import BlockHost, HostPlan
 
 STEER = BlockSpec("steer", "steer(x) -> steering", "", "", "", returns="steering")
@@ -29,8 +30,16 @@ import time
 
 log = []
 
+def nap(x):
+    if isinstance(x, str) and x.startswith("nap"):  # "nap0.3": sleep 0.3 s, then return 0
+        time.sleep(float(x[3:]))
+        return True
+    return False
+
 def steer(x):
     log.append(("steer", x))
+    if nap(x):
+        return 0.0
     if x == "raise":
         raise ValueError("no steering today")
     if x == "deep":  # a value the codec refuses (nested too deep)
@@ -45,6 +54,8 @@ def steer(x):
 
 def speed(x):
     log.append(("speed", x))
+    if nap(x):
+        return 0.0
     if x == "hang":
         while True:
             time.sleep(0.001)
@@ -116,7 +127,8 @@ def test_a_value_that_cannot_be_sent_back_names_its_block(host):
     with pytest.raises(Exception) as exc:
         together(a, ("deep",), b, (1.0,))
     assert "block steer" in str(exc.value) and "cannot be passed back" in str(exc.value)
-    assert b.calls == 0
+    assert b.calls == 0  # (the student's process ran it: only a first block that raises stops the second)
+    assert found["calls"]() == [("steer", "deep"), ("speed", 1.0)]
 
 
 @pytest.mark.parametrize("stuck", ["steer", "speed"])
@@ -132,6 +144,20 @@ def test_a_block_that_does_not_return_in_a_batch_is_the_one_named(host, stuck, m
     assert 0.45 < time.monotonic() - t0 < 10.0
     assert f"block {stuck} " in str(exc.value) and "has not returned after 0.5 s" in str(exc.value)
     assert h.wait(5.0) is not None  # its process was ended
+
+
+def test_each_block_of_a_batch_has_the_whole_time_limit(host, monkeypatch):
+    """Two blocks that each take 0.6 of the limit: neither is stopped (one deadline for the pair
+    would stop the second); a second that then does not return is stopped and named."""
+    h, found = host
+    monkeypatch.setenv("QCARLAB_BLOCK_TIMEOUT_S", "0.5")
+    a, b = pair(found)
+    assert a.watched
+    assert together(a, ("nap0.3",), b, ("nap0.3",)) == (0.0, 0.0)
+    t0 = time.monotonic()
+    with pytest.raises(StudentBlockError, match="block speed .*has not returned after 0.5 s"):
+        together(a, ("nap0.3",), b, ("hang",))
+    assert 0.75 < time.monotonic() - t0 < 10.0  # 0.3 s for steer, then at least speed's own 0.5 s
 
 
 def test_the_sandboxed_path_follow_run_is_the_in_process_one(cli, tmp_path):
@@ -191,10 +217,12 @@ def _quick():
 def test_the_lazy_watchdog_still_stops_a_block_after_an_earlier_calls_alarm(monkeypatch):
     """An alarm set for a quick call is left running; a stuck call after it is stopped at its own
     deadline (not the quick call's), and a forked child's first stuck call is stopped too."""
+    blocks.unwatch()
     monkeypatch.setenv("QCARLAB_BLOCK_TIMEOUT_S", "0.4")
     spec = BlockSpec("hang", "hang() -> any", "", "", "")
     quick = StudentBlock(spec, _quick, "t.py:_quick", Path(__file__)).start()
     stuck = StudentBlock(spec, _hang, "t.py:_hang", Path(__file__)).start()
+    pid = 0
     try:
         assert quick.watched
         quick()
@@ -216,8 +244,81 @@ def test_the_lazy_watchdog_still_stops_a_block_after_an_earlier_calls_alarm(monk
             except BaseException:  # noqa: BLE001
                 code = 4
             os._exit(code)
-        _, status = os.waitpid(pid, 0)
+        status = None
+        for _ in range(2000):  # 20 s at most (a child that hangs is killed, not waited for forever)
+            done, status = os.waitpid(pid, os.WNOHANG)
+            if done:
+                pid = 0
+                break
+            time.sleep(0.01)
+        assert pid == 0, "the forked child's stuck block was not stopped"
         assert os.waitstatus_to_exitcode(status) == 0
     finally:
+        if pid:
+            os.kill(pid, 9)
+            os.waitpid(pid, 0)
         blocks.unwatch()
     assert not blocks._watchdog.pending
+
+
+def test_a_lowered_limit_is_kept_though_an_alarm_for_the_higher_one_is_set(monkeypatch):
+    """An alarm left set by a call under a 30 s limit does not let a stuck call under a 0.4 s limit
+    run on to it."""
+    blocks.unwatch()
+    spec = BlockSpec("hang", "hang() -> any", "", "", "")
+    monkeypatch.setenv("QCARLAB_BLOCK_TIMEOUT_S", "30")
+    quick = StudentBlock(spec, _quick, "t.py:_quick", Path(__file__)).start()
+    try:
+        quick()
+        assert blocks._watchdog.pending
+        monkeypatch.setenv("QCARLAB_BLOCK_TIMEOUT_S", "0.4")
+        stuck = StudentBlock(spec, _hang, "t.py:_hang", Path(__file__)).start()
+        t0 = time.monotonic()
+        with pytest.raises(StudentBlockError, match="has not returned after 0.4 s"):
+            stuck()
+        assert time.monotonic() - t0 < 10.0
+    finally:
+        blocks.unwatch()
+
+
+EXITS_71 = "import os\n\ndef steer(x):\n    os._exit(71)\n"
+
+
+@pytest.mark.parametrize("where", ["call", "load"])
+def test_a_student_exit_with_the_sandboxs_failure_code_is_the_students(tmp_path, where):
+    """os._exit(71), the code the sandbox's set-up exits with, from the student's code: their block's
+    death (scored), not a grader fault (rerun, never scored)."""
+    sub = tmp_path / "submission"
+    sub.mkdir()
+    (sub / "student.py").write_text(EXITS_71 if where == "call" else "import os\nos._exit(71)\n")
+    h = BlockHost.start(HostPlan(tmp_path, sub, tmp_path / "out.txt", tmp_path / "err.txt", sandbox=False))
+    try:
+        if where == "load":
+            with pytest.raises(InputError, match="exited with code 71"):
+                h.load(sub / "student.py")
+        else:
+            steer = StudentBlock(STEER, h.load(sub / "student.py")["steer"], "student.py:steer",
+                                 Path("student.py")).start()
+            with pytest.raises(StudentBlockError, match="block steer .*exited with code 71"):
+                steer(1.0)
+    finally:
+        h.close()
+        blocks.unwatch()
+
+
+def test_a_process_that_fails_before_it_is_ready_is_the_sandboxs_fault(tmp_path, monkeypatch):
+    from qcarlab.sandbox import client
+
+    def broken(plan):
+        raise OSError("no limits today")
+
+    monkeypatch.setattr(client, "_rlimits", broken)  # (in the forked student side)
+    sub = tmp_path / "submission"
+    sub.mkdir()
+    (sub / "student.py").write_text(EXITS_71)
+    h = BlockHost.start(HostPlan(tmp_path, sub, tmp_path / "out.txt", tmp_path / "err.txt", sandbox=False))
+    try:
+        with pytest.raises(client.SandboxFailed, match="no limits today"):
+            h.load(sub / "student.py")
+    finally:
+        h.close()

@@ -376,8 +376,8 @@ def test_the_command_runs_numpy_with_one_blas_thread_unless_the_user_says(user, 
     assert got.returncode == 0, got.stderr
     blas, threads = got.stderr.split()[-2:]
     assert blas == (user or "1")
-    if not user and sys.platform.startswith("linux"):
-        assert int(threads) == 1 < int(plain.stdout.split()[1]) or os.cpu_count() == 1  # numpy's import made none
+    if not user and sys.platform.startswith("linux") and int(plain.stdout.split()[1]) > 1:
+        assert int(threads) == 1  # numpy's import made none (where a plain import makes some: OpenBLAS, 2+ cores)
     keys = [subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"],
                            env={**env, **extra}, capture_output=True, text=True, check=True).stdout
             for extra in ({}, {"OPENBLAS_NUM_THREADS": "1"})]

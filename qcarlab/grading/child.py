@@ -198,6 +198,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.stderr.write(f"qcarlab grader: error: {exc}\n")
         sys.exit(GraderFault.exit_code)
     finally:
+        blocks.unwatch()  # (a block task's calls leave the watchdog's alarm set: see qcarlab.blocks)
         blocks.load_with(None)
         if host is not None:
             host.close()

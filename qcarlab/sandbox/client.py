@@ -29,6 +29,7 @@ from typing import Any, NoReturn
 from qcarlab.blocks import BlockTimeout, RaisedInBlock, _watchdog, check_block_file
 from qcarlab.errors import GraderFault, InputError
 from qcarlab.sandbox import codec
+from qcarlab.sandbox.host import READY
 
 SETUP_FAILED = 71  #: the exit code of a student's process that could not be confined (nothing of theirs ran)
 SOCKET_BUFFER = 4 << 20  #: bytes: each end's send and receive buffer (the kernel caps it at wmem_max)
@@ -69,6 +70,7 @@ class BlockHost:
         self.channel = codec.Channel(sock, trusted_peer=False)
         self.status: int | None = None
         self.dead: str | None = None
+        self.confined = False  # the student's process said it is ready (host.READY): its exits are its own
 
     @classmethod
     def start(cls, plan: HostPlan) -> BlockHost:
@@ -169,9 +171,27 @@ class BlockHost:
         self.kill()
         raise RaisedInBlock("died", "", why) from None
 
+    def _ready(self) -> None:
+        """Wait for the student's process to say it is confined (:data:`qcarlab.sandbox.host.READY`,
+        sent before any of the student's code runs). Until then, its exit with :data:`SETUP_FAILED`
+        is the sandbox's failure (the grader's fault); after it, an exit is the student's own
+        (``os._exit(71)`` in their code is their block's death, not a grader fault to be rerun)."""
+        try:
+            msg = self.channel.recv()
+        except codec.CodecError as exc:
+            self._broken(f"the process running your blocks sent something that is not a value ({exc})")
+        except (EOFError, OSError):
+            self.dead = self.death()
+            raise RaisedInBlock("died", "", self.dead) from None
+        if msg != READY:
+            self._broken("did not start as the sandbox starts it")
+        self.confined = True
+
     def load(self, path: Path) -> dict[str, Any]:
         """The top-level functions and classes of the student's file ``path``, as remote blocks."""
         check_block_file(path)
+        if not self.confined:
+            self._ready()
         try:
             found = self.request("load", str(path.resolve()))
         except RaisedInBlock as exc:
@@ -208,7 +228,7 @@ class BlockHost:
         if code is None:
             self.kill()
             return "closed its connection (the process running your blocks stopped answering)"
-        if code == SETUP_FAILED:
+        if code == SETUP_FAILED and not self.confined:
             text = ""
             try:
                 text = self.plan.stderr.read_text(errors="replace").strip().splitlines()[-1]
@@ -244,6 +264,8 @@ class BlockHost:
             self.wait(5.0)
         if self.cgroup is not None:
             self.cgroup.remove()
+        if isinstance(self.progress, mmap.mmap):
+            self.progress.close()
 
 
 class SandboxFailed(GraderFault):

@@ -36,6 +36,10 @@ from qcarlab.sandbox import codec
 #: call of a ``calls`` request now running, so that a block that does not return is named.
 progress: Any = None
 
+#: The first message of the student's process, sent before any of the student's code runs: an exit
+#: after it is the student's doing (even with the sandbox's own set-up failure code).
+READY = ("ready",)
+
 
 def _raised(exc: BaseException, file: str) -> tuple:
     from qcarlab.blocks import RaisedInBlock
@@ -51,6 +55,10 @@ def serve(sock: socket.socket) -> None:
 
     channel = codec.Channel(sock, trusted_peer=True)
     targets: list[tuple[Any, str]] = []  # id -> (function, class or instance; its file)
+    try:  # confined, and nothing of the student's has run yet: from here on, an exit is theirs
+        channel.send(READY)
+    except OSError:
+        return
     while True:
         try:
             msg = channel.recv()
