@@ -25,10 +25,11 @@ server stops the command (SIGTERM: the car is stopped) as a cold process would h
 
 When: ``QCARLAB_WARM`` is unset (the default): for the lab commands (:data:`COMMANDS`) typed at a
 terminal (stdin and stdout are terminals). The first such command runs cold and starts the server
-in the background; it serves the later ones and leaves after 20 idle minutes
-(``QCARLAB_WARM_IDLE``, seconds). ``QCARLAB_WARM=1``: for the lab commands whatever the streams
-(the first one starts the server and waits for it). ``QCARLAB_WARM=0``: never. Scripts, pipes,
-CI and the grader therefore run cold unless they ask. ``qcarlab warm`` starts, shows or stops it.
+in the background (so do ``qcarlab`` alone, its help and version, ``labs`` and ``template`` at a
+terminal: what a student types before a lab's first command); it serves the later ones and
+leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). ``QCARLAB_WARM=1``: for the lab
+commands whatever the streams (the first one starts the server and waits for it).
+``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask. ``qcarlab warm`` starts, shows or stops it.
 
 A server is one user's (a folder only they may enter, ``$XDG_RUNTIME_DIR/qcarlab-warm`` or
 ``/tmp/qcarlab-warm-UID``, or ``QCARLAB_WARM_DIR``; the peer's uid is checked) and one install's:
@@ -61,6 +62,12 @@ KILL_AFTER = 20.0  # s after SIGTERM before a command whose client died is kille
 COMMANDS = frozenset({"io-test", "ping", "path-gen", "path-follow", "lidar-scan", "camera", "stop-sign",
                       "lane-follow", "avoid", "detect", "blocks", "replay"})
 
+#: What a student types before a lab command: ``qcarlab`` alone, the help, the version, the sheets,
+#: a lab's template. At a terminal these start the server too (after they ran), so that the
+#: student's first lab command of a session is warm; ``blocks`` is one of :data:`COMMANDS` already.
+PREPARES = frozenset({"labs", "template"})
+HELP = frozenset({"-h", "--help", "--version"})
+
 #: Variables a module may read when it is imported (colours, terminal, locale, numerical
 #: libraries' threads, numba, OpenCV, matplotlib, Python itself): a server serves only clients
 #: with the values it was started with, which are in its key.
@@ -91,6 +98,10 @@ def main() -> None:
     later: list[Place] = []  # a server to start once this command has run cold
     try:
         code = run(argv, later) if wanted(argv) else None
+        if code is None and not later and prepares(argv):
+            where = place()
+            if where is not None:
+                later.append(where)  # (start_server: not when one is up or starting)
     except KeyboardInterrupt:  # while waiting for a server to start: nothing ran
         sys.stderr.write(f"{argv[0]}: interrupted\n")
         sys.exit(130)
@@ -117,13 +128,25 @@ def wanted(argv: list[str]) -> bool:
     """Whether ``qcarlab ARGV`` goes to the warm server: a lab command (:data:`COMMANDS`), on
     Linux, not shell completion, and ``QCARLAB_WARM=1`` or (unset) at a terminal."""
     mode = _mode()
-    if mode == "off" or not argv or argv[0] not in COMMANDS or not sys.platform.startswith("linux"):
-        return False
-    if not hasattr(socket, "send_fds") or not hasattr(os, "pidfd_open"):
-        return False
-    if any(k.endswith("_COMPLETE") for k in os.environ) or not _streams_open():
+    if mode == "off" or not argv or argv[0] not in COMMANDS or not _possible():
         return False
     return mode == "on" or _at_terminal()
+
+
+def prepares(argv: list[str]) -> bool:
+    """Whether ``qcarlab ARGV`` is what a student types before a lab's first command (``qcarlab``
+    alone, its help, :data:`PREPARES`) at a terminal where a lab command would go warm: then the
+    server is started after it, as after a first lab command, and that command finds it warm."""
+    if _mode() == "off" or (argv and argv[0] not in PREPARES and argv[0] not in HELP):
+        return False
+    return _possible() and _at_terminal()
+
+
+def _possible() -> bool:
+    """Linux with fd passing and pidfds, not shell completion, the standard streams open."""
+    if not sys.platform.startswith("linux") or not hasattr(socket, "send_fds") or not hasattr(os, "pidfd_open"):
+        return False
+    return not any(k.endswith("_COMPLETE") for k in os.environ) and _streams_open()
 
 
 def _streams_open() -> bool:

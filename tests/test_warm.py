@@ -184,12 +184,17 @@ def test_at_a_terminal_the_output_keeps_its_colours(env):
     assert warm_text.removesuffix("\x1b[0m") == cold_text
 
 
-def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server():
+@pytest.mark.parametrize("argv, says", [
+    (["path-gen", "line"], "path-gen line"),
+    (["--help"], "Usage"),  # what a student types before a lab's first command starts it too,
+    (["template", "stop-sign", "--out", "ws"], "ws"),  # so that the first lab command is warm
+])
+def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server(argv, says):
     folder = tempfile.mkdtemp(prefix="qw")
     try:
         e = with_checkout({k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"})
         e.update(QCARLAB_WARM_DIR=folder, TERM="xterm-256color")
-        assert "path-gen line" in on_pty(e, "path-gen", "line")
+        assert says in on_pty(e, *argv)
         deadline = time.monotonic() + 60
         while not list(Path(folder).glob("*.sock")) and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -250,6 +255,27 @@ def test_which_commands_go_warm(monkeypatch, argv, mode, terminal, expected):
     monkeypatch.setenv("QCARLAB_WARM", mode)
     monkeypatch.setattr(warm, "_at_terminal", lambda: terminal)
     assert warm.wanted(argv) is expected
+
+
+@pytest.mark.parametrize("argv, mode, terminal, expected", [
+    ([], "", True, True),
+    (["--help"], "", True, True),
+    (["-h"], "1", True, True),
+    (["--version"], "", True, True),
+    (["labs"], "", True, True),
+    (["template", "stop-sign"], "", True, True),
+    (["--help"], "", False, False),  # scripts and pipes start nothing
+    (["labs"], "0", True, False),
+    (["grade", "stop-sign"], "", True, False),
+    (["serve"], "", True, False),  # (on the car: no server it did not ask for)
+    (["onboard"], "", True, False),
+])
+def test_what_a_student_types_before_a_lab_starts_the_server_at_a_terminal(monkeypatch, argv, mode, terminal,
+                                                                             expected):
+    monkeypatch.setenv("QCARLAB_WARM", mode)
+    monkeypatch.setattr(warm, "_at_terminal", lambda: terminal)
+    assert warm.prepares(argv) is expected
+    assert not warm.wanted(argv)  # (run cold: the server is started after it)
 
 
 def test_the_client_imports_nothing_heavy():

@@ -27,8 +27,8 @@ def warm_cmd(
     A lab command typed at a terminal (stop-sign, lane-follow, avoid, path-follow, camera, ...)
     is run by this server when it is up: the imports and the compiled kernels (some 0.75 s of
     every cold start) are already loaded, and the output, files and exit status are a cold run's.
-    The first lab command at a terminal starts it by itself; this starts it now and waits until
-    it is warm. It is yours alone, serves this install and environment, and leaves after 20 idle
+    The first lab command at a terminal starts it by itself (so do qcarlab --help, labs and
+    template, typed before a lab's first command); this starts it now and waits until it is warm. It is yours alone, serves this install and environment, and leaves after 20 idle
     minutes (QCARLAB_WARM_IDLE, seconds). QCARLAB_WARM=0 runs every command cold; QCARLAB_WARM=1
     uses it in scripts too (off a terminal it is not used unless asked). Linux only.
 
