@@ -29,7 +29,8 @@ in the background (so do ``qcarlab`` alone, its help and version, ``labs`` and `
 terminal: what a student types before a lab's first command); it serves the later ones and
 leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). ``QCARLAB_WARM=1``: for the lab
 commands whatever the streams (the first one starts the server and waits for it).
-``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask. ``qcarlab warm`` starts, shows or stops it.
+``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask.
+``qcarlab warm`` starts, shows or stops it.
 
 A server is one user's (a folder only they may enter, ``$XDG_RUNTIME_DIR/qcarlab-warm`` or
 ``/tmp/qcarlab-warm-UID``, or ``QCARLAB_WARM_DIR``; the peer's uid is checked) and one install's:
