@@ -33,7 +33,10 @@ def watch(url: str, topics: set[str], step, timeout: float = 60.0, extra_headers
     advertised topics go into ``advertised``."""
     got: dict[str, int] = {}
     channels: dict[int, str] = {}
-    with connect(url, subprotocols=[subprotocol], open_timeout=30) as ws:
+    # max_queue=None: the client's reader never stops for messages not yet received, so the
+    # server's close frame is read at once (with the default 16 the scans still streaming fill
+    # the queue and the close waits out its 10 s timeout)
+    with connect(url, subprotocols=[subprotocol], open_timeout=30, max_queue=None) as ws:
         assert ws.subprotocol == subprotocol
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline and not topics <= set(got):
