@@ -27,7 +27,9 @@ When: ``QCARLAB_WARM`` is unset (the default): for the lab commands (:data:`COMM
 terminal (stdin and stdout are terminals). The first such command runs cold and starts the server
 in the background (so do ``qcarlab`` alone, its help and version, ``labs`` and ``template`` at a
 terminal: what a student types before a lab's first command); it serves the later ones and
-leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). ``QCARLAB_WARM=1``: for the lab
+leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). After an install, numba's cache is
+empty: the server compiles the simulator's kernels first (:mod:`qcarlab.sim.precompile`, some 20 s
+in the background), so the first camera or LIDAR lab does not (some 13 s of a first ``stop-sign``). ``QCARLAB_WARM=1``: for the lab
 commands whatever the streams (the first one starts the server and waits for it).
 ``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask.
 ``qcarlab warm`` starts, shows or stops it.
@@ -52,7 +54,7 @@ ENV = "QCARLAB_WARM"
 DIR_ENV = "QCARLAB_WARM_DIR"
 IDLE_ENV = "QCARLAB_WARM_IDLE"
 IDLE = 1200.0  # s without a command before the server leaves
-START_TIMEOUT = 120.0  # s to wait for a server that is starting (a cold numba cache compiles first)
+START_TIMEOUT = 300.0  # s to wait for a server that is starting (a cold numba cache compiles first: 20 s quiet)
 REQUEST_TIMEOUT = 10.0  # s for a connection to send its request
 MAX_REQUEST = 16 << 20  # bytes of JSON (the environment and sys.path are most of it)
 KILL_AFTER = 20.0  # s after SIGTERM before a command whose client died is killed
@@ -500,6 +502,7 @@ def serve(folder: str, key: str, lock: int | None = None) -> int:
             return 0  # another server has this install
     os.set_inheritable(lock, False)
     started = time.monotonic()
+    _precompile()
     consoles = _Consoles()
     from qcarlab.zygote import MODULES, lab_modules, warm_up
 
@@ -520,6 +523,24 @@ def serve(folder: str, key: str, lock: int | None = None) -> int:
     ready = time.monotonic() - started
     print(f"warm in {ready:.2f} s: pid {os.getpid()}, {where.socket}", flush=True)
     return _Server(where, listener, lock, consoles, ready).loop()
+
+
+def _precompile() -> None:
+    """After an install numba's cache is empty: the simulator's kernels are compiled now, in a
+    process of their own (:mod:`qcarlab.sim.precompile`: it draws frames, with OpenCV, which a
+    server that forks must not run), so the student's first camera or LIDAR lab does not compile
+    them (some 13 s of a first ``stop-sign``). Its lines go to the server's log."""
+    import subprocess
+
+    from qcarlab.sim import precompile
+
+    if not precompile.needs_compiling():
+        return
+    try:
+        subprocess.run([sys.executable, "-m", "qcarlab.sim.precompile"], stdin=subprocess.DEVNULL,
+                       timeout=precompile.TIMEOUT, check=False)
+    except (OSError, subprocess.SubprocessError) as exc:  # the labs compile what they need themselves
+        print(f"the kernels were not compiled ahead: {exc}", flush=True)
 
 
 class _Consoles:

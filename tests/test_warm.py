@@ -82,7 +82,7 @@ def cold(env: dict, *args: str, cwd: Path | None = None) -> subprocess.Completed
 def up(env: dict) -> dict:
     """The server of ``env``, started (``qcarlab warm``) if it is not up: its status."""
     return json.loads(subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--json"], env=env, cwd=env["QCARLAB_WARM_DIR"],
-                                     capture_output=True, text=True, timeout=120, check=True).stdout)
+                                     capture_output=True, text=True, timeout=330, check=True).stdout)
 
 
 def served(env: dict) -> int:
@@ -195,7 +195,7 @@ def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server(ar
         e = with_checkout({k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"})
         e.update(QCARLAB_WARM_DIR=folder, TERM="xterm-256color")
         assert says in on_pty(e, *argv)
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 300  # (in a fresh clone the server compiles the kernels first)
         while not list(Path(folder).glob("*.sock")) and time.monotonic() < deadline:
             time.sleep(0.05)
         assert served(e) == 0  # up and warm, the first command not among its own

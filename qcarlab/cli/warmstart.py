@@ -28,7 +28,9 @@ def warm_cmd(
     is run by this server when it is up: the imports and the compiled kernels (some 0.75 s of
     every cold start) are already loaded, and the output, files and exit status are a cold run's.
     The first lab command at a terminal starts it by itself (so do qcarlab --help, labs and
-    template, typed before a lab's first command); this starts it now and waits until it is warm. It is yours alone, serves this install and environment, and leaves after 20 idle
+    template, typed before a lab's first command); this starts it now and waits until it is warm.
+    After an install it compiles the simulator's kernels first (some 20 s, once), so that the first
+    camera or LIDAR lab does not. It is yours alone, serves this install and environment, and leaves after 20 idle
     minutes (QCARLAB_WARM_IDLE, seconds). QCARLAB_WARM=0 runs every command cold; QCARLAB_WARM=1
     uses it in scripts too (off a terminal it is not used unless asked). Linux only.
 

@@ -1,0 +1,74 @@
+"""Compile the simulator's kernels for this machine before a lab needs them.
+
+After an install (or an edit of the kernels' source) numba's cache is empty, and the first camera
+or LIDAR lab compiles the kernels its frames use: a first ``qcarlab stop-sign`` takes some 13 s
+instead of one. The warm server (:mod:`qcarlab.warm`), which a student's first ``qcarlab`` command
+at a terminal starts in the background (``--help``, ``labs``, ``template`` or a lab), runs this
+first when the cache is cold, so the lab that follows finds every kernel compiled::
+
+    python -m qcarlab.sim.precompile      # some 15 s on a 2-core VM; nothing to do: about 1.5 s
+
+It draws what the labs draw, in each built-in world kind and realism profile: one RGBD frame,
+one LIDAR scan and the four CSI views at the world's start, a few physics steps (the compiled
+step), the referee's clearance, and the avoidance controller's kernels. The numbers are the
+same as ever: a kernel compiled here is the one a lab would have compiled. A separate process,
+because a server that forks commands runs no OpenCV code itself.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+#: The worlds drawn: the stop sign's, polygons and balls (hallway), the lane track's mat.
+WORLDS = ("stop-sign", "hallway", "track")
+REALISMS = ("ideal", "lab")
+TIMEOUT = 600.0  # s: a compile this long has hung
+
+
+def needs_compiling() -> bool:
+    """Whether numba's cache lacks the simulator's kernels for this machine and this source (the
+    RGBD composer's index is empty or stale: one file holds all the sensors' kernels, and numba
+    drops them together). False without numba."""
+    try:
+        from qcarlab.sim import _kernels
+    except ImportError:
+        return False
+    cache = getattr(getattr(_kernels, "compose_rows", None), "_cache", None)
+    try:
+        return not cache._cache_file._load_index()
+    except Exception:  # noqa: BLE001 - not numba's dispatcher (no numba) or its cache API moved: no guess
+        return False
+
+
+def compile_kernels() -> float:
+    """Draw one frame of every sensor and step the car in each world and profile (compiling what
+    the cache lacks, loading the rest); the seconds it took."""
+    from qcarlab.car.sim import SimCar
+    from qcarlab.control import _kernels as control_kernels
+    from qcarlab.sim.contact import Clearance
+    from qcarlab.sim.world import load_world
+
+    t0 = time.perf_counter()
+    for realism in REALISMS:
+        for name in WORLDS:
+            world = load_world(name)
+            car = SimCar(world=world, realism=realism)
+            car.warm_physics()
+            for kind in ("rgbd", "lidar", "csi"):
+                car.draw_frame(kind, car.start, 0.0)
+            for _ in range(3):
+                car.write(0.05, 0.0)
+                car.read()
+            Clearance(world, car.params)(*car.start)
+    control_kernels.warm()
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    seconds = compile_kernels()
+    print(f"the simulator's kernels are compiled for this machine ({seconds:.1f} s)", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
