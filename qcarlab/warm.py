@@ -28,7 +28,7 @@ terminal (stdin and stdout are terminals). The first such command runs cold and 
 in the background (so do ``qcarlab`` alone, its help and version, ``labs`` and ``template`` at a
 terminal: what a student types before a lab's first command); it serves the later ones and
 leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). After an install, numba's cache is
-empty: the server compiles the simulator's kernels first (:mod:`qcarlab.sim.precompile`, some 20 s
+empty: the server compiles the simulator's kernels first (:mod:`qcarlab.precompile`, some 20 s
 in the background), so the first camera or LIDAR lab does not (some 13 s of a first ``stop-sign``). ``QCARLAB_WARM=1``: for the lab
 commands whatever the streams (the first one starts the server and waits for it).
 ``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask.
@@ -527,17 +527,17 @@ def serve(folder: str, key: str, lock: int | None = None) -> int:
 
 def _precompile() -> None:
     """After an install numba's cache is empty: the simulator's kernels are compiled now, in a
-    process of their own (:mod:`qcarlab.sim.precompile`: it draws frames, with OpenCV, which a
+    process of their own (:mod:`qcarlab.precompile`: it draws frames, with OpenCV, which a
     server that forks must not run), so the student's first camera or LIDAR lab does not compile
     them (some 13 s of a first ``stop-sign``). Its lines go to the server's log."""
     import subprocess
 
-    from qcarlab.sim import precompile
+    from qcarlab import precompile
 
     if not precompile.needs_compiling():
         return
     try:
-        subprocess.run([sys.executable, "-m", "qcarlab.sim.precompile"], stdin=subprocess.DEVNULL,
+        subprocess.run([sys.executable, "-m", "qcarlab.precompile"], stdin=subprocess.DEVNULL,
                        timeout=precompile.TIMEOUT, check=False)
     except (OSError, subprocess.SubprocessError) as exc:  # the labs compile what they need themselves
         print(f"the kernels were not compiled ahead: {exc}", flush=True)

@@ -1,4 +1,4 @@
-"""Compiling the simulator's kernels ahead (qcarlab.sim.precompile): a cold cache is seen as cold,
+"""Compiling the simulator's kernels ahead (qcarlab.precompile): a cold cache is seen as cold,
 the warm server compiles when it is, and after it the labs compile nothing."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from qcarlab import warm
-from qcarlab.sim import precompile
+from qcarlab import precompile
 
 pytest.importorskip("numba")
 
@@ -21,7 +21,7 @@ def _python(code: str, cache: str) -> subprocess.CompletedProcess:
 
 
 def test_an_empty_cache_needs_compiling(tmp_path):
-    out = _python("from qcarlab.sim import precompile; print(precompile.needs_compiling())", str(tmp_path))
+    out = _python("from qcarlab import precompile; print(precompile.needs_compiling())", str(tmp_path))
     assert out.stdout.strip() == "True", out.stderr
 
 
@@ -33,16 +33,16 @@ def test_the_warm_server_compiles_only_when_the_cache_is_cold(monkeypatch):
     assert ran == []
     monkeypatch.setattr(precompile, "needs_compiling", lambda: True)
     warm._precompile()
-    assert ran == [[sys.executable, "-m", "qcarlab.sim.precompile"]]
+    assert ran == [[sys.executable, "-m", "qcarlab.precompile"]]
 
 
 @pytest.mark.slow
 def test_after_it_the_labs_compile_nothing(tmp_path):
     cache = str(tmp_path)
-    done = subprocess.run([sys.executable, "-m", "qcarlab.sim.precompile"], capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-m", "qcarlab.precompile"], capture_output=True, text=True,
                           timeout=600, env={**os.environ, "NUMBA_CACHE_DIR": cache})
     assert done.returncode == 0 and "compiled" in done.stderr, done.stderr
-    assert _python("from qcarlab.sim import precompile; print(precompile.needs_compiling())", cache).stdout.strip() \
+    assert _python("from qcarlab import precompile; print(precompile.needs_compiling())", cache).stdout.strip() \
         == "False"
     for argv in (["stop-sign"], ["lane-follow", "--duration", "2"], ["avoid", "--world", "hallway", "--duration", "2"],
                  ["camera", "--csi"], ["lidar-scan"], ["stop-sign", "--realism", "lab"]):
