@@ -3,6 +3,13 @@
     python benchmarks/bench_commands.py                          # every command, 3 runs each
     python benchmarks/bench_commands.py --against /tmp/before    # alternated with the checkout in DIR
     python benchmarks/bench_commands.py --only stop-sign --reps 5
+    python benchmarks/bench_commands.py --first --against /tmp/before     # a student's first lab after an install
+
+``--first``: the first ``stop-sign`` after an install (numba's cache and qcarlab's raster cache
+empty, fresh folders each run): ``cold`` is ``python -m qcarlab stop-sign`` (it compiles the
+simulator's kernels); ``ours`` is a student at a terminal who typed ``qcarlab template stop-sign``
+before it (its warm server compiles the kernels in the background; the wait for it is printed,
+then the lab is timed); ``before`` is the checkout in DIR's first ``stop-sign``.
 
 Each command first runs once untimed on each side (as a student's second run: the bytecode
 written, numba's cache and the simulator's rasters on disk). Each timed run is a fresh process
@@ -131,7 +138,10 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--only", action="append", help="a command's name (repeatable), e.g. stop-sign")
     ap.add_argument("--against", metavar="DIR", help="also the checkout in DIR, alternating")
+    ap.add_argument("--first", action="store_true", help="the first stop-sign after an install (empty caches)")
     a = ap.parse_args()
+    if a.first:
+        return first_lab(a)
     chosen = {k: v for k, v in COMMANDS.items() if not a.only or k in a.only or k.split()[0] in a.only}
     sides = [("ours", None, "warm"), ("cold", None, "cold")] + ([("before", a.against, "before")] if a.against else [])
     print(machine())
@@ -161,6 +171,42 @@ def main() -> None:
     finally:
         subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--stop"], env=env_for(None, "warm"), cwd=cwd,
                        capture_output=True)
+
+
+def first_lab(a) -> None:
+    """``--first``: a fresh install's first ``stop-sign``, each run with empty caches of its own."""
+    print(machine())
+    print(load_note(), flush=True)
+    sides = [("ours", None), ("cold", None)] + ([("before", a.against)] if a.against else [])
+    walls: dict[str, list[float]] = {}
+    for rep in range(a.reps):
+        for label, where in sides if rep % 2 == 0 else sides[::-1]:
+            fresh = Path(tempfile.mkdtemp(prefix="bench-first-"))
+            how = "warm" if label == "ours" else "cold"
+            env = {**env_for(where, how), "NUMBA_CACHE_DIR": str(fresh / "numba"), "QCARLAB_CACHE": str(fresh / "qcarlab"),
+                   "QCARLAB_WARM_DIR": str(fresh / "warm")}
+            (fresh / "warm").mkdir(mode=0o700)
+            waited = ""
+            if label == "ours":  # what a student types first: the lab's template (its warm server starts after it)
+                subprocess.run([*argv_for(how), "template", "stop-sign", "--out", str(fresh / "lab")], env=env, cwd=fresh,
+                               check=True, capture_output=True)
+                t0 = time.perf_counter()
+                while not list((fresh / "warm").glob("*.sock")):
+                    if time.perf_counter() - t0 > 600:
+                        raise SystemExit("the warm server was not ready within 600 s")
+                    time.sleep(0.1)
+                waited = f" (after the template, its server was ready in {time.perf_counter() - t0:.1f} s)"
+            t0 = time.perf_counter()
+            done = subprocess.run([*argv_for(how), "stop-sign", "--json"], env=env, cwd=fresh, capture_output=True, text=True)
+            wall = time.perf_counter() - t0
+            if label == "ours":
+                subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--stop"], env=env, cwd=fresh, capture_output=True)
+            if done.returncode != 0:
+                raise SystemExit(f"{label}: stop-sign failed ({done.returncode}): {done.stderr[-400:]}")
+            walls.setdefault(label, []).append(wall)
+            print(f"  {label:6s} first stop-sign {wall:6.2f} s{waited}   ({load_note()})", flush=True)
+    print(f"\nmedians of {a.reps} ({load_note()}): " + ", ".join(
+        f"{label} {statistics.median(walls[label]):.2f} s" for label, _ in sides) + " (the target: under 1 s)")
 
 
 def measure(a, chosen, sides, cwd) -> None:

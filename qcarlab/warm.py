@@ -138,11 +138,13 @@ def wanted(argv: list[str]) -> bool:
 
 def prepares(argv: list[str]) -> bool:
     """Whether ``qcarlab ARGV`` is what a student types before a lab's first command (``qcarlab``
-    alone, its help, :data:`PREPARES`) at a terminal where a lab command would go warm: then the
-    server is started after it, as after a first lab command, and that command finds it warm."""
-    if _mode() == "off" or (argv and argv[0] not in PREPARES and argv[0] not in HELP):
+    alone, its help, :data:`PREPARES`) where a lab command would go warm (at a terminal, or
+    ``QCARLAB_WARM=1``): then the server is started after it (in the background, not waited
+    for), as after a first lab command at a terminal, and that command finds it warm."""
+    mode = _mode()
+    if mode == "off" or (argv and argv[0] not in PREPARES and argv[0] not in HELP):
         return False
-    return _possible() and _at_terminal()
+    return _possible() and (mode == "on" or _at_terminal())
 
 
 def _possible() -> bool:

@@ -264,7 +264,8 @@ def test_which_commands_go_warm(monkeypatch, argv, mode, terminal, expected):
     (["--version"], "", True, True),
     (["labs"], "", True, True),
     (["template", "stop-sign"], "", True, True),
-    (["--help"], "", False, False),  # scripts and pipes start nothing
+    (["--help"], "", False, False),  # scripts and pipes start nothing unless asked
+    (["template", "avoid"], "1", False, True),
     (["labs"], "0", True, False),
     (["grade", "stop-sign"], "", True, False),
     (["serve"], "", True, False),  # (on the car: no server it did not ask for)
