@@ -90,15 +90,21 @@ def need_python(version: str, numpy: bool = False) -> str:
 
 
 # --- running the server as a user would ------------------------------------------------------------
+_HANGUP = "import os, signal, sys; signal.signal(signal.SIGHUP, signal.{}); os.execv(sys.argv[1], sys.argv[1:])"
+
+
 class Served:
     """``python car_server.py ARGS`` in a subprocess; ``uri`` from its "serving ... on tcp://" line."""
 
     def __init__(self, python: str, *args: str, env: dict | None = None, script: Path | None = SERVER,
-                 cwd: Path | None = None):
+                 cwd: Path | None = None, hangup: str = "default"):
         full_env = dict(os.environ)
         full_env.pop("QCARLAB_TOKEN", None)
         full_env.update(env or {})
         argv = [python, str(script), *args] if script is not None else [python, *args]
+        # the server's SIGHUP as a login shell leaves it ("default"), or as nohup does ("ignore"),
+        # whatever the test run's own (under nohup every child would start with it ignored)
+        argv = [python, "-c", _HANGUP.format("SIG_DFL" if hangup == "default" else "SIG_IGN"), *argv]
         self._err = tempfile.TemporaryFile(mode="w+")  # a file, not a pipe: a chatty server never blocks on it
         self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self._err,
                                      text=True, env=full_env, cwd=str(cwd or REPO))

@@ -335,6 +335,19 @@ def test_signals_stop_the_car_and_end_the_server(name, tmp_path):
     assert [e["event"] for e in events].count("close") >= 1
 
 
+def test_started_under_nohup_a_hangup_leaves_it_serving(tmp_path):
+    """nohup: the user asked the server to outlive the terminal (an ssh session closing)."""
+    log = tmp_path / "board.jsonl"
+    with Served(sys.executable, "--port", "0", "--car-type", "1", env=fake_env(1, log), hangup="ignore") as srv:
+        srv.proc.send_signal(signal.SIGHUP)
+        time.sleep(0.3)
+        with RawClient(srv.address) as raw:
+            raw.hello("control")  # still serving
+        code, out, err = srv.stop(signal.SIGTERM)
+    assert code == 0, err[-2000:]
+    assert "stopped serving (SIGTERM); the car is stopped" in out
+
+
 def test_a_failed_write_is_reported_and_stop_reopens_the_board(fake_quanser, make_server):
     fake_quanser.reset(car=1, fail_write_after=2, sensors=[])
     car = cs.QuanserCar(1)
