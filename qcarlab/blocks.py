@@ -90,7 +90,14 @@ class _Watchdog:
     every half second should the student's code swallow the first) raises :class:`BlockTimeout`
     in the block, wherever it is (a Python loop, a sleep, waiting for the student's process). The
     alarm is ours only where nothing else handles SIGALRM; elsewhere (another thread, a host
-    program's own alarm) blocks run unwatched, as before."""
+    program's own alarm) blocks run unwatched, as before.
+
+    Two ways to arm it. Where the student's blocks run in this process (a lab run, on the
+    simulator or a car), each call sets the alarm and cancels it when it returns: no alarm fires
+    unless a block overruns, so none interrupts what a car's C library (a HIL read on the QCar)
+    is doing. Where they run in the student's own process (:attr:`lazy`, set by :func:`load_with`:
+    a graded task, whose car is the simulator), a call costs no system call: an alarm set for an
+    earlier call is left to fire and sets itself again for the call running then."""
 
     def __init__(self) -> None:
         self.main = threading.main_thread().ident
@@ -100,6 +107,7 @@ class _Watchdog:
         self.pending = False  # an alarm is set (for this call or an earlier one)
         self.alarm_at = 0.0  # when it fires (time.monotonic)
         self.later: Callable[[], int] | None = None  # a batch's: the index of its call now running
+        self.lazy = False  # the blocks run in the student's process: alarms are left set (see above)
         self.handler = self._alarm  # one bound method, so that ``is`` recognises it
 
     def ready(self) -> bool:
@@ -138,22 +146,26 @@ class _Watchdog:
 
     def arm(self, block: StudentBlock) -> bool:
         """Watch ``block``'s call (the handler was installed by :meth:`ready`): its deadline, and an
-        alarm if none is set. An alarm set for an earlier call is left to fire and set itself
-        again for this one's deadline, so that a call costs no system call here (two, before:
+        alarm. When :attr:`lazy`, an alarm set for an earlier call is left to fire and set itself
+        again for this one's deadline, so that a call costs no system call here (two otherwise:
         a block called every tick of a graded run through its student's process)."""
         if _get_ident() != self.main:
             return False
         self.deadline = deadline = _monotonic() + self.limit
         self.running = block
-        if not self.pending or deadline < self.alarm_at:  # (the limit was lowered since it was set)
+        if not self.lazy or not self.pending or deadline < self.alarm_at:  # (or the limit was lowered)
             self.pending = True
             self.alarm_at = deadline
             _setitimer(_REAL, self.limit)
         return True
 
     def disarm(self) -> None:
-        """The call returned (its alarm, if it fires, finds no call and lapses)."""
+        """The call returned: its alarm is cancelled, or, when :attr:`lazy`, left to find no call
+        and lapse (or set itself again for the next call's deadline)."""
         self.running = None
+        if not self.lazy and self.pending:
+            self.pending = False
+            _setitimer(_REAL, 0.0)
 
     def stop(self) -> None:
         """No call watched and no alarm set (a run ends, a stuck block's process is ended)."""
@@ -207,6 +219,7 @@ def load_with(loader: Callable[[Path], dict[str, Any]] | None) -> None:
     None: in this process again."""
     global _loader
     _loader = loader
+    _watchdog.lazy = loader is not None  # (the calls are round trips to the student's process)
 
 
 def _is_class(target: Any) -> bool:

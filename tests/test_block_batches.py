@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import textwrap
 import time
 from pathlib import Path
@@ -218,6 +219,7 @@ def test_the_lazy_watchdog_still_stops_a_block_after_an_earlier_calls_alarm(monk
     """An alarm set for a quick call is left running; a stuck call after it is stopped at its own
     deadline (not the quick call's), and a forked child's first stuck call is stopped too."""
     blocks.unwatch()
+    monkeypatch.setattr(blocks._watchdog, "lazy", True)  # as in a graded task (load_with a student's process)
     monkeypatch.setenv("QCARLAB_BLOCK_TIMEOUT_S", "0.4")
     spec = BlockSpec("hang", "hang() -> any", "", "", "")
     quick = StudentBlock(spec, _quick, "t.py:_quick", Path(__file__)).start()
@@ -265,6 +267,7 @@ def test_a_lowered_limit_is_kept_though_an_alarm_for_the_higher_one_is_set(monke
     """An alarm left set by a call under a 30 s limit does not let a stuck call under a 0.4 s limit
     run on to it."""
     blocks.unwatch()
+    monkeypatch.setattr(blocks._watchdog, "lazy", True)
     spec = BlockSpec("hang", "hang() -> any", "", "", "")
     monkeypatch.setenv("QCARLAB_BLOCK_TIMEOUT_S", "30")
     quick = StudentBlock(spec, _quick, "t.py:_quick", Path(__file__)).start()
@@ -279,6 +282,29 @@ def test_a_lowered_limit_is_kept_though_an_alarm_for_the_higher_one_is_set(monke
         assert time.monotonic() - t0 < 10.0
     finally:
         blocks.unwatch()
+
+
+def test_in_process_blocks_leave_no_alarm_set_between_calls(monkeypatch, tmp_path):
+    """A lab run with the student's blocks in its own process (on a car, a HIL read in C beside
+    them): each call cancels its alarm, so no SIGALRM fires while no block overruns; only blocks
+    run in the student's process (a graded task) leave it set."""
+    blocks.unwatch()
+    blocks.load_with(None)
+    assert not blocks._watchdog.lazy
+    spec = BlockSpec("quick", "quick() -> any", "", "", "")
+    quick = StudentBlock(spec, _quick, "t.py:_quick", Path(__file__)).start()
+    try:
+        for _ in range(3):
+            quick()
+            assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0) and not blocks._watchdog.pending
+        blocks.load_with(lambda path: {})  # as a graded task does
+        assert blocks._watchdog.lazy
+        quick()
+        assert signal.getitimer(signal.ITIMER_REAL)[0] > 0.0  # left set: a call costs no system call
+    finally:
+        blocks.load_with(None)
+        blocks.unwatch()
+    assert not blocks._watchdog.lazy
 
 
 EXITS_71 = "import os\n\ndef steer(x):\n    os._exit(71)\n"
