@@ -186,8 +186,9 @@ def test_at_a_terminal_the_output_keeps_its_colours(env):
 
 @pytest.mark.parametrize("argv, says", [
     (["path-gen", "line"], "path-gen line"),
-    (["--help"], "Usage"),  # what a student types before a lab's first command starts it too,
-    (["template", "stop-sign", "--out", "ws"], "ws"),  # so that the first lab command is warm
+    # what a student types before a lab's first command starts it too, so that command is warm
+    # (which commands: test_what_a_student_types_before_a_lab_starts_the_server_at_a_terminal)
+    (["template", "stop-sign", "--out", "ws"], "ws"),
 ])
 def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server(argv, says):
     folder = tempfile.mkdtemp(prefix="qw")
