@@ -65,7 +65,12 @@ def compile_kernels() -> float:
     return time.perf_counter() - t0
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    """``python -m qcarlab.precompile [--if-needed]``: with ``--if-needed``, nothing when the
+    cache holds the kernels already (:func:`needs_compiling`: about 0.7 s to find out)."""
+    args = sys.argv[1:] if argv is None else argv
+    if "--if-needed" in args and not needs_compiling():
+        return
     seconds = compile_kernels()
     print(f"the simulator's kernels are compiled for this machine ({seconds:.1f} s)", file=sys.stderr)
 

@@ -23,6 +23,19 @@ os.environ["QCARLAB_WARM"] = "0"
 logging.getLogger().addHandler(logging.NullHandler())
 
 
+def pytest_configure(config):
+    """In a fresh clone numba's cache is empty: the simulator's kernels are compiled once, here,
+    before the test processes start (each would otherwise compile the ones its tests use, the
+    same kernels on every worker at once, and a warm server's start compiles them all)."""
+    if hasattr(config, "workerinput") or config.option.collectonly:
+        return  # (an xdist worker: the controller did it)
+    import subprocess
+    import sys
+
+    subprocess.run([sys.executable, "-m", "qcarlab.precompile", "--if-needed"], stdin=subprocess.DEVNULL,
+                   capture_output=True, timeout=900, check=False)
+
+
 @pytest.fixture(autouse=True)
 def _cli_logging_ends_with_the_test():
     """``main`` gives the ``qcarlab`` logger a handler that prints to the terminal's stderr; after
