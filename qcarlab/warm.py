@@ -29,8 +29,9 @@ in the background (so do ``qcarlab`` alone, its help and version, ``labs`` and `
 terminal: what a student types before a lab's first command); it serves the later ones and
 leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). After an install, numba's cache is
 empty: the server compiles the simulator's kernels first (:mod:`qcarlab.precompile`, some 20 s
-in the background), so the first camera or LIDAR lab does not (some 13 s of a first ``stop-sign``). ``QCARLAB_WARM=1``: for the lab
-commands whatever the streams (the first one starts the server and waits for it).
+in the background), so the first camera or LIDAR lab does not (some 13 s of a first
+``stop-sign``). ``QCARLAB_WARM=1``: for the lab commands whatever the streams (the first one
+starts the server and waits for it).
 ``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask.
 ``qcarlab warm`` starts, shows or stops it.
 
@@ -539,8 +540,9 @@ def _precompile() -> None:
     if not precompile.needs_compiling():
         return
     try:
+        path = os.pathsep.join(p for p in sys.path if p)  # (this server's qcarlab, whose kernels it loads)
         subprocess.run([sys.executable, "-m", "qcarlab.precompile"], stdin=subprocess.DEVNULL,
-                       timeout=precompile.TIMEOUT, check=False)
+                       env={**os.environ, "PYTHONPATH": path}, timeout=precompile.TIMEOUT, check=False)
     except (OSError, subprocess.SubprocessError) as exc:  # the labs compile what they need themselves
         print(f"the kernels were not compiled ahead: {exc}", flush=True)
 

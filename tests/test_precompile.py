@@ -16,7 +16,9 @@ pytest.importorskip("numba")
 
 
 def _python(code: str, cache: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+    # (every process of these tests in the same folder: they import the same qcarlab, whose kernels
+    # are the cache's, whether it is this checkout's or an installed copy)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=cache,
                           env={**os.environ, "NUMBA_CACHE_DIR": cache})
 
 
@@ -40,7 +42,7 @@ def test_the_warm_server_compiles_only_when_the_cache_is_cold(monkeypatch):
 def test_after_it_the_labs_compile_nothing(tmp_path):
     cache = str(tmp_path)
     done = subprocess.run([sys.executable, "-m", "qcarlab.precompile"], capture_output=True, text=True,
-                          timeout=600, env={**os.environ, "NUMBA_CACHE_DIR": cache})
+                          timeout=600, cwd=tmp_path, env={**os.environ, "NUMBA_CACHE_DIR": cache})
     assert done.returncode == 0 and "compiled" in done.stderr, done.stderr
     assert _python("from qcarlab import precompile; print(precompile.needs_compiling())", cache).stdout.strip() \
         == "False"
