@@ -42,6 +42,7 @@ import argparse
 import importlib.util
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -182,31 +183,42 @@ def first_lab(a) -> None:
     for rep in range(a.reps):
         for label, where in sides if rep % 2 == 0 else sides[::-1]:
             fresh = Path(tempfile.mkdtemp(prefix="bench-first-"))
-            how = "warm" if label == "ours" else "cold"
-            env = {**env_for(where, how), "NUMBA_CACHE_DIR": str(fresh / "numba"), "QCARLAB_CACHE": str(fresh / "qcarlab"),
-                   "QCARLAB_WARM_DIR": str(fresh / "warm")}
-            (fresh / "warm").mkdir(mode=0o700)
-            waited = ""
-            if label == "ours":  # what a student types first: the lab's template (its warm server starts after it)
-                subprocess.run([*argv_for(how), "template", "stop-sign", "--out", str(fresh / "lab")], env=env, cwd=fresh,
-                               check=True, capture_output=True)
-                t0 = time.perf_counter()
-                while not list((fresh / "warm").glob("*.sock")):
-                    if time.perf_counter() - t0 > 600:
-                        raise SystemExit("the warm server was not ready within 600 s")
-                    time.sleep(0.1)
-                waited = f" (after the template, its server was ready in {time.perf_counter() - t0:.1f} s)"
-            t0 = time.perf_counter()
-            done = subprocess.run([*argv_for(how), "stop-sign", "--json"], env=env, cwd=fresh, capture_output=True, text=True)
-            wall = time.perf_counter() - t0
-            if label == "ours":
-                subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--stop"], env=env, cwd=fresh, capture_output=True)
-            if done.returncode != 0:
-                raise SystemExit(f"{label}: stop-sign failed ({done.returncode}): {done.stderr[-400:]}")
+            try:
+                wall, waited = _first_run(label, where, fresh)
+            finally:
+                shutil.rmtree(fresh, ignore_errors=True)
             walls.setdefault(label, []).append(wall)
             print(f"  {label:6s} first stop-sign {wall:6.2f} s{waited}   ({load_note()})", flush=True)
     print(f"\nmedians of {a.reps} ({load_note()}): " + ", ".join(
         f"{label} {statistics.median(walls[label]):.2f} s" for label, _ in sides) + " (the target: under 1 s)")
+
+
+def _first_run(label: str, where: str | None, fresh: Path) -> tuple[float, str]:
+    """One side's first stop-sign with the empty caches in ``fresh``: (wall seconds, what was waited)."""
+    how = "warm" if label == "ours" else "cold"
+    env = {**env_for(where, how), "NUMBA_CACHE_DIR": str(fresh / "numba"), "QCARLAB_CACHE": str(fresh / "qcarlab"),
+           "QCARLAB_WARM_DIR": str(fresh / "warm")}
+    (fresh / "warm").mkdir(mode=0o700)
+    waited = ""
+    try:
+        if label == "ours":  # what a student types first: the lab's template (its warm server starts after it)
+            subprocess.run([*argv_for(how), "template", "stop-sign", "--out", str(fresh / "lab")], env=env, cwd=fresh,
+                           check=True, capture_output=True)
+            t0 = time.perf_counter()
+            while not list((fresh / "warm").glob("*.sock")):
+                if time.perf_counter() - t0 > 600:
+                    raise SystemExit("the warm server was not ready within 600 s")
+                time.sleep(0.1)
+            waited = f" (after the template, its server was ready in {time.perf_counter() - t0:.1f} s)"
+        t0 = time.perf_counter()
+        done = subprocess.run([*argv_for(how), "stop-sign", "--json"], env=env, cwd=fresh, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+    finally:
+        if label == "ours":
+            subprocess.run([sys.executable, "-m", "qcarlab", "warm", "--stop"], env=env, cwd=fresh, capture_output=True)
+    if done.returncode != 0:
+        raise SystemExit(f"{label}: stop-sign failed ({done.returncode}): {done.stderr[-400:]}")
+    return wall, waited
 
 
 def measure(a, chosen, sides, cwd) -> None:

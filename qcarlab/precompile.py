@@ -23,22 +23,28 @@ import time
 #: The worlds drawn: the stop sign's, polygons and balls (hallway), the lane track's mat.
 WORLDS = ("stop-sign", "hallway", "track")
 REALISMS = ("ideal", "lab")
-TIMEOUT = 600.0  # s: a compile this long has hung
+TIMEOUT = 240.0  # s: a compile this long has hung (under warm.START_TIMEOUT: a client waits that long)
+#: One kernel of each sensor and of the referee (all in ``qcarlab/sim/_kernels.py``): compiled for
+#: this machine in the cache, the precompile has run (or the labs have drawn every sensor already).
+KERNELS = ("compose_rows", "column_layers", "lidar_scan_edges", "render_columns", "polygon_clearance")
 
 
 def needs_compiling() -> bool:
-    """Whether numba's cache lacks the simulator's kernels for this machine and this source (the
-    RGBD composer's index is empty or stale: one file holds all the sensors' kernels, and numba
-    drops them together). False without numba."""
+    """Whether numba's cache lacks one of :data:`KERNELS` compiled for this machine (its CPU and
+    features: a cache in a home folder shared by several machines holds others' too) and this
+    source (an edited file's index is stale). False without numba, or where numba's cache API
+    is not what this reads (then the labs compile what they use, as before)."""
     try:
         from qcarlab.sim import _kernels
-    except ImportError:
+
+        for name in KERNELS:
+            kernel = getattr(_kernels, name)
+            magic = kernel.targetctx.codegen().magic_tuple()
+            if not any(key[1] == magic for key in kernel._cache._cache_file._load_index()):
+                return True
+    except Exception:  # noqa: BLE001 - no numba (plain functions), or its cache API moved: no guess
         return False
-    cache = getattr(getattr(_kernels, "compose_rows", None), "_cache", None)
-    try:
-        return not cache._cache_file._load_index()
-    except Exception:  # noqa: BLE001 - not numba's dispatcher (no numba) or its cache API moved: no guess
-        return False
+    return False
 
 
 def compile_kernels() -> float:

@@ -29,8 +29,8 @@ in the background (so do ``qcarlab`` alone, its help and version, ``labs`` and `
 terminal: what a student types before a lab's first command); it serves the later ones and
 leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). After an install, numba's cache is
 empty: the server compiles the simulator's kernels first (:mod:`qcarlab.precompile`, some 20 s
-in the background), so the first camera or LIDAR lab does not (some 13 s of a first
-``stop-sign``). ``QCARLAB_WARM=1``: for the lab commands whatever the streams (the first one
+in the background), so the labs typed once it is warm do not (some 13 s of a first
+``stop-sign``; a lab typed before that compiles what it uses itself, as without the server). ``QCARLAB_WARM=1``: for the lab commands whatever the streams (the first one
 starts the server and waits for it).
 ``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask.
 ``qcarlab warm`` starts, shows or stops it.
@@ -107,7 +107,7 @@ def main() -> None:
             if where is not None:
                 later.append(where)  # (start_server: not when one is up or starting)
     except KeyboardInterrupt:  # while waiting for a server to start: nothing ran
-        sys.stderr.write(f"{argv[0]}: interrupted\n")
+        sys.stderr.write(f"{(argv or ['qcarlab'])[0]}: interrupted\n")
         sys.exit(130)
     if code is None:
         from qcarlab.cli import main as cold
@@ -531,19 +531,30 @@ def serve(folder: str, key: str, lock: int | None = None) -> int:
 def _precompile() -> None:
     """After an install numba's cache is empty: the simulator's kernels are compiled now, in a
     process of their own (:mod:`qcarlab.precompile`: it draws frames, with OpenCV, which a
-    server that forks must not run), so the student's first camera or LIDAR lab does not compile
-    them (some 13 s of a first ``stop-sign``). Its lines go to the server's log."""
+    server that forks must not run), so the labs typed once it is warm do not compile them (some
+    13 s of a first ``stop-sign``). Its lines go to the server's log; it ends with the server (a
+    killed server leaves no compile running). Whatever fails here is left to the labs, which
+    compile what they use themselves."""
+    import signal
     import subprocess
 
-    from qcarlab import precompile
-
-    if not precompile.needs_compiling():
-        return
     try:
+        from qcarlab import precompile
+
+        if not precompile.needs_compiling():
+            return
+        print(f"compiling the simulator's kernels first (once after an install): pid {os.getpid()}", flush=True)
+
+        def with_server() -> None:  # (in the child, before exec: this server has no thread yet)
+            from qcarlab.sandbox import jail
+
+            jail.prctl(jail.PR_SET_PDEATHSIG, signal.SIGTERM)
+
         path = os.pathsep.join(p for p in sys.path if p)  # (this server's qcarlab, whose kernels it loads)
         subprocess.run([sys.executable, "-m", "qcarlab.precompile"], stdin=subprocess.DEVNULL,
-                       env={**os.environ, "PYTHONPATH": path}, timeout=precompile.TIMEOUT, check=False)
-    except (OSError, subprocess.SubprocessError) as exc:  # the labs compile what they need themselves
+                       env={**os.environ, "PYTHONPATH": path}, timeout=precompile.TIMEOUT, check=False,
+                       preexec_fn=with_server if sys.platform.startswith("linux") else None)
+    except Exception as exc:  # noqa: BLE001
         print(f"the kernels were not compiled ahead: {exc}", flush=True)
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -28,14 +29,26 @@ def test_an_empty_cache_needs_compiling(tmp_path):
 
 
 def test_the_warm_server_compiles_only_when_the_cache_is_cold(monkeypatch):
-    ran: list[list[str]] = []
-    monkeypatch.setattr(subprocess, "run", lambda argv, **kw: ran.append(argv))
+    ran: list[tuple[list[str], dict]] = []
+    monkeypatch.setattr(subprocess, "run", lambda argv, **kw: ran.append((argv, kw)))
     monkeypatch.setattr(precompile, "needs_compiling", lambda: False)
     warm._precompile()
     assert ran == []
     monkeypatch.setattr(precompile, "needs_compiling", lambda: True)
     warm._precompile()
-    assert ran == [[sys.executable, "-m", "qcarlab.precompile"]]
+    assert [argv for argv, _ in ran] == [[sys.executable, "-m", "qcarlab.precompile"]]
+    here = str(Path(warm.__file__).resolve().parents[1])  # the folder this qcarlab is in: its kernels
+    assert here in ran[0][1]["env"]["PYTHONPATH"].split(os.pathsep)
+    assert ran[0][1]["timeout"] < warm.START_TIMEOUT  # (a client waits that long for a starting server)
+
+
+def test_a_failed_check_leaves_the_compiling_to_the_labs(monkeypatch, capsys):
+    def broken():
+        raise RuntimeError("no locator available")
+
+    monkeypatch.setattr(precompile, "needs_compiling", broken)
+    warm._precompile()  # the server starts all the same
+    assert "not compiled ahead" in capsys.readouterr().out
 
 
 @pytest.mark.slow
