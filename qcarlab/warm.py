@@ -30,9 +30,9 @@ terminal: what a student types before a lab's first command); it serves the late
 leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). After an install, numba's cache is
 empty: the server compiles the simulator's kernels first (:mod:`qcarlab.precompile`, some 20 s
 in the background), so the labs typed once it is warm do not (some 13 s of a first
-``stop-sign``; a lab typed before that compiles what it uses itself, as without the server). ``QCARLAB_WARM=1``: for the lab commands whatever the streams (the first one
-starts the server and waits for it).
-``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask.
+``stop-sign``; a lab typed before that compiles what it uses itself, as without the server).
+``QCARLAB_WARM=1``: for the lab commands whatever the streams (the first one starts the server
+and waits for it). ``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask.
 ``qcarlab warm`` starts, shows or stops it.
 
 A server is one user's (a folder only they may enter, ``$XDG_RUNTIME_DIR/qcarlab-warm`` or
@@ -102,7 +102,7 @@ def main() -> None:
     later: list[Place] = []  # a server to start once this command has run cold
     try:
         code = run(argv, later) if wanted(argv) else None
-        if code is None and not later and prepares(argv):
+        if prepares(argv):  # (never a command that went warm: prepares and wanted exclude each other)
             where = place()
             if where is not None:
                 later.append(where)  # (start_server: not when one is up or starting)
@@ -545,9 +545,11 @@ def _precompile() -> None:
             return
         print(f"compiling the simulator's kernels first (once after an install): pid {os.getpid()}", flush=True)
 
-        def with_server() -> None:  # (in the child, before exec: this server has no thread yet)
-            from qcarlab.sandbox import jail
+        from qcarlab.sandbox import jail
 
+        jail.libc()  # (found here: find_library runs ldconfig, no work for a child between fork and exec)
+
+        def with_server() -> None:  # (in the child, before exec: this server has no thread yet)
             jail.prctl(jail.PR_SET_PDEATHSIG, signal.SIGTERM)
 
         path = os.pathsep.join(p for p in sys.path if p)  # (this server's qcarlab, whose kernels it loads)
