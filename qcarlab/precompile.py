@@ -75,7 +75,10 @@ def main(argv: list[str] | None = None) -> None:
     """``python -m qcarlab.precompile [--if-needed]``: with ``--if-needed``, nothing when the
     cache holds the kernels already (:func:`needs_compiling`: about 0.7 s to find out)."""
     args = sys.argv[1:] if argv is None else argv
-    if "--if-needed" in args and not needs_compiling():
+    if any(a != "--if-needed" for a in args):
+        sys.stderr.write("usage: python -m qcarlab.precompile [--if-needed]\n")
+        raise SystemExit(2)
+    if args and not needs_compiling():
         return
     seconds = compile_kernels()
     print(f"the simulator's kernels are compiled for this machine ({seconds:.1f} s)", file=sys.stderr)
