@@ -30,7 +30,8 @@ terminal: what a student types before a lab's first command); it serves the late
 leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). After an install, numba's cache is
 empty: the server compiles the simulator's kernels first (:mod:`qcarlab.precompile`, some 20 s
 in the background), so the labs typed once it is warm do not (some 13 s of a first
-``stop-sign``; a lab typed before that compiles what it uses itself, as without the server).
+``stop-sign``); a lab command typed while it starts waits for it (saying so at a terminal when
+that takes long) rather than compile the same kernels beside it.
 ``QCARLAB_WARM=1``: for the lab commands whatever the streams (the first one starts the server
 and waits for it). ``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask.
 ``qcarlab warm`` starts, shows or stops it.
@@ -331,6 +332,45 @@ def wait_ready(where: Place, timeout: float = START_TIMEOUT) -> socket.socket | 
     return None
 
 
+#: what the server's log says while it compiles the kernels (:func:`_precompile`)
+COMPILING = "compiling the simulator's kernels first"
+QUIET_WAIT = 0.5  # s a client waits for a starting server before it says why it waits
+
+
+def wait_starting(where: Place, timeout: float = START_TIMEOUT) -> socket.socket | None:
+    """:func:`wait_ready`, saying at a terminal why when it takes long: a server that compiles the
+    kernels (once after an install, 20-30 s) would be raced by a cold run compiling the same
+    kernels on the same cores, so the command waits for it instead (Ctrl-C: nothing ran)."""
+    import time
+
+    started = time.monotonic()
+    conn = wait_ready(where, min(QUIET_WAIT, timeout))
+    if conn is not None or not running(where):
+        return conn
+    said = _at_terminal() and os.isatty(2)
+    if said:
+        why = "compiling the simulator's kernels for this machine, once after an install: some 20-30 s" \
+            if _says(where.log, COMPILING) else "starting"
+        sys.stderr.write(f"qcarlab: waiting for the warm server ({why}; Ctrl-C to stop)...")
+        sys.stderr.flush()
+    try:
+        conn = wait_ready(where, max(0.0, timeout - (time.monotonic() - started)))
+    finally:
+        if said:
+            sys.stderr.write(f" {'ready' if conn is not None else 'gone'} after {time.monotonic() - started:.0f} s\n")
+            sys.stderr.flush()
+    return conn
+
+
+def _says(path: str, text: str) -> bool:
+    """Whether the first 4 kB of the file at ``path`` hold ``text``."""
+    try:
+        with open(path, "rb") as f:
+            return text.encode() in f.read(4096)
+    except OSError:
+        return False
+
+
 def ask(conn: socket.socket, request: dict, fds: list[int] | None = None) -> None:
     """Send ``request`` (JSON), with ``fds`` passed alongside (SCM_RIGHTS)."""
     import json
@@ -344,19 +384,23 @@ def run(argv: list[str], later: list[Place]) -> int | None:
     """Run ``qcarlab ARGV`` in a process forked by the warm server: its exit status (negative: the
     signal that ended it), or None when it was not run there (the caller runs it cold). With no
     server up, ``QCARLAB_WARM=1`` starts one and waits for it; at a terminal (the default) the
-    command runs cold and the place goes to ``later`` (the caller starts the server after it)."""
+    command runs cold and the place goes to ``later`` (the caller starts the server after it).
+    A server that is starting (compiling the kernels after an install, say) is waited for in
+    both cases (:func:`wait_starting`)."""
     mode = _mode()
     where = place()
     if where is None:
         return None
     for attempt in range(2):  # the second after a stale server gave way
         conn = connect(where)
+        if conn is None and mode != "on" and running(where):
+            conn = wait_starting(where)  # a server is starting: it answers sooner than a cold run
         if conn is None:
             if mode != "on":
                 later.append(where)
                 return None  # this one cold; the next finds the server warm
             start_server(where)  # unless one runs or is starting
-            conn = wait_ready(where)
+            conn = wait_starting(where)
             if conn is None:
                 return None
         code = _run_on(conn, argv, where)
@@ -543,7 +587,7 @@ def _precompile() -> None:
 
         if not precompile.needs_compiling():
             return
-        print(f"compiling the simulator's kernels first (once after an install): pid {os.getpid()}", flush=True)
+        print(f"{COMPILING} (once after an install): pid {os.getpid()}", flush=True)
 
         from qcarlab.sandbox import jail
 

@@ -206,6 +206,47 @@ def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server(ar
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def test_at_a_terminal_a_lab_typed_while_the_server_compiles_waits_for_it_and_says_why():
+    """After an install the server compiles the kernels first (20-30 s): a lab typed then would
+    compile the same kernels beside it, so it waits for the server instead, saying why."""
+    import fcntl
+    import threading
+
+    folder = tempfile.mkdtemp(prefix="qw")
+    try:
+        e = with_checkout({k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"})
+        e.update(QCARLAB_WARM_DIR=folder, TERM="xterm-256color")
+        key = subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"], env=e,
+                             cwd=folder, capture_output=True, text=True, check=True).stdout.strip()
+        where = warm.Place(folder, key)
+        lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # a server starting, as start_server leaves it
+        Path(where.log).write_text(f"{warm.COMPILING} (once after an install): pid 1\n")
+        server: list[subprocess.Popen] = []
+
+        def compiled() -> None:  # the compile done, the server takes over the lock and warms up
+            time.sleep(2.0)
+            server.append(subprocess.Popen([sys.executable, "-m", "qcarlab.warm", "serve", folder, key, str(lock)],
+                                           env=e, cwd="/", stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                           stderr=subprocess.DEVNULL, pass_fds=(lock,), start_new_session=True))
+            os.close(lock)
+
+        handover = threading.Thread(target=compiled)
+        handover.start()
+        t0 = time.monotonic()
+        text = on_pty(e, "path-gen", "line")
+        waited = time.monotonic() - t0
+        handover.join()
+        assert waited >= 2.0
+        assert "qcarlab: waiting for the warm server (compiling the simulator's kernels" in text
+        assert re.search(r"\.\.\. ready after \d+ s", text) and "path-gen line" in text
+        assert served(e) == 1  # run by the server, not cold
+    finally:
+        for pid in _pids(folder):
+            os.kill(pid, signal.SIGKILL)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def test_a_server_of_a_changed_install_gives_way(env):
     key = subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"], env=env,
                          cwd=env["QCARLAB_WARM_DIR"], capture_output=True, text=True, check=True).stdout.strip()

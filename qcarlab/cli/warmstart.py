@@ -59,7 +59,7 @@ def warm_cmd(
     if info is None and not status_only:
         started = time.monotonic()
         warm.start_server(where)  # unless one is starting
-        conn = warm.wait_ready(where)
+        conn = warm.wait_starting(where)  # (at a terminal: says why when it takes long)
         if conn is not None:
             conn.close()
             info = warm.status(where)
