@@ -355,10 +355,14 @@ def wait_starting(where: Place, timeout: float = START_TIMEOUT) -> socket.socket
         sys.stderr.flush()
     try:
         conn = wait_ready(where, max(0.0, timeout - (time.monotonic() - started)))
-    finally:
+    except KeyboardInterrupt:
         if said:
-            sys.stderr.write(f" {'ready' if conn is not None else 'gone'} after {time.monotonic() - started:.0f} s\n")
-            sys.stderr.flush()
+            sys.stderr.write("\n")  # (the caller says it was interrupted)
+        raise
+    if said:
+        how = "ready" if conn is not None else "no server"
+        sys.stderr.write(f" {how} after {time.monotonic() - started:.0f} s\n")
+        sys.stderr.flush()
     return conn
 
 

@@ -247,6 +247,50 @@ def test_at_a_terminal_a_lab_typed_while_the_server_compiles_waits_for_it_and_sa
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def test_ctrl_c_while_waiting_for_a_starting_server_runs_nothing_and_says_so():
+    import fcntl
+
+    folder = tempfile.mkdtemp(prefix="qw")
+    try:
+        e = with_checkout({k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"})
+        e.update(QCARLAB_WARM_DIR=folder, TERM="xterm-256color")
+        key = subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"], env=e,
+                             cwd=folder, capture_output=True, text=True, check=True).stdout.strip()
+        where = warm.Place(folder, key)
+        lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # a server starting, for good
+        Path(where.log).write_text(f"{warm.COMPILING} (once after an install): pid 1\n")
+        master, slave = os.openpty()
+        p = subprocess.Popen([sys.executable, "-c", CLIENT, "stop-sign", "--out", "run"], env=e, cwd=folder,
+                             stdin=slave, stdout=slave, stderr=slave, start_new_session=True)
+        os.close(slave)
+        out = bytearray()
+        try:
+            while b"Ctrl-C to stop" not in out and select.select([master], [], [], 30)[0]:
+                out += os.read(master, 65536)
+            os.kill(p.pid, signal.SIGINT)
+            while select.select([master], [], [], 30)[0]:
+                try:
+                    chunk = os.read(master, 65536)
+                except OSError:
+                    break
+                if not chunk:
+                    break
+                out += chunk
+            assert p.wait(timeout=30) == 130
+        finally:
+            p.kill()
+            os.close(master)
+        text = out.decode(errors="replace")
+        assert text.endswith("Ctrl-C to stop)...\r\nstop-sign: interrupted\r\n"), text
+        assert not (Path(folder) / "run").exists()  # nothing ran
+        os.close(lock)
+    finally:
+        for pid in _pids(folder):
+            os.kill(pid, signal.SIGKILL)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def test_a_server_of_a_changed_install_gives_way(env):
     key = subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"], env=env,
                          cwd=env["QCARLAB_WARM_DIR"], capture_output=True, text=True, check=True).stdout.strip()
