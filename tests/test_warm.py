@@ -261,7 +261,9 @@ def test_ctrl_c_while_waiting_for_a_starting_server_runs_nothing_and_says_so():
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # a server starting, for good
         Path(where.log).write_text(f"{warm.COMPILING} (once after an install): pid 1\n")
         master, slave = os.openpty()
-        p = subprocess.Popen([sys.executable, "-c", CLIENT, "stop-sign", "--out", "run"], env=e, cwd=folder,
+        # (Ctrl-C as at a terminal: a job started in the background, as this suite may be, inherits SIGINT ignored)
+        at_terminal = "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); " + CLIENT
+        p = subprocess.Popen([sys.executable, "-c", at_terminal, "stop-sign", "--out", "run"], env=e, cwd=folder,
                              stdin=slave, stdout=slave, stderr=slave, start_new_session=True)
         os.close(slave)
         out = bytearray()
