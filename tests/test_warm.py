@@ -158,18 +158,23 @@ def on_pty(env: dict, *args: str) -> str:
     os.close(slave)
     out = bytearray()
     try:
-        while select.select([master], [], [], 60)[0]:
-            try:
-                chunk = os.read(master, 65536)
-            except OSError:
-                break
-            if not chunk:
-                break
-            out += chunk
+        drain(master, out)
     finally:
         os.close(master)
     assert p.wait(timeout=60) == 0, out.decode(errors="replace")
     return out.decode(errors="replace")
+
+
+def drain(master: int, out: bytearray, timeout: float = 60) -> None:
+    """What a pseudo-terminal's other end prints into ``out``, until it closes (or is silent for ``timeout`` s)."""
+    while select.select([master], [], [], timeout)[0]:
+        try:
+            chunk = os.read(master, 65536)
+        except OSError:
+            break
+        if not chunk:
+            break
+        out += chunk
 
 
 def test_at_a_terminal_the_output_keeps_its_colours(env):
@@ -206,91 +211,79 @@ def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server(ar
         shutil.rmtree(folder, ignore_errors=True)
 
 
-def test_at_a_terminal_a_lab_typed_while_the_server_compiles_waits_for_it_and_says_why():
+@pytest.fixture
+def compiling():
+    """A server of this install starting in a fresh folder, as :func:`qcarlab.warm.start_server`
+    leaves it after an install: its lock taken (here, by this test: ``lock``, the fd) and its log
+    saying it compiles the kernels. Yields (env, folder, key, lock) for a client at a terminal;
+    every server started in the folder is killed at the end."""
+    import fcntl
+
+    folder = tempfile.mkdtemp(prefix="qw")
+    try:
+        e = with_checkout({k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"})
+        e.update(QCARLAB_WARM_DIR=folder, TERM="xterm-256color")
+        key = subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"], env=e,
+                             cwd=folder, capture_output=True, text=True, check=True).stdout.strip()
+        where = warm.Place(folder, key)
+        lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        Path(where.log).write_text(f"{warm.COMPILING} (once after an install): pid 1\n")
+        yield e, folder, key, lock
+    finally:
+        for pid in _pids(folder):
+            os.kill(pid, signal.SIGKILL)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_at_a_terminal_a_lab_typed_while_the_server_compiles_waits_for_it_and_says_why(compiling):
     """After an install the server compiles the kernels first (20-30 s): a lab typed then would
     compile the same kernels beside it, so it waits for the server instead, saying why."""
-    import fcntl
     import threading
 
-    folder = tempfile.mkdtemp(prefix="qw")
-    try:
-        e = with_checkout({k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"})
-        e.update(QCARLAB_WARM_DIR=folder, TERM="xterm-256color")
-        key = subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"], env=e,
-                             cwd=folder, capture_output=True, text=True, check=True).stdout.strip()
-        where = warm.Place(folder, key)
-        lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # a server starting, as start_server leaves it
-        Path(where.log).write_text(f"{warm.COMPILING} (once after an install): pid 1\n")
-        server: list[subprocess.Popen] = []
+    e, folder, key, lock = compiling
 
-        def compiled() -> None:  # the compile done, the server takes over the lock and warms up
-            time.sleep(2.0)
-            server.append(subprocess.Popen([sys.executable, "-m", "qcarlab.warm", "serve", folder, key, str(lock)],
-                                           env=e, cwd="/", stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                           stderr=subprocess.DEVNULL, pass_fds=(lock,), start_new_session=True))
-            os.close(lock)
-
-        handover = threading.Thread(target=compiled)
-        handover.start()
-        t0 = time.monotonic()
-        text = on_pty(e, "path-gen", "line")
-        waited = time.monotonic() - t0
-        handover.join()
-        assert waited >= 2.0
-        assert "qcarlab: waiting for the warm server (compiling the simulator's kernels" in text
-        assert re.search(r"\.\.\. ready after \d+ s", text) and "path-gen line" in text
-        assert served(e) == 1  # run by the server, not cold
-    finally:
-        for pid in _pids(folder):
-            os.kill(pid, signal.SIGKILL)
-        shutil.rmtree(folder, ignore_errors=True)
-
-
-def test_ctrl_c_while_waiting_for_a_starting_server_runs_nothing_and_says_so():
-    import fcntl
-
-    folder = tempfile.mkdtemp(prefix="qw")
-    try:
-        e = with_checkout({k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"})
-        e.update(QCARLAB_WARM_DIR=folder, TERM="xterm-256color")
-        key = subprocess.run([sys.executable, "-c", "from qcarlab import warm; print(warm.install_key())"], env=e,
-                             cwd=folder, capture_output=True, text=True, check=True).stdout.strip()
-        where = warm.Place(folder, key)
-        lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # a server starting, for good
-        Path(where.log).write_text(f"{warm.COMPILING} (once after an install): pid 1\n")
-        master, slave = os.openpty()
-        # (Ctrl-C as at a terminal: a job started in the background, as this suite may be, inherits SIGINT ignored)
-        at_terminal = "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); " + CLIENT
-        p = subprocess.Popen([sys.executable, "-c", at_terminal, "stop-sign", "--out", "run"], env=e, cwd=folder,
-                             stdin=slave, stdout=slave, stderr=slave, start_new_session=True)
-        os.close(slave)
-        out = bytearray()
-        try:
-            while b"Ctrl-C to stop" not in out and select.select([master], [], [], 30)[0]:
-                out += os.read(master, 65536)
-            os.kill(p.pid, signal.SIGINT)
-            while select.select([master], [], [], 30)[0]:
-                try:
-                    chunk = os.read(master, 65536)
-                except OSError:
-                    break
-                if not chunk:
-                    break
-                out += chunk
-            assert p.wait(timeout=30) == 130
-        finally:
-            p.kill()
-            os.close(master)
-        text = out.decode(errors="replace")
-        assert text.endswith("Ctrl-C to stop)...\r\nstop-sign: interrupted\r\n"), text
-        assert not (Path(folder) / "run").exists()  # nothing ran
+    def compiled() -> None:  # the compile done, the server takes over the lock and warms up
+        time.sleep(2.0)
+        subprocess.Popen([sys.executable, "-m", "qcarlab.warm", "serve", folder, key, str(lock)], env=e, cwd="/",
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         pass_fds=(lock,), start_new_session=True)
         os.close(lock)
+
+    handover = threading.Thread(target=compiled)
+    handover.start()
+    t0 = time.monotonic()
+    text = on_pty(e, "path-gen", "line")
+    waited = time.monotonic() - t0
+    handover.join()
+    assert waited >= 2.0
+    assert "qcarlab: waiting for the warm server (compiling the simulator's kernels" in text
+    assert re.search(r"\.\.\. ready after \d+ s", text) and "path-gen line" in text
+    assert served(e) == 1  # run by the server, not cold
+
+
+def test_ctrl_c_while_waiting_for_a_starting_server_runs_nothing_and_says_so(compiling):
+    e, folder, _, lock = compiling
+    master, slave = os.openpty()
+    # (Ctrl-C as at a terminal: a job started in the background, as this suite may be, inherits SIGINT ignored)
+    at_terminal = "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); " + CLIENT
+    p = subprocess.Popen([sys.executable, "-c", at_terminal, "stop-sign", "--out", "run"], env=e, cwd=folder,
+                         stdin=slave, stdout=slave, stderr=slave, start_new_session=True)
+    os.close(slave)
+    out = bytearray()
+    try:
+        while b"Ctrl-C to stop" not in out and select.select([master], [], [], 30)[0]:
+            out += os.read(master, 65536)
+        os.kill(p.pid, signal.SIGINT)
+        drain(master, out, 30)
+        assert p.wait(timeout=30) == 130
     finally:
-        for pid in _pids(folder):
-            os.kill(pid, signal.SIGKILL)
-        shutil.rmtree(folder, ignore_errors=True)
+        p.kill()
+        os.close(master)
+        os.close(lock)
+    text = out.decode(errors="replace")
+    assert text.endswith("Ctrl-C to stop)...\r\nstop-sign: interrupted\r\n"), text
+    assert not (Path(folder) / "run").exists()  # nothing ran
 
 
 def test_a_server_of_a_changed_install_gives_way(env):
