@@ -28,7 +28,7 @@ terminal (stdin and stdout are terminals). The first such command runs cold and 
 in the background (so do ``qcarlab`` alone, its help and version, ``labs`` and ``template`` at a
 terminal: what a student types before a lab's first command); it serves the later ones and
 leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). After an install, numba's cache is
-empty: the server compiles the simulator's kernels first (:mod:`qcarlab.precompile`, some 20 s
+empty: the server compiles the simulator's kernels first (:mod:`qcarlab.precompile`, 20-30 s
 in the background), so the labs typed once it is warm do not (some 13 s of a first
 ``stop-sign``); a lab command typed while it starts waits for it (saying so at a terminal when
 that takes long) rather than compile the same kernels beside it.
