@@ -348,12 +348,12 @@ def wait_starting(where: Place, timeout: float = START_TIMEOUT) -> socket.socket
     if conn is not None or not running(where):
         return conn
     said = _at_terminal() and os.isatty(2)
-    if said:
-        why = "compiling the simulator's kernels for this machine, once after an install: some 20-30 s" \
-            if _says(where.log, COMPILING) else "starting"
-        sys.stderr.write(f"qcarlab: waiting for the warm server ({why}; Ctrl-C to stop)...")
-        sys.stderr.flush()
-    try:
+    try:  # (from the line's first byte on: a Ctrl-C as it appears still ends it)
+        if said:
+            why = "compiling the simulator's kernels for this machine, once after an install: some 20-30 s" \
+                if _says(where.log, COMPILING) else "starting"
+            sys.stderr.write(f"qcarlab: waiting for the warm server ({why}; Ctrl-C to stop)...")
+            sys.stderr.flush()
         conn = wait_ready(where, max(0.0, timeout - (time.monotonic() - started)))
     except KeyboardInterrupt:
         if said:
