@@ -350,9 +350,10 @@ def wait_starting(where: Place, timeout: float = START_TIMEOUT) -> socket.socket
     said = _at_terminal() and os.isatty(2)
     try:  # (from the line's first byte on: a Ctrl-C as it appears still ends it)
         if said:
-            why = "compiling the simulator's kernels for this machine, once after an install: some 20-30 s" \
-                if _says(where.log, COMPILING) else "starting"
-            sys.stderr.write(f"qcarlab: waiting for the warm server ({why}; Ctrl-C to stop)...")
+            keys = "Ctrl-C stops, QCARLAB_WARM=0 runs without it"
+            line = (f"the warm server, which compiles the simulator's kernels once after an install (20-30 s; {keys})"
+                    if _says(where.log, COMPILING) else f"the warm server to start ({keys})")
+            sys.stderr.write(f"qcarlab: waiting for {line}...")
             sys.stderr.flush()
         conn = wait_ready(where, max(0.0, timeout - (time.monotonic() - started)))
     except KeyboardInterrupt:

@@ -257,7 +257,7 @@ def test_at_a_terminal_a_lab_typed_while_the_server_compiles_waits_for_it_and_sa
     waited = time.monotonic() - t0
     handover.join()
     assert waited >= 2.0
-    assert "qcarlab: waiting for the warm server (compiling the simulator's kernels" in text
+    assert "qcarlab: waiting for the warm server, which compiles the simulator's kernels" in text
     assert re.search(r"\.\.\. ready after \d+ s", text) and "path-gen line" in text
     assert served(e) == 1  # run by the server, not cold
 
@@ -272,7 +272,7 @@ def test_ctrl_c_while_waiting_for_a_starting_server_runs_nothing_and_says_so(com
     os.close(slave)
     out = bytearray()
     try:
-        while b"Ctrl-C to stop" not in out and select.select([master], [], [], 30)[0]:
+        while b"runs without it)..." not in out and select.select([master], [], [], 30)[0]:
             out += os.read(master, 65536)
         os.kill(p.pid, signal.SIGINT)
         drain(master, out, 30)
@@ -282,7 +282,7 @@ def test_ctrl_c_while_waiting_for_a_starting_server_runs_nothing_and_says_so(com
         os.close(master)
         os.close(lock)
     text = out.decode(errors="replace")
-    assert text.endswith("Ctrl-C to stop)...\r\nstop-sign: interrupted\r\n"), text
+    assert text.endswith("QCARLAB_WARM=0 runs without it)...\r\nstop-sign: interrupted\r\n"), text
     assert not (Path(folder) / "run").exists()  # nothing ran
 
 
