@@ -30,8 +30,8 @@ terminal: what a student types before a lab's first command); it serves the late
 leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). After an install, numba's cache is
 empty: the server compiles the simulator's kernels first (:mod:`qcarlab.precompile`, 20-30 s
 in the background), so the labs typed once it is warm do not (some 13 s of a first
-``stop-sign``); a lab command typed while it starts waits for it (saying so at a terminal when
-that takes long) rather than compile the same kernels beside it.
+``stop-sign``); a simulator's lab typed meanwhile waits for it, saying so (at most 2 minutes),
+rather than compile the same kernels beside it.
 ``QCARLAB_WARM=1``: for the lab commands whatever the streams (the first one starts the server
 and waits for it). ``QCARLAB_WARM=0``: never. Scripts, pipes, CI and the grader therefore run cold unless they ask.
 ``qcarlab warm`` starts, shows or stops it.
@@ -334,34 +334,46 @@ def wait_ready(where: Place, timeout: float = START_TIMEOUT) -> socket.socket | 
 
 #: what the server's log says while it compiles the kernels (:func:`_precompile`)
 COMPILING = "compiling the simulator's kernels first"
-QUIET_WAIT = 0.5  # s a client waits for a starting server before it says why it waits
+#: the commands that draw the simulator's frames or step its car by default: typed while the
+#: server compiles the kernels, a cold run would compile the same ones beside it
+SIMULATES = frozenset({"io-test", "path-follow", "lidar-scan", "camera", "stop-sign", "lane-follow", "avoid"})
+COMPILE_WAIT = 120.0  # s a lab at a terminal waits for a compiling server before it runs without it
 
 
-def wait_starting(where: Place, timeout: float = START_TIMEOUT) -> socket.socket | None:
-    """:func:`wait_ready`, saying at a terminal why when it takes long: a server that compiles the
-    kernels (once after an install, 20-30 s) would be raced by a cold run compiling the same
-    kernels on the same cores, so the command waits for it instead (Ctrl-C: nothing ran)."""
+def compiling(where: Place) -> bool:
+    """Whether the server starting at ``where`` compiles the kernels (its log says so)."""
+    return _says(where.log, COMPILING)
+
+
+def wait_starting(where: Place, timeout: float = START_TIMEOUT, hint: str = "") -> socket.socket | None:
+    """:func:`wait_ready`, saying at a terminal (stdin, stdout and stderr) why while the server
+    compiles the kernels (once after an install, 20-30 s): ``qcarlab: waiting for the warm
+    server, which compiles ...`` and, when it answers, ``ready after N s`` (or ``gave up``). A
+    server that warms up without compiling (a second or two) is waited for without a word.
+    ``hint``: what else the user may do, in the line's brackets. Ctrl-C ends the line and goes
+    on (KeyboardInterrupt): nothing ran."""
     import time
 
     started = time.monotonic()
-    conn = wait_ready(where, min(QUIET_WAIT, timeout))
-    if conn is not None or not running(where):
-        return conn
-    said = _at_terminal() and os.isatty(2)
+    deadline = started + timeout
+    tell = _at_terminal() and os.isatty(2)
+    said = False
     try:  # (from the line's first byte on: a Ctrl-C as it appears still ends it)
-        if said:
-            keys = "Ctrl-C stops, QCARLAB_WARM=0 runs without it"
-            line = (f"the warm server, which compiles the simulator's kernels once after an install (20-30 s; {keys})"
-                    if _says(where.log, COMPILING) else f"the warm server to start ({keys})")
-            sys.stderr.write(f"qcarlab: waiting for {line}...")
-            sys.stderr.flush()
-        conn = wait_ready(where, max(0.0, timeout - (time.monotonic() - started)))
+        while True:
+            conn = wait_ready(where, max(0.0, min(0.25, deadline - time.monotonic())))
+            if conn is not None or time.monotonic() >= deadline or not running(where):
+                break
+            if tell and not said and compiling(where):
+                said = True
+                sys.stderr.write("qcarlab: waiting for the warm server, which compiles the simulator's kernels once "
+                                 f"after an install (20-30 s; Ctrl-C stops{hint})...")
+                sys.stderr.flush()
     except KeyboardInterrupt:
         if said:
             sys.stderr.write("\n")  # (the caller says it was interrupted)
         raise
     if said:
-        how = "ready" if conn is not None else "no server"
+        how = "ready" if conn is not None else "gave up"
         sys.stderr.write(f" {how} after {time.monotonic() - started:.0f} s\n")
         sys.stderr.flush()
     return conn
@@ -390,16 +402,17 @@ def run(argv: list[str], later: list[Place]) -> int | None:
     signal that ended it), or None when it was not run there (the caller runs it cold). With no
     server up, ``QCARLAB_WARM=1`` starts one and waits for it; at a terminal (the default) the
     command runs cold and the place goes to ``later`` (the caller starts the server after it).
-    A server that is starting (compiling the kernels after an install, say) is waited for in
-    both cases (:func:`wait_starting`)."""
+    At a terminal a simulator's command (:data:`SIMULATES`) typed while the server compiles the
+    kernels after an install waits for it (at most :data:`COMPILE_WAIT`), saying so."""
     mode = _mode()
     where = place()
     if where is None:
         return None
     for attempt in range(2):  # the second after a stale server gave way
         conn = connect(where)
-        if conn is None and mode != "on" and running(where):
-            conn = wait_starting(where)  # a server is starting: it answers sooner than a cold run
+        if conn is None and mode != "on" and argv[0] in SIMULATES and running(where) and compiling(where):
+            # the server compiles the kernels this command would compile itself: it answers sooner
+            conn = wait_starting(where, COMPILE_WAIT, hint=", QCARLAB_WARM=0 runs without it")
         if conn is None:
             if mode != "on":
                 later.append(where)

@@ -59,10 +59,15 @@ def env():
     e = with_checkout({k: v for k, v in os.environ.items() if k not in ("QCARLAB_WARM", "COLUMNS", "LINES")})
     e.update(QCARLAB_WARM="1", QCARLAB_WARM_DIR=folder, TERM="xterm-256color", QCARLAB_WARM_IDLE="300")
     yield e
+    _clear(folder)
+
+
+def _clear(folder: str) -> None:
+    """Kill every server started in ``folder`` (from their logs) and remove it."""
     for pid in _pids(folder):
         try:
             os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
+        except OSError:
             pass
     shutil.rmtree(folder, ignore_errors=True)
 
@@ -165,9 +170,10 @@ def on_pty(env: dict, *args: str) -> str:
     return out.decode(errors="replace")
 
 
-def drain(master: int, out: bytearray, timeout: float = 60) -> None:
-    """What a pseudo-terminal's other end prints into ``out``, until it closes (or is silent for ``timeout`` s)."""
-    while select.select([master], [], [], timeout)[0]:
+def drain(master: int, out: bytearray, timeout: float = 60, until: bytes | None = None) -> None:
+    """What a pseudo-terminal's other end prints into ``out``, until it closes (or is silent for
+    ``timeout`` s, or ``out`` holds ``until``)."""
+    while (until is None or until not in out) and select.select([master], [], [], timeout)[0]:
         try:
             chunk = os.read(master, 65536)
         except OSError:
@@ -215,11 +221,12 @@ def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server(ar
 def compiling():
     """A server of this install starting in a fresh folder, as :func:`qcarlab.warm.start_server`
     leaves it after an install: its lock taken (here, by this test: ``lock``, the fd) and its log
-    saying it compiles the kernels. Yields (env, folder, key, lock) for a client at a terminal;
-    every server started in the folder is killed at the end."""
+    saying it compiles the kernels. Yields (env, folder, key, lock, started): a client at a
+    terminal's environment, and a list for the processes a test starts, killed at the end."""
     import fcntl
 
     folder = tempfile.mkdtemp(prefix="qw")
+    started: list[subprocess.Popen] = []
     try:
         e = with_checkout({k: v for k, v in os.environ.items() if k != "QCARLAB_WARM"})
         e.update(QCARLAB_WARM_DIR=folder, TERM="xterm-256color")
@@ -228,57 +235,63 @@ def compiling():
         where = warm.Place(folder, key)
         lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        Path(where.log).write_text(f"{warm.COMPILING} (once after an install): pid 1\n")
-        yield e, folder, key, lock
+        Path(where.log).write_text(f"{warm.COMPILING} (once after an install)\n")
+        yield e, folder, key, lock, started
     finally:
-        for pid in _pids(folder):
-            os.kill(pid, signal.SIGKILL)
-        shutil.rmtree(folder, ignore_errors=True)
+        for p in started:
+            p.kill()
+            p.wait()
+        _clear(folder)
 
 
 def test_at_a_terminal_a_lab_typed_while_the_server_compiles_waits_for_it_and_says_why(compiling):
-    """After an install the server compiles the kernels first (20-30 s): a lab typed then would
-    compile the same kernels beside it, so it waits for the server instead, saying why."""
+    """After an install the server compiles the kernels first (20-30 s): a simulator's lab typed
+    then would compile the same kernels beside it, so it waits for the server instead, saying
+    why; a command that uses no kernels (path-gen) does not wait."""
     import threading
 
-    e, folder, key, lock = compiling
+    e, folder, key, lock, started = compiling
+    t0 = time.monotonic()
+    assert "waiting" not in on_pty(e, "path-gen", "line") and time.monotonic() - t0 < 30
 
     def compiled() -> None:  # the compile done, the server takes over the lock and warms up
         time.sleep(2.0)
-        subprocess.Popen([sys.executable, "-m", "qcarlab.warm", "serve", folder, key, str(lock)], env=e, cwd="/",
-                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                         pass_fds=(lock,), start_new_session=True)
+        started.append(subprocess.Popen([sys.executable, "-m", "qcarlab.warm", "serve", folder, key, str(lock)],
+                                        env=e, cwd="/", stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                        stderr=subprocess.DEVNULL, pass_fds=(lock,), start_new_session=True))
         os.close(lock)
 
     handover = threading.Thread(target=compiled)
     handover.start()
-    t0 = time.monotonic()
-    text = on_pty(e, "path-gen", "line")
-    waited = time.monotonic() - t0
-    handover.join()
+    try:
+        t0 = time.monotonic()
+        text = on_pty(e, "io-test")
+        waited = time.monotonic() - t0
+    finally:
+        handover.join()
     assert waited >= 2.0
     assert "qcarlab: waiting for the warm server, which compiles the simulator's kernels" in text
-    assert re.search(r"\.\.\. ready after \d+ s", text) and "path-gen line" in text
+    assert re.search(r"\.\.\. ready after \d+ s", text) and "throttle" in text
     assert served(e) == 1  # run by the server, not cold
 
 
 def test_ctrl_c_while_waiting_for_a_starting_server_runs_nothing_and_says_so(compiling):
-    e, folder, _, lock = compiling
+    e, folder, _, lock, started = compiling
     master, slave = os.openpty()
     # (Ctrl-C as at a terminal: a job started in the background, as this suite may be, inherits SIGINT ignored)
     at_terminal = "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); " + CLIENT
     p = subprocess.Popen([sys.executable, "-c", at_terminal, "stop-sign", "--out", "run"], env=e, cwd=folder,
                          stdin=slave, stdout=slave, stderr=slave, start_new_session=True)
+    started.append(p)
     os.close(slave)
     out = bytearray()
     try:
-        while b"runs without it)..." not in out and select.select([master], [], [], 30)[0]:
-            out += os.read(master, 65536)
+        drain(master, out, 30, until=b"runs without it)...")
+        assert b"runs without it)..." in out, out.decode(errors="replace")
         os.kill(p.pid, signal.SIGINT)
         drain(master, out, 30)
         assert p.wait(timeout=30) == 130
     finally:
-        p.kill()
         os.close(master)
         os.close(lock)
     text = out.decode(errors="replace")

@@ -30,10 +30,10 @@ def warm_cmd(
     The first lab command at a terminal starts it by itself (so do qcarlab --help, labs and
     template, typed before a lab's first command); this starts it now and waits until it is warm.
     After an install it compiles the simulator's kernels first (some 20-30 s, once), so that the
-    labs do not: a lab typed meanwhile waits for it and says so. It is yours alone, serves this
-    install and environment, and leaves after 20 idle minutes (QCARLAB_WARM_IDLE, seconds).
-    QCARLAB_WARM=0 runs every command cold; QCARLAB_WARM=1 uses it in scripts too (off a terminal
-    it is not used unless asked). Linux only.
+    labs do not: a simulator's lab typed meanwhile waits for it and says so. It is yours alone,
+    serves this install and environment, and leaves after 20 idle minutes (QCARLAB_WARM_IDLE,
+    seconds). QCARLAB_WARM=0 runs every command cold; QCARLAB_WARM=1 uses it in scripts too (off a
+    terminal it is not used unless asked). Linux only.
 
     Examples:
       qcarlab warm
@@ -59,7 +59,7 @@ def warm_cmd(
     if info is None and not status_only:
         started = time.monotonic()
         warm.start_server(where)  # unless one is starting
-        conn = warm.wait_starting(where)  # (at a terminal: says why when it takes long)
+        conn = warm.wait_starting(where)  # (at a terminal: says so while it compiles the kernels)
         if conn is not None:
             conn.close()
             info = warm.status(where)
