@@ -341,8 +341,9 @@ COMPILE_WAIT = 120.0  # s a lab at a terminal waits for a compiling server befor
 
 
 def compiling(where: Place) -> bool:
-    """Whether the server starting at ``where`` compiles the kernels (its log says so)."""
-    return _says(where.log, COMPILING)
+    """Whether the server starting at ``where`` compiles the kernels (its log says so) and serves
+    this client's install (its key: one of a changed install's would only say "stale" when ready)."""
+    return _says(where.log, f"{COMPILING} ") and _says(where.log, f"key {where.key}")
 
 
 def wait_starting(where: Place, timeout: float = START_TIMEOUT, hint: str = "") -> socket.socket | None:
@@ -567,7 +568,7 @@ def serve(folder: str, key: str, lock: int | None = None) -> int:
             return 0  # another server has this install
     os.set_inheritable(lock, False)
     started = time.monotonic()
-    _precompile()
+    _precompile(key)
     consoles = _Consoles()
     from qcarlab.zygote import MODULES, lab_modules, warm_up
 
@@ -590,7 +591,7 @@ def serve(folder: str, key: str, lock: int | None = None) -> int:
     return _Server(where, listener, lock, consoles, ready).loop()
 
 
-def _precompile() -> None:
+def _precompile(key: str) -> None:
     """After an install numba's cache is empty: the simulator's kernels are compiled now, in a
     process of their own (:mod:`qcarlab.precompile`: it draws frames, with OpenCV, which a
     server that forks must not run), so the labs typed once it is warm do not compile them (some
@@ -605,7 +606,7 @@ def _precompile() -> None:
 
         if not precompile.needs_compiling():
             return
-        print(f"{COMPILING} (once after an install): pid {os.getpid()}", flush=True)
+        print(f"{COMPILING} (once after an install): pid {os.getpid()}, key {key}", flush=True)
 
         from qcarlab.sandbox import jail
 

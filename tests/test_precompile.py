@@ -32,10 +32,10 @@ def test_the_warm_server_compiles_only_when_the_cache_is_cold(monkeypatch):
     ran: list[tuple[list[str], dict]] = []
     monkeypatch.setattr(subprocess, "run", lambda argv, **kw: ran.append((argv, kw)))
     monkeypatch.setattr(precompile, "needs_compiling", lambda: False)
-    warm._precompile()
+    warm._precompile("k-1")
     assert ran == []
     monkeypatch.setattr(precompile, "needs_compiling", lambda: True)
-    warm._precompile()
+    warm._precompile("k-1")
     assert [argv for argv, _ in ran] == [[sys.executable, "-m", "qcarlab.precompile"]]
     here = str(Path(warm.__file__).resolve().parents[1])  # the folder this qcarlab is in: its kernels
     assert here in ran[0][1]["env"]["PYTHONPATH"].split(os.pathsep)
@@ -47,7 +47,7 @@ def test_a_failed_check_leaves_the_compiling_to_the_labs(monkeypatch, capsys):
         raise RuntimeError("no locator available")
 
     monkeypatch.setattr(precompile, "needs_compiling", broken)
-    warm._precompile()  # the server starts all the same
+    warm._precompile("k-1")  # the server starts all the same
     assert "not compiled ahead" in capsys.readouterr().out
 
 

@@ -235,7 +235,7 @@ def compiling():
         where = warm.Place(folder, key)
         lock = os.open(where.lock, os.O_RDWR | os.O_CREAT, 0o600)
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        Path(where.log).write_text(f"{warm.COMPILING} (once after an install)\n")
+        Path(where.log).write_text(f"{warm.COMPILING} (once after an install): key {key}\n")
         yield e, folder, key, lock, started
     finally:
         for p in started:
@@ -253,6 +253,12 @@ def test_at_a_terminal_a_lab_typed_while_the_server_compiles_waits_for_it_and_sa
     e, folder, key, lock, started = compiling
     t0 = time.monotonic()
     assert "waiting" not in on_pty(e, "path-gen", "line") and time.monotonic() - t0 < 30
+    log = Path(warm.Place(folder, key).log)
+    mine = log.read_text()
+    log.write_text(mine.replace(key, key.split("-")[0] + "-older"))  # a server of a changed install
+    t0 = time.monotonic()
+    assert "waiting" not in on_pty(e, "io-test") and time.monotonic() - t0 < 30  # it would only say "stale"
+    log.write_text(mine)
 
     def compiled() -> None:  # the compile done, the server takes over the lock and warms up
         time.sleep(2.0)
