@@ -343,7 +343,7 @@ COMPILE_WAIT = 120.0  # s a lab at a terminal waits for a compiling server befor
 def compiling(where: Place) -> bool:
     """Whether the server starting at ``where`` compiles the kernels (its log says so) and serves
     this client's install (its key: one of a changed install's would only say "stale" when ready)."""
-    return _says(where.log, f"{COMPILING} ") and _says(where.log, f"key {where.key}")
+    return _says(where.log, f"{COMPILING} ", f"key {where.key}")
 
 
 def wait_starting(where: Place, timeout: float = START_TIMEOUT, hint: str = "") -> socket.socket | None:
@@ -380,13 +380,14 @@ def wait_starting(where: Place, timeout: float = START_TIMEOUT, hint: str = "") 
     return conn
 
 
-def _says(path: str, text: str) -> bool:
-    """Whether the first 4 kB of the file at ``path`` hold ``text``."""
+def _says(path: str, *texts: str) -> bool:
+    """Whether the first 4 kB of the file at ``path`` hold every one of ``texts`` (read once)."""
     try:
         with open(path, "rb") as f:
-            return text.encode() in f.read(4096)
+            head = f.read(4096)
     except OSError:
         return False
+    return all(text.encode() in head for text in texts)
 
 
 def ask(conn: socket.socket, request: dict, fds: list[int] | None = None) -> None:

@@ -212,9 +212,7 @@ def test_at_a_terminal_the_first_command_runs_cold_and_then_starts_the_server(ar
             time.sleep(0.05)
         assert served(e) == 0  # up and warm, the first command not among its own
     finally:
-        for pid in _pids(folder):
-            os.kill(pid, signal.SIGKILL)
-        shutil.rmtree(folder, ignore_errors=True)
+        _clear(folder)
 
 
 @pytest.fixture
@@ -336,9 +334,7 @@ def test_off_a_terminal_nothing_starts_unless_asked(tmp_path):
         time.sleep(0.5)
         assert not list(Path(folder).glob("*.sock")) and not _pids(folder)
     finally:
-        for pid in _pids(folder):
-            os.kill(pid, signal.SIGKILL)
-        shutil.rmtree(folder, ignore_errors=True)
+        _clear(folder)
 
 
 @pytest.mark.parametrize("argv, mode, terminal, expected", [
