@@ -1561,10 +1561,12 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
     last_out = _gain_word(last_in, lut) if gained else last_in
     n = 0
     u = 0
+    twu = np.uint64(tw)
+    one = np.uint64(1)
     while u < W:
-        if flo[u] > v:  # covered by a layer: on to the next column the floor shows in
+        if flo[np.uint64(u)] > v:  # covered by a layer: on to the next column the floor shows in
             u += 1
-            while u < W and flo[u] > v:
+            while u < W and flo[np.uint64(u)] > v:
                 u += 1
             continue
         X = X0 + u * dX
@@ -1572,7 +1574,7 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
         ix = X >> 16
         iy = Y >> 16
         if ix >= 0 and iy >= 0 and ix + 1 < tw and iy + 1 < th:
-            k = off + iy * tw + ix
+            k = np.uint64(off + iy * tw + ix)
             R = int(sq[k])
             if R > 0:
                 # how many more pixels stay in the square
@@ -1598,18 +1600,21 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
                     seg[i] = w
                 u += m + 1
                 continue
-            b00[n] = int(tex[k])
-            b01[n] = int(tex[k + 1])
-            b10[n] = int(tex[k + tw])
-            b11[n] = int(tex[k + tw + 1])
+            nn = np.uint64(n)
+            b00[nn] = int(tex[k])
+            b01[nn] = int(tex[k + one])
+            b10[nn] = int(tex[k + twu])
+            b11[nn] = int(tex[k + twu + one])
         else:
-            b00[n] = _texel(tex, off, tw, th, ix, iy, bg)
-            b01[n] = _texel(tex, off, tw, th, ix + 1, iy, bg)
-            b10[n] = _texel(tex, off, tw, th, ix, iy + 1, bg)
-            b11[n] = _texel(tex, off, tw, th, ix + 1, iy + 1, bg)
-        bwx[n] = (X >> 8) & 255
-        bwy[n] = (Y >> 8) & 255
-        bu[n] = u
+            nn = np.uint64(n)
+            b00[nn] = _texel(tex, off, tw, th, ix, iy, bg)
+            b01[nn] = _texel(tex, off, tw, th, ix + 1, iy, bg)
+            b10[nn] = _texel(tex, off, tw, th, ix, iy + 1, bg)
+            b11[nn] = _texel(tex, off, tw, th, ix + 1, iy + 1, bg)
+        nn = np.uint64(n)
+        bwx[nn] = (X >> 8) & 255
+        bwy[nn] = (Y >> 8) & 255
+        bu[nn] = u
         n += 1
         u += 1
     for i in range(n):
@@ -1640,6 +1645,21 @@ def _noise_row(dst, nrow):
 
 
 @njit(**_JIT)
+def _noisy_copy(dst, src, nrow):
+    """``dst = saturate(src + nrow)`` (bytes, int8 noise; empty: a copy): :func:`_noise_row` on a
+    copy of ``src``, in one pass."""
+    if nrow.shape[0] > 0:
+        for i in range(dst.shape[0]):
+            x = np.int16(src[i]) + np.int16(nrow[i])
+            x = np.int16(x) if np.int16(x) > np.int16(0) else np.int16(0)
+            x = x if x < np.int16(255) else np.int16(255)
+            dst[i] = np.uint8(x)
+    else:
+        for i in range(dst.shape[0]):
+            dst[i] = src[i]
+
+
+@njit(**_JIT)
 def color_noise(img, tile, a, b):
     """Colour noise on a frame in place (:func:`_noise_row` on each row): ``img`` (n, 3 w)
     uint8 B, G, R bytes, noise ``tile[a + v, 3 b + i]`` (int8)."""
@@ -1664,6 +1684,22 @@ def _bgr_row(dst, crow, nrow):
             dst[3 * u + 1] = src[4 * u + 2]
             dst[3 * u + 2] = src[4 * u + 1]
     _noise_row(dst, nrow)
+
+
+@njit(**_JIT)
+def _wall_depth_row(row, d, dd, noise, nv, nb, noisy, c, lo, hi):
+    """A row one front face covers from end to end (depth ``d`` per column, clipped to 0 above
+    ``hi``, and ``dd`` = d d), finished: :func:`_layer_depth_row`'s numbers with its lzb = 0."""
+    W = row.shape[0]
+    if noisy:
+        nrow = noise[nv, nb : nb + W]
+        for u in range(W):
+            e = d[u] + c * (dd[u] * np.float32(nrow[u]))
+            row[u] = np.float32(0.0) if (e > hi) | (e <= lo) else e
+    else:
+        for u in range(W):
+            e = d[u]
+            row[u] = np.float32(0.0) if (e > hi) | (e <= lo) else e
 
 
 @njit(**_JIT)
@@ -1762,16 +1798,36 @@ def compose_rows(
         for s in range(sg_tab.shape[0]):
             if sg_tab[s, 0] <= full_b and sg_tab[s, 1] > full_a:
                 full_b = -1
+    # those rows' colours are the same in each: their B, G, R bytes made once, each row a copy
+    # with its noise (a third of a wall row's time)
+    walls = max(full_a, va) <= min(full_b, vb - 1)
+    wall = np.empty(3 * W if to_bgr and walls else 0, np.uint8)
+    if wall.shape[0] > 0:
+        _bgr_row(wall, lcol[0], cnoise[0, :0])
+    # and a front face (lzb = 0) is as far in each: its depths (and their squares) once too
+    flat = walls
+    for u in range(W if walls else 0):
+        flat &= lzb[0, u] == np.float32(0.0)
+    wz = np.empty(W if flat else 0, np.float32)
+    wzz = np.empty(W if flat else 0, np.float32)
+    for u in range(wz.shape[0]):
+        d = lza[0, u]
+        wz[u] = np.float32(0.0) if d > hi else d
+        wzz[u] = wz[u] * wz[u]
     for v in range(va, vb):
         crow = scratch if to_bgr else color[v]
         drow = depth[v]
         if full_a <= v <= full_b:
-            cs = lcol[0]
-            for u in range(W):
-                crow[u] = cs[u]
-            _layer_depth_row(drow, lza[0], lzb[0], np.float32(rowf[v]), dnoise, na + v, nb, noisy, c, lo, hi)
+            if flat:
+                _wall_depth_row(drow, wz, wzz, dnoise, na + v, nb, noisy, c, lo, hi)
+            else:
+                _layer_depth_row(drow, lza[0], lzb[0], np.float32(rowf[v]), dnoise, na + v, nb, noisy, c, lo, hi)
             if to_bgr:
-                _bgr_row(bgr[v], crow, cnoise[ca + v, 3 * cb : 3 * cb + 3 * W] if cnoisy else cnoise[0, :0])
+                _noisy_copy(bgr[v], wall, cnoise[ca + v, 3 * cb : 3 * cb + 3 * W] if cnoisy else cnoise[0, :0])
+            else:
+                cs = lcol[0]
+                for u in range(W):
+                    crow[u] = cs[u]
             continue
         if v < r0:
             for u in range(W):
