@@ -42,8 +42,10 @@ How it is drawn. The RGBD camera (a level pinhole, rendered upright, row-major):
    at once (the same numbers as blending each), the rest are blended bilinearly in one
    vectorised batch; the floor's depth is one number per row; then the layers, the stop-sign
    sprites (depth-tested), the depth's noise and range limits, the row's BGR bytes. Rows the
-   layers cover in every column skip the floor; a row one wall covers end to end, or one that
-   shows the floor alone, has its depth finished in a single pass;
+   layers cover in every column skip the floor; a row one wall covers end to end is that wall's
+   BGR bytes (made once a frame) with the row's noise, its depths (a front face's: one per
+   column, made once a frame) finished in a single pass, as are a row's that shows the floor
+   alone;
 3. with each row's BGR bytes, its colour noise (one int8 tile), in the same pass. The realism
    profile's exposure gain (``render(..., gain=)``) scales the colours as they are drawn.
 

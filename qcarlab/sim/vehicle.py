@@ -137,7 +137,8 @@ for _i, (_name, _doc) in enumerate(zip(_FIELDS, (
 # constants, so a call passes two arrays and three floats, not four arrays)
 
 #: Which implementation of the sub-steps runs: None (default) = the numba-compiled one once it is
-#: loaded (:func:`load_compiled`), or once numba is loaded in the process (the sensors load it) and
+#: loaded (:func:`load_compiled`: a simulated car does when it builds a camera, whose kernels have
+#: loaded numba; the warm processes at their start), or once numba is loaded in the process and
 #: the process has made :data:`SWITCH_AFTER` plain-Python steps, else plain Python; True = always
 #: compiled (loads numba: some 0.5 s at the first step of a process, worth it for long sweeps);
 #: False = always plain Python. Both are the same code on the same numbers: the same results.
