@@ -614,8 +614,11 @@ class RGBDCamera:
         ``cv2.convertScaleAbs``), before the sensor's noise: a frame with a gain costs what one
         without does (a pass of its own over the frame took 0.1 ms). Without noise the frame is
         exactly the ungained frame through ``convertScaleAbs``."""
-        if self._rot is None:
-            return self.render_rows(pose, t, gain).whole()
+        if self._rot is None:  # (render_rows' frame drawn whole at once, without its row bookkeeping)
+            H, W = self.intrinsics.height, self.intrinsics.width
+            color, depth = np.empty((H, W, 3), np.uint8), np.empty((H, W), np.float32)
+            self._draw_rows(self._plan(pose, t, gain), color, depth, 0, H)
+            return RGBDFrame(t=float(t), color=color, depth=depth)
         gain = float(gain)
         v = self._view
         cx_w, cy_w, yaw = v.camera_pose(pose)
@@ -655,6 +658,11 @@ class RGBDCamera:
             if finish is not None:
                 finish(frame.color)
             return frame
+        return RowFrame(self, self._plan(pose, t, gain), float(t), finish)
+
+    def _plan(self, pose: tuple[float, float, float], t: float, gain: float) -> _Plan:
+        """What an unpitched frame from ``pose`` at ``t`` is drawn from (:class:`_Plan`), its
+        layers found (:meth:`_layers`) and the noise's windows drawn."""
         gain = float(gain)
         v = self._view
         cam = v.camera_pose(pose)
@@ -664,7 +672,7 @@ class RGBDCamera:
         plan.signs = v.sign_patches(*cam)
         if gain != 1.0:  # the signs' colours, once (the layers' with each drawing of them: _layers)
             _kernels.gain_words(plan.signs[2], plan.lut)
-        return RowFrame(self, plan, float(t), finish)
+        return plan
 
     def _layers(self, plan: _Plan) -> int:
         """The layers of every column for ``plan``'s pose (:meth:`_columns`, their colours through
