@@ -258,13 +258,18 @@ def _fit_rows(nz: np.ndarray, min_pixels: int, row0: int = 0, col0: int = 0) -> 
         return None
     x, y, w, h = cv2.boundingRect(m)
     sub = (m[y:y + h, x:x + w] != 0).astype(np.float32)
-    per_row = sub.sum(axis=1)
+    # each row's count and column sum in one matrix product (whole numbers below 2^24: exact in
+    # float32, in any order; a third of the time of a sum and a product)
+    weights = np.empty((w, 2), np.float32)
+    weights[:, 0] = 1.0
+    weights[:, 1] = np.arange(w, dtype=np.float32)
+    sums = sub @ weights
+    per_row = sums[:, 0]
     rows = np.nonzero(per_row)[0]
     n = len(rows)
     if n < 2:
         return None
-    # (the row counts and column sums are whole numbers below 2^24: exact in float32, in any order)
-    mean_u = (sub @ np.arange(w, dtype=np.float32))[rows].astype(np.float64) / per_row[rows]
+    mean_u = sums[rows, 1].astype(np.float64) / per_row[rows]
     r = rows.astype(np.float64)
     rm, um = np.add.reduce(r) / n, np.add.reduce(mean_u) / n  # (r.mean(), mean_u.mean())
     slope = float(np.dot(r - rm, mean_u - um) / np.dot(r - rm, r - rm))
