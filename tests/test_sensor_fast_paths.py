@@ -269,3 +269,20 @@ def test_lidar_per_edge_compiled_and_python_agree(fov):
     _kernels.lidar_scan_edges(*args, a)
     _kernels.lidar_scan_edges.py_func(*args, b)
     assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("gain", [1.0, 1.3])
+def test_a_frame_drawn_in_pieces_is_the_frame_drawn_whole(gain):
+    """The track's wall spans the view (its rows are copies of its bytes made once a frame, its
+    depths of its columns' once a frame): rows drawn a few at a time, starting and ending inside
+    the wall's rows, the floor's and between, give the whole frame's pixels, noise and exposure
+    on."""
+    world = load_world("track")
+    pose = (0.2, -1.7, 0.1)
+    whole = RGBDCamera(world, P, np.random.default_rng(7)).render(pose, 0.5, gain)
+    rows = RGBDCamera(world, P, np.random.default_rng(7)).render_rows(pose, 0.5, gain)
+    for a, b in ((100, 101), (5, 90), (250, 300), (0, 3), (400, 480), (90, 250), (300, 400)):
+        assert np.array_equal(rows.color_rows(a, b), whole.color[a:b]), (a, b)
+        assert np.array_equal(rows.depth_rows(a, b), whole.depth[a:b]), (a, b)
+    assert np.array_equal(rows.color, whole.color) and np.array_equal(rows.depth, whole.depth)
+    assert (whole.depth[:100] > 0).any()  # the wall, near enough to be measured (in part)
