@@ -1520,8 +1520,10 @@ def _bilinear(p00, p01, p10, p11, wx, wy):
 def _gain_word(p, lut):
     """A packed pixel's B, G, R bytes through ``lut`` (256 values: the exposure's
     saturate(rint(gain c)), see ``camera.exposure_lut``), its top byte kept."""
-    q = np.int64(p)
-    return np.uint32((q & 0xFF000000) | lut[q & 255] | (lut[(q >> 8) & 255] << 8) | (lut[(q >> 16) & 255] << 16))
+    q = np.uint64(p)  # (unsigned: the table is read without numba's fix-up for a negative index)
+    m = np.uint64(255)
+    return np.uint32((np.int64(q) & 0xFF000000) | lut[q & m] | (lut[(q >> np.uint64(8)) & m] << 8)
+                     | (lut[(q >> np.uint64(16)) & m] << 16))
 
 
 @njit(**_JIT)
