@@ -1569,6 +1569,8 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
     last_out = _gain_word(last_in, lut) if gained else last_in
     n = 0
     u = 0
+    # (indices unsigned where they are known not to be negative: numba then reads and writes
+    # without its fix-up for a negative index, a good part of the gather's time)
     twu = np.uint64(tw)
     one = np.uint64(1)
     while u < W:
@@ -1619,7 +1621,6 @@ def _floor_row(crow, v, flo, tex, sq, off, tw, th, X0, dX, Y0, dY, bg, bu, b00, 
             b01[nn] = _texel(tex, off, tw, th, ix + 1, iy, bg)
             b10[nn] = _texel(tex, off, tw, th, ix, iy + 1, bg)
             b11[nn] = _texel(tex, off, tw, th, ix + 1, iy + 1, bg)
-        nn = np.uint64(n)
         bwx[nn] = (X >> 8) & 255
         bwy[nn] = (Y >> 8) & 255
         bu[nn] = u
