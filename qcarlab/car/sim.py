@@ -291,10 +291,10 @@ class SimCar(Car):
         LIDAR's compiled scan ready: its first call compiles it after an install (some 2.5 s, in
         passes of LLVM's that hold the GIL 0.1-0.25 s each) or loads it from numba's cache, which
         a server (whose watchdog needs the GIL) does here, before it listens, not in a client's
-        first LIDAR read."""
+        first LIDAR read. (Building the cameras switched the physics and the scans to their
+        compiled kernels: :meth:`_sensor`.)"""
         for kind in ("lidar", "rgbd", "csi"):
             self._sensor(kind)
-        _warm_physics(self.params)
         self._sensors["lidar"].true_ranges((0.0, 0.0, 0.0))  # (exact ranges: no noise drawn, nothing kept)
 
     def warm_physics(self) -> None:
