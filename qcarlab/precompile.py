@@ -6,7 +6,7 @@ instead of one. The warm server (:mod:`qcarlab.warm`), which a student's first `
 at a terminal starts in the background (``--help``, ``labs``, ``template`` or a lab), runs this
 first when the cache is cold, so the lab that follows finds every kernel compiled::
 
-    python -m qcarlab.precompile      # some 18-20 s on a 2-core VM; nothing to compile: 1.5 s
+    python -m qcarlab.precompile      # 15-19 s on a 2-core VM (2026-12-06); nothing to compile: 1.5 s
 
 It draws what the labs draw, in each built-in world kind and realism profile: one RGBD frame,
 one LIDAR scan and the four CSI views at the world's start, a few physics steps (the compiled

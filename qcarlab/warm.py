@@ -28,7 +28,7 @@ terminal (stdin and stdout are terminals). The first such command runs cold and 
 in the background (so do ``qcarlab`` alone, its help and version, ``labs`` and ``template`` at a
 terminal: what a student types before a lab's first command); it serves the later ones and
 leaves after 20 idle minutes (``QCARLAB_WARM_IDLE``, seconds). After an install, numba's cache is
-empty: the server compiles the simulator's kernels first (:mod:`qcarlab.precompile`, 20-30 s
+empty: the server compiles the simulator's kernels first (:mod:`qcarlab.precompile`, 15-30 s
 in the background), so the labs typed once it is warm do not (some 13 s of a first
 ``stop-sign``); a simulator's lab typed meanwhile waits for it, saying so (at most 2 minutes),
 rather than compile the same kernels beside it.
@@ -348,7 +348,7 @@ def compiling(where: Place) -> bool:
 
 def wait_starting(where: Place, timeout: float = START_TIMEOUT, hint: str = "") -> socket.socket | None:
     """:func:`wait_ready`, saying at a terminal (stdin, stdout and stderr) why while the server
-    compiles the kernels (once after an install, 20-30 s): ``qcarlab: waiting for the warm
+    compiles the kernels (once after an install, 15-30 s): ``qcarlab: waiting for the warm
     server, which compiles ...`` and, when it answers, ``ready after N s`` (or ``gave up``). A
     server that warms up without compiling (a second or two) is waited for without a word.
     ``hint``: what else the user may do, in the line's brackets. Ctrl-C ends the line and goes
@@ -367,7 +367,7 @@ def wait_starting(where: Place, timeout: float = START_TIMEOUT, hint: str = "") 
             if tell and not said and compiling(where):
                 said = True
                 sys.stderr.write("qcarlab: waiting for the warm server, which compiles the simulator's kernels once "
-                                 f"after an install (20-30 s; Ctrl-C stops{hint})...")
+                                 f"after an install (15-30 s; Ctrl-C stops{hint})...")
                 sys.stderr.flush()
     except KeyboardInterrupt:
         if said:

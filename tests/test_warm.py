@@ -243,7 +243,7 @@ def compiling():
 
 
 def test_at_a_terminal_a_lab_typed_while_the_server_compiles_waits_for_it_and_says_why(compiling):
-    """After an install the server compiles the kernels first (20-30 s): a simulator's lab typed
+    """After an install the server compiles the kernels first (15-30 s): a simulator's lab typed
     then would compile the same kernels beside it, so it waits for the server instead, saying
     why; a command that uses no kernels (path-gen) does not wait."""
     import threading

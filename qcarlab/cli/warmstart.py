@@ -29,7 +29,7 @@ def warm_cmd(
     every cold start) are already loaded, and the output, files and exit status are a cold run's.
     The first lab command at a terminal starts it by itself (so do qcarlab --help, labs and
     template, typed before a lab's first command); this starts it now and waits until it is warm.
-    After an install it compiles the simulator's kernels first (some 20-30 s, once), so that the
+    After an install it compiles the simulator's kernels first (some 15-30 s, once), so that the
     labs do not: a simulator's lab typed meanwhile waits for it and says so. It is yours alone,
     serves this install and environment, and leaves after 20 idle minutes (QCARLAB_WARM_IDLE,
     seconds). QCARLAB_WARM=0 runs every command cold; QCARLAB_WARM=1 uses it in scripts too (off a
