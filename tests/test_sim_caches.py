@@ -49,6 +49,36 @@ def test_a_cached_raster_is_the_built_one(tmp_path, monkeypatch):
     assert len(list(tmp_path.glob("raster-*"))) == 2
 
 
+def test_a_cameras_noise_tiles_from_the_disk_are_the_drawn_ones_and_leave_the_generator_as_drawing_does(
+        tmp_path, monkeypatch):
+    """The tiles as ``rng.normal`` and the float32 standard normals drew them (the formula before the
+    cache), the same whether drawn or read back, and the generator left where the draws leave it
+    (the frames' noise windows come from it next); another seed, another entry."""
+    from qcarlab.sim import camera
+
+    monkeypatch.setenv(raster.CACHE_ENV, str(tmp_path))
+    shape = (100 + camera._NOISE_PAD, 80 + camera._NOISE_PAD)
+    for seed in (3, 3, 4):
+        ref = np.random.default_rng(seed)
+        ref.random(5)
+        tile = np.clip(np.rint(ref.normal(0.0, camera.COLOR_NOISE_SD, shape + (3,))), -127, 127).astype(np.int8)
+        depth = np.clip(np.rint(ref.standard_normal(shape, dtype=np.float32) / camera.DEPTH_TILE_STEP), -127,
+                        127).astype(np.int8)
+        rng = np.random.default_rng(seed)
+        rng.random(5)
+        noise = camera._Noise(rng, 100, 80, camera.COLOR_NOISE_SD, True)
+        assert np.array_equal(noise.tile, tile.reshape(shape[0], -1)) and np.array_equal(noise.depth, depth)
+        assert rng.random(4).tolist() == ref.random(4).tolist()
+    assert len(list(tmp_path.glob("noise-*"))) == 2
+    # noise entries are kept in a pool of their own: many seeds never push a floor or raster out
+    monkeypatch.setattr(raster, "OWN_POOL", {"noise": 2})
+    monkeypatch.setattr(raster, "KEEP", 1)
+    raster.build_raster(load_world("hallway"), z=0.2)
+    for seed in (5, 6, 7):
+        camera._Noise(np.random.default_rng(seed), 20, 10, camera.COLOR_NOISE_SD, False)
+    assert len(list(tmp_path.glob("noise-*"))) == 2 and len(list(tmp_path.glob("raster-*"))) == 1
+
+
 def test_the_compiled_collision_check_gives_the_numpy_ones_numbers():
     """Clearance runs numba's kernel once numba is loaded (the sensors load it), else numpy: the
     same distances and pieces, bit for bit, on random poses in every kind of world."""

@@ -61,7 +61,9 @@ it up). Noise comes from precomputed tiles at random offsets.
 
 from __future__ import annotations
 
+import json
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -136,22 +138,67 @@ def _sprites() -> tuple[np.ndarray, np.ndarray]:
     return _SPRITES
 
 
+@dataclass(frozen=True)
+class NoiseTiles:
+    """A camera's noise tiles and the state its generator is left in after drawing them."""
+
+    tile: np.ndarray  # int8 (rows, 3 columns): rint(N(0, color_sd)), clipped to +-127
+    depth: np.ndarray  # int8 (rows, columns): rint(N(0, 1) / DEPTH_TILE_STEP), clipped; (0, 0) when none
+    after: str  # the generator's state after the draws, as JSON
+
+
+def _draw_tiles(rng: np.random.Generator, shape: tuple[int, int], color_sd: float, depth: bool) -> NoiseTiles:
+    """The tiles drawn from ``rng``: ``color_sd * z`` for the colour (what ``rng.normal(0,
+    color_sd)`` draws), then the depth's standard normals as float32."""
+    n = np.empty(shape + (3,))
+    rng.standard_normal(out=n)
+    n *= color_sd
+    # rint(n) as int8, (rows, 3 columns) bytes: a pixel gets clip(c + rint(n)), what adding
+    # the tile's + part and subtracting its - part (two saturating passes) gave, in one pass
+    # of half the bytes (:func:`~qcarlab.sim._kernels.color_noise`)
+    np.rint(n, out=n)
+    np.clip(n, -127.0, 127.0, out=n)
+    tile = n.astype(np.int8).reshape(shape[0], -1)
+    # depth: standard normal in int8 steps of DEPTH_TILE_STEP (a quarter of the float32
+    # tile's bytes: the tile stays in the cache beside the frame)
+    d = np.zeros((0, 0), np.int8)
+    if depth:
+        z = rng.standard_normal(shape, dtype=np.float32)
+        z /= np.float32(DEPTH_TILE_STEP)
+        np.rint(z, out=z)
+        np.clip(z, np.float32(-127.0), np.float32(127.0), out=z)
+        d = z.astype(np.int8)
+    return NoiseTiles(tile, d, json.dumps(rng.bit_generator.state))
+
+
+def noise_tiles(rng: np.random.Generator, shape: tuple[int, int], color_sd: float, depth: bool) -> NoiseTiles:
+    """:func:`_draw_tiles`, kept on disk (:func:`qcarlab.sim.raster.on_disk`) under the generator's
+    state and the code that draws them, and ``rng`` left as the draws leave it: the same tiles and
+    the same generator afterwards, without drawing a million normals (some 15 ms, 30-50 ms with the
+    fresh pages of a new process) each time a camera is made with the same seed."""
+    state = rng.bit_generator.state
+    try:
+        before = json.dumps(state, sort_keys=True)
+    except TypeError:  # a generator whose state is not plain numbers: drawn each time
+        return _draw_tiles(rng, shape, color_sd, depth)
+    code = _draw_tiles.__code__
+    key = ("noise", shape, float(color_sd), bool(depth))
+    tiles = raster_kinds.on_disk(NoiseTiles, key, (before, code.co_code, repr(code.co_consts)),
+                                 lambda: _draw_tiles(rng, shape, color_sd, depth))
+    rng.bit_generator.state = json.loads(tiles.after)  # (already so when they were drawn just now)
+    return tiles
+
+
 class _Noise:
-    """Precomputed noise tiles; each frame takes a window at an offset drawn from the rng."""
+    """Precomputed noise tiles (:func:`noise_tiles`); each frame takes a window at an offset drawn
+    from the rng."""
 
     def __init__(self, rng: np.random.Generator, w: int, h: int, color_sd: float, depth: bool):
         self.rng = rng
         self.w, self.h = w, h
-        shape = (w + _NOISE_PAD, h + _NOISE_PAD)
-        n = rng.normal(0.0, color_sd, shape + (3,))
-        # rint(n) as int8, (rows, 3 columns) bytes: a pixel gets clip(c + rint(n)), what adding
-        # the tile's + part and subtracting its - part (two saturating passes) gave, in one pass
-        # of half the bytes (:func:`~qcarlab.sim._kernels.color_noise`)
-        self.tile = np.clip(np.rint(n), -127, 127).astype(np.int8).reshape(shape[0], -1)
-        # depth: standard normal in int8 steps of DEPTH_TILE_STEP (a quarter of the float32
-        # tile's bytes: the tile stays in the cache beside the frame)
-        self.depth = (np.clip(np.rint(rng.standard_normal(shape, dtype=np.float32) / DEPTH_TILE_STEP), -127, 127)
-                      .astype(np.int8) if depth else None)
+        tiles = noise_tiles(rng, (w + _NOISE_PAD, h + _NOISE_PAD), color_sd, depth)
+        self.tile = tiles.tile
+        self.depth = tiles.depth if depth else None
 
     def windows(self) -> list[int]:
         """This frame's window offsets: (row, col) for the colour's tiles, (unused), then depth's.

@@ -246,6 +246,9 @@ def _floor_runs(world: World, px_per_m: float, levels: int) -> FloorRuns:
 # --------------------------------------------------------------------------------------------
 CACHE_ENV = "QCARLAB_CACHE"  #: a folder for the cache ("off": none); default ~/.cache/qcarlab
 KEEP = 48  #: entries kept on disk (a floor is about 17 MB, a raster 2-9 MB), the most recently made
+#: kinds of entries kept in a pool of their own, and how many: a camera's noise tiles (1.5 MB, one
+#: per seed used) never push a world's floor or raster out
+OWN_POOL = {"noise": 16}
 
 
 def cache_folder() -> Path | None:
@@ -298,9 +301,11 @@ def on_disk(cls: type, key: tuple, inputs: tuple, build: Any) -> Any:
             tmp = None
         except OSError:
             pass
-        kept = sorted((p for p in folder.iterdir() if not p.name.startswith(".")),
+        kind = key[0] if key[0] in OWN_POOL else None  # entries counted with those of their pool only
+        kept = sorted((p for p in folder.iterdir() if not p.name.startswith(".")
+                       and (p.name.partition("-")[0] if p.name.partition("-")[0] in OWN_POOL else None) == kind),
                       key=lambda p: p.stat().st_mtime, reverse=True)
-        for old in kept[KEEP:]:  # those of worlds (or of code) not used for a while
+        for old in kept[OWN_POOL.get(kind, KEEP):]:  # those of worlds (or of code) not used for a while
             shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
     except OSError:
         pass  # a read-only or full home: made each run, as before
