@@ -39,6 +39,7 @@ import numpy as np
 from qcarlab.blocks import unwatch
 from qcarlab.car.base import Car, Command, Readout
 from qcarlab.errors import CarError, InputError
+from qcarlab.heap import keep_heap
 
 _log = logging.getLogger("qcarlab")
 
@@ -123,6 +124,7 @@ def run_loop(
         raise InputError(f"duration must be a positive number of seconds, got {duration}")
     period = 1.0 / check_rate(rate)
     n_ticks = max(1, round(duration * rate))
+    keep_heap()  # a camera's frames from the heap, not fresh pages each (qcarlab.heap)
     log = LoopLog()
     cols = log.columns
     step = _caller(model)
