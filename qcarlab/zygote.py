@@ -49,7 +49,8 @@ def warm_up(modules: tuple[str, ...] = MODULES) -> None:
     click group (every command's parser), numba and the compiled physics, every kernel numba has
     compiled code for in its cache (:func:`load_cached_kernels`), the avoidance controller's kernels
     (compiled if they never were: :func:`qcarlab.control._kernels.warm`), the sandbox's libc and its probe
-    (:func:`qcarlab.sandbox.jail.probe`), matplotlib's Agg canvas with its fonts. No OpenCV call,
+    (:func:`qcarlab.sandbox.jail.probe`), matplotlib's Agg canvas with its fonts, glibc's heap
+    thresholds (:func:`qcarlab.heap.keep_heap`). No OpenCV call,
     no sensor frame, no thread. What fails here is left for the forked process to load itself.
 
     The cyclic garbage collector is paused meanwhile: the imports make objects by the hundred
@@ -69,6 +70,9 @@ def warm_up(modules: tuple[str, ...] = MODULES) -> None:
 def _warm_up(modules: tuple[str, ...]) -> None:
     import importlib
 
+    from qcarlab.heap import keep_heap
+
+    keep_heap()  # every forked process (a lab, a graded task, the student's process) reuses its heap
     for name in modules:
         try:
             importlib.import_module(name)
