@@ -70,6 +70,16 @@ def test_a_cameras_noise_tiles_from_the_disk_are_the_drawn_ones_and_leave_the_ge
         assert np.array_equal(noise.tile, tile.reshape(shape[0], -1)) and np.array_equal(noise.depth, depth)
         assert rng.random(4).tolist() == ref.random(4).tolist()
     assert len(list(tmp_path.glob("noise-*"))) == 2
+    # a damaged entry's generator state: the tiles drawn again, the generator as drawing leaves it
+    for entry in tmp_path.glob("noise-*"):
+        np.save(entry / "after.npy", np.asarray("not json"), allow_pickle=False)
+    rng, ref = np.random.default_rng(3), np.random.default_rng(3)
+    rng.random(5)
+    ref.random(5)
+    tile = np.clip(np.rint(ref.normal(0.0, camera.COLOR_NOISE_SD, shape + (3,))), -127, 127).astype(np.int8)
+    ref.standard_normal(shape, dtype=np.float32)
+    noise = camera._Noise(rng, 100, 80, camera.COLOR_NOISE_SD, True)
+    assert np.array_equal(noise.tile, tile.reshape(shape[0], -1)) and rng.random() == ref.random()
     # noise entries are kept in a pool of their own: many seeds never push a floor or raster out
     monkeypatch.setattr(raster, "OWN_POOL", {"noise": 2})
     monkeypatch.setattr(raster, "KEEP", 1)

@@ -182,10 +182,13 @@ def noise_tiles(rng: np.random.Generator, shape: tuple[int, int], color_sd: floa
     except TypeError:  # a generator whose state is not plain numbers: drawn each time
         return _draw_tiles(rng, shape, color_sd, depth)
     code = _draw_tiles.__code__
-    key = ("noise", shape, float(color_sd), bool(depth))
+    key = ("noise", shape, float(color_sd), bool(depth), DEPTH_TILE_STEP)
     tiles = raster_kinds.on_disk(NoiseTiles, key, (before, code.co_code, repr(code.co_consts)),
                                  lambda: _draw_tiles(rng, shape, color_sd, depth))
-    rng.bit_generator.state = json.loads(tiles.after)  # (already so when they were drawn just now)
+    try:
+        rng.bit_generator.state = json.loads(tiles.after)  # (already so when they were drawn just now)
+    except (ValueError, TypeError, KeyError):  # a damaged entry: the generator is still as it was
+        return _draw_tiles(rng, shape, color_sd, depth)
     return tiles
 
 
