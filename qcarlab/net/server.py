@@ -55,6 +55,7 @@ from typing import Any
 from qcarlab.car.base import Car, Readout
 from qcarlab.car.lamps import parse_lamps
 from qcarlab.errors import CarError, InputError, NotBuiltError, QcarlabError
+from qcarlab.heap import keep_heap
 from qcarlab.wire import protocol as P
 from qcarlab.net.guard import RefusalLog, TokenGuard, token_matches, token_problem
 from qcarlab.wire.protocol import MsgType as M
@@ -352,6 +353,7 @@ class CarServer:
         background threads; returns self. Nothing listens before the car can answer."""
         if self._started:
             return self
+        keep_heap()  # the frames it reads and sends from the heap, not fresh pages each (qcarlab.heap)
         listener = self._bind()
         bound = listener.getsockname()
         if not address_is_loopback(bound[0]) and not self.token:
