@@ -251,6 +251,11 @@ KEEP = 48  #: entries kept on disk (a floor is about 17 MB, a raster 2-9 MB), th
 OWN_POOL = {"noise": 16}
 
 
+def _pool(kind: str) -> str | None:
+    """The pool an entry of ``kind`` is counted in: its own (:data:`OWN_POOL`), else None (the worlds')."""
+    return kind if kind in OWN_POOL else None
+
+
 def cache_folder() -> Path | None:
     where = os.environ.get(CACHE_ENV, "")
     if where.lower() == "off":
@@ -301,11 +306,11 @@ def on_disk(cls: type, key: tuple, inputs: tuple, build: Any) -> Any:
             tmp = None
         except OSError:
             pass
-        kind = key[0] if key[0] in OWN_POOL else None  # entries counted with those of their pool only
+        pool = _pool(key[0])  # entries counted with those of their pool only
         kept = sorted((p for p in folder.iterdir() if not p.name.startswith(".")
-                       and (p.name.partition("-")[0] if p.name.partition("-")[0] in OWN_POOL else None) == kind),
+                       and _pool(p.name.partition("-")[0]) == pool),
                       key=lambda p: p.stat().st_mtime, reverse=True)
-        for old in kept[OWN_POOL.get(kind, KEEP):]:  # those of worlds (or of code) not used for a while
+        for old in kept[OWN_POOL.get(pool, KEEP):]:  # those of worlds (or of code) not used for a while
             shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
     except OSError:
         pass  # a read-only or full home: made each run, as before
